@@ -1,0 +1,51 @@
+"""The ``arcade`` command line.
+
+Each subcommand is a module in ``arcade.commands`` exposing ``HELP`` (one line),
+``add_arguments(parser)`` and ``run(args) -> int``. Heavy imports (JAX, MuJoCo, Zenoh)
+happen inside ``run`` so that ``arcade --help`` stays instant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Order is the order shown by `arcade --help`.
+COMMANDS: tuple[str, ...] = (
+    "demo",
+    "train",
+    "eval",
+    "bench",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="arcade",
+        description=(
+            "ARCADE: adaptive robot control with online changepoint-aware Bayesian "
+            "dynamics learning."
+        ),
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMANDS:
+        module = importlib.import_module(f"arcade.commands.{name.replace('-', '_')}")
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
