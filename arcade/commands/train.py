@@ -1,0 +1,44 @@
+"""`arcade train --system cartpole|quadrotor` — offline VLD training (Sec. III-A, Eq. 3)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+HELP = "offline training of the VLD encoder and decoder prior; writes a weights file"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--system", required=True, choices=["cartpole"], help="which system's model to train"
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="weights file to write (default: the shipped file under deploy/weights/)",
+    )
+    p.add_argument("--epochs", type=int, default=None, help="override the Appendix D epochs")
+    p.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="train the deterministic (MAP) encoder of Appendix E instead",
+    )
+    p.add_argument("--seed", type=int, default=0)
+
+
+def run(args: argparse.Namespace) -> int:
+    from arcade import jaxsetup
+
+    jaxsetup.configure()
+    from arcade import training
+
+    if args.epochs is not None and args.epochs < 1:
+        print("--epochs must be at least 1", file=sys.stderr)
+        return 2
+    path = training.train_cartpole(
+        out=args.out, epochs=args.epochs, variational=not args.deterministic, seed=args.seed
+    )
+    print(f"wrote {path}")
+    return 0

@@ -1,0 +1,618 @@
+"""Changepoint-aware beam Bayesian linear regression for the decoder (Sec. III, Algorithm 1).
+
+The residual model is ``delta_k = theta z_k + eps_k`` with ``eps_k ~ N(0, diag(sigma^2))``
+(Eq. 4). Every output row ``theta^j`` has a Gaussian posterior per hypothesis ``h`` of a
+beam of ``K`` changepoint histories. One step of Algorithm 1:
+
+1. predict with the beam mixture (Eq. 9, Sec. IV ``sigma_tot``);
+2. for every hypothesis and both branches ``c_k in {0, 1}`` (tempering ``gamma in
+   {1, beta^2}``, Eq. 5) evaluate the marginal likelihood (Eq. 7), the changepoint
+   posterior (Eq. 8) and the candidate score (Lemma 2);
+3. keep the top-``K`` of the ``2K`` candidates and apply the posterior update (Eq. 6)
+   to the survivors only. The update of a candidate depends on its parent and branch
+   alone, so pruning before updating gives the same beam at half the work.
+
+Numerics. Each covariance is carried as a square root ``W`` with ``Sigma = W W^T``
+(``BeamState.sqrt_covariances``) and updated with Potter's rank-one square-root form
+[Potter 1963], the textbook numerically robust form of the Sherman--Morrison update of
+Eq. 6: the covariance stays symmetric positive semi-definite by construction, also in
+float32, and the update costs the same ``O(l^2)`` as Sherman--Morrison. The
+covariance itself is ``BeamState.covariances``. Eq. 6 shows that ``Sigma^j`` depends on
+the prior ``tau^2 I``, the features ``z`` and ``sigma_j^2`` but not on the residuals, so
+when all outputs share one noise variance (scalar ``sigma2``, as in both Appendix D
+presets) every output has the same covariance: the state then stores one square root per
+hypothesis, ``(K, 1, l, l)``, instead of ``d`` identical copies.
+
+Scores are stored shifted by a common constant so that the best one is ``0``
+(``log_offset`` keeps the shift): softmax weights (Eq. 9) and top-``K`` pruning are
+invariant to the shift, and float32 scores do not lose resolution as the raw cumulative
+log-likelihood grows without bound.
+
+Conventions. ``K`` is static and is read from the state's shapes by every function except
+:func:`init`; all other hyperparameters are traced, so changing them does not recompile.
+Step ``k`` counts processed observations (``0`` after :func:`init`). Unused beam slots
+(Algorithm 1 line 2 starts with a single hypothesis) carry the prior with a ``-inf``
+score: they get zero weight and are displaced by real candidates first.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+from jax.typing import ArrayLike
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+class AdaptationConfig(NamedTuple):
+    """Hyperparameters of Algorithm 1 (Appendix D, "Online Inference" tables).
+
+    ``K`` (beam size) is a static Python int used only by :func:`init`; the others may be
+    Python floats or arrays and are traced under ``jit``. ``beta`` is the temperature of
+    Eq. 5 (``gamma = beta^2`` on a changepoint). ``sigma2`` is a scalar or per-output
+    ``(d,)`` observation-noise variance.
+    """
+
+    K: int
+    pi: ArrayLike
+    beta: ArrayLike
+    tau2: ArrayLike
+    sigma2: ArrayLike
+
+
+def quadrotor_config() -> AdaptationConfig:
+    """Quadrotor preset (Appendix D, quadrotor "Online Inference" table)."""
+    return AdaptationConfig(K=15, pi=0.05, beta=0.997, tau2=0.1, sigma2=0.1)
+
+
+def cartpole_config() -> AdaptationConfig:
+    """Cartpole preset (Appendix D, cartpole "Online Inference" table)."""
+    return AdaptationConfig(K=5, pi=0.05, beta=0.9, tau2=0.1, sigma2=0.1)
+
+
+class BeamState(NamedTuple):
+    """Beam of ``K`` changepoint hypotheses over ``d`` outputs with ``l`` latent features.
+
+    Attributes:
+        means: ``(K, d, l)`` posterior means ``mu_{k,h}^j``.
+        sqrt_covariances: ``(K, d_c, l, l)`` square roots ``W`` with ``Sigma = W W^T``;
+            ``d_c = 1`` (shared by all outputs) when the state was initialised with a
+            scalar ``sigma2``, else ``d_c = d``.
+        log_scores: ``(K,)`` cumulative scores ``L_{k,h}`` (Lemma 2) minus ``log_offset``;
+            ``-inf`` marks an unused slot.
+        log_offset: ``()`` common shift; the raw score is ``log_scores + log_offset``.
+        num_changepoints: ``(K,)`` int32, changepoints on the hypothesis' path.
+        last_changepoint: ``(K,)`` int32, step of its latest changepoint (``-1``: none).
+        is_changepoint: ``(K,)`` bool, whether its latest step took ``c_k = 1``.
+        step: ``()`` int32, number of processed observations ``k``.
+        sigma2: ``(d,)`` observation-noise variances ``sigma_j^2`` of the latest update
+            (set by :func:`init`, refreshed from ``config`` by :func:`update`), so that
+            :func:`predict` needs only the state.
+    """
+
+    means: Array
+    sqrt_covariances: Array
+    log_scores: Array
+    log_offset: Array
+    num_changepoints: Array
+    last_changepoint: Array
+    is_changepoint: Array
+    step: Array
+    sigma2: Array
+
+    @property
+    def covariances(self) -> Array:
+        """``(K, d, l, l)`` posterior covariances ``Sigma_{k,h}^j = W W^T`` (Eq. 6)."""
+        w = self.sqrt_covariances
+        cov = jnp.einsum("...ij,...kj->...ik", w, w)
+        cov = 0.5 * (cov + jnp.swapaxes(cov, -1, -2))  # exactly symmetric, not just to rounding
+        K, d, l = self.means.shape
+        return jnp.broadcast_to(cov, (K, d, l, l))
+
+    @property
+    def weights(self) -> Array:
+        """``(K,)`` beam weights ``w_h = softmax(L_{k,h})`` (Eq. 9)."""
+        return jax.nn.softmax(self.log_scores)
+
+    @property
+    def raw_log_scores(self) -> Array:
+        """``(K,)`` cumulative scores ``L_{k,h}`` exactly as Algorithm 1 accumulates them."""
+        return self.log_scores + self.log_offset
+
+
+class Prediction(NamedTuple):
+    """Beam-marginal one-step prediction of the residual (Eq. 9, Sec. IV), all ``(d,)``.
+
+    ``variance = param + between + noise + encoder``: the variance of the Eq. 9 mixture,
+    plus the first-order encoder term when an encoder variance is given.
+    ``sigma_tot2 = encoder + param + between`` is the Sec. IV quantity that modulates the
+    MPC cost; as in the paper it excludes the observation noise ``sigma_j^2``, which no
+    amount of caution in the controller can reduce.
+    """
+
+    mean: Array
+    param: Array
+    between: Array
+    noise: Array
+    encoder: Array
+    sigma_tot2: Array
+    variance: Array
+
+
+class UpdateInfo(NamedTuple):
+    """Diagnostics of one update of Algorithm 1.
+
+    Attributes:
+        p_change: ``(K,)`` Eq. 8 changepoint posterior of each previous hypothesis.
+        cp_prob: ``()`` beam-weighted changepoint posterior ``sum_h w_h p_h(c_k=1|.)``.
+        cp_mass: ``()`` weight of the new beam on hypotheses whose latest step is a
+            changepoint.
+        changepoint: ``()`` bool detection flag: the latest changepoint on the new MAP path
+            is later than the latest changepoint on the previous MAP path, i.e. the most
+            probable history has gained a changepoint (possibly dated a few steps back
+            when the evidence needed a few observations to accumulate;
+            ``map_last_changepoint`` dates it).
+        map_last_changepoint: ``()`` int32, latest changepoint step on the new MAP path
+            (``-1``: none).
+        log_evidence: ``()`` one-step log predictive density of ``delta_k`` under the
+            beam and the changepoint prior,
+            ``log sum_h w_h [pi p(delta|c=1,h) + (1 - pi) p(delta|c=0,h)]`` (App. "LRT").
+    """
+
+    p_change: Array
+    cp_prob: Array
+    cp_mass: Array
+    changepoint: Array
+    map_last_changepoint: Array
+    log_evidence: Array
+
+
+# ----------------------------------------------------------------------------- init
+
+
+def init(theta0: ArrayLike, config: AdaptationConfig) -> BeamState:
+    """Algorithm 1 lines 1-2: ``mu_0^j = theta_0^j``, ``Sigma_0^j = tau^2 I``, one hypothesis.
+
+    The dtype of ``theta0`` (float32 or float64) is the dtype of the state. ``config.K``
+    must be a concrete Python int. A scalar ``config.sigma2`` gives a state whose outputs
+    share one covariance per hypothesis (exact, see the module notes); a ``(d,)`` one
+    gives per-output covariances.
+    """
+    theta0 = jnp.asarray(theta0)
+    if not jnp.issubdtype(theta0.dtype, jnp.floating):
+        theta0 = theta0.astype(jnp.result_type(float))
+    dtype = theta0.dtype
+    d, l = theta0.shape
+    K = int(config.K)
+    d_cov = 1 if jnp.ndim(config.sigma2) == 0 else d
+    tau = jnp.sqrt(jnp.asarray(config.tau2, dtype))
+    eye = jnp.eye(l, dtype=dtype) * tau
+    scores = jnp.full((K,), -jnp.inf, dtype).at[0].set(0.0)
+    return BeamState(
+        means=jnp.broadcast_to(theta0, (K, d, l)),
+        sqrt_covariances=jnp.broadcast_to(eye, (K, d_cov, l, l)),
+        log_scores=scores,
+        log_offset=jnp.zeros((), dtype),
+        num_changepoints=jnp.zeros((K,), jnp.int32),
+        last_changepoint=jnp.full((K,), -1, jnp.int32),
+        is_changepoint=jnp.zeros((K,), bool),
+        step=jnp.zeros((), jnp.int32),
+        sigma2=_noise(config.sigma2, d, dtype),
+    )
+
+
+# ------------------------------------------------------------------------- predict
+
+
+class _Projections(NamedTuple):
+    """Per-hypothesis projections of the state onto a latent input ``z``."""
+
+    a: Array  # (K, d_c, l)  W^T z
+    b: Array  # (K, d_c, l)  Sigma z = W W^T z
+    q: Array  # (K, d_c)     z^T Sigma z
+    m: Array  # (K, d)       z^T mu
+
+
+def _project(state: BeamState, z: Array) -> _Projections:
+    w = state.sqrt_covariances
+    # Broadcasting z to a batched mat-vec is several times faster on CPU than the
+    # equivalent single contraction against an unbatched z.
+    zb = jnp.broadcast_to(z, w.shape[:-1])
+    a = jnp.einsum("kdji,kdj->kdi", w, zb)
+    b = jnp.einsum("kdij,kdj->kdi", w, a)
+    q = jnp.sum(a * a, axis=-1)
+    m = state.means @ z
+    return _Projections(a, b, q, m)
+
+
+def _noise(sigma2: ArrayLike, d: int, dtype) -> Array:
+    return jnp.broadcast_to(jnp.asarray(sigma2, dtype), (d,))
+
+
+def _encoder_term(state: BeamState, weights: Array, sigma_z2: ArrayLike | None) -> Array:
+    """Sec. IV encoder term ``(sigma_z^2)^T (sum_h w_h mu_h^j . mu_h^j)`` per output."""
+    if sigma_z2 is None:
+        return jnp.zeros(state.means.shape[1], state.means.dtype)
+    sz = jnp.asarray(sigma_z2, state.means.dtype)
+    second = jnp.einsum("k,kdi->di", weights, state.means * state.means)
+    return second @ jnp.broadcast_to(sz, state.means.shape[-1:])
+
+
+def _mixture(state: BeamState, proj: _Projections, sigma_z2: ArrayLike | None) -> Prediction:
+    w = jax.nn.softmax(state.log_scores)
+    mean = w @ proj.m
+    param = jnp.broadcast_to(w @ proj.q, mean.shape)
+    between = w @ jnp.square(proj.m - mean)
+    noise = state.sigma2
+    encoder = _encoder_term(state, w, sigma_z2)
+    tot = encoder + param + between
+    return Prediction(mean, param, between, noise, encoder, tot, tot + noise)
+
+
+def predict(state: BeamState, z: ArrayLike, sigma_z2: ArrayLike | None = None) -> Prediction:
+    """Beam-marginal predictive distribution of the residual at latent input ``z`` (Eq. 9).
+
+    With weights ``w_h = softmax(L_{k,h})`` and ``m_j = sum_h w_h z^T mu_h^j`` the mixture
+    variance splits into ``param = sum_h w_h z^T Sigma_h^j z``, ``between = sum_h w_h
+    (z^T mu_h^j - m_j)^2`` and ``noise = sigma_j^2``; ``encoder`` is the Sec. IV term
+    ``(sigma_z^2)^T sum_h w_h mu_h^j . mu_h^j`` (zero when ``sigma_z2`` is None) and
+    ``sigma_tot2`` is Sec. IV's total (see :class:`Prediction`).
+
+    Args:
+        state: the beam.
+        z: ``(l,)`` latent features ``mu_phi(x, u)``.
+        sigma_z2: optional ``(l,)`` encoder variance.
+    """
+    z = jnp.asarray(z, state.means.dtype)
+    return _mixture(state, _project(state, z), sigma_z2)
+
+
+def sigma_tot2(state: BeamState, z: ArrayLike, sigma_z2: ArrayLike | None = None) -> Array:
+    """Sec. IV total predictive variance ``sigma_tot^2`` ``(d,)`` used to modulate ``Q``.
+
+    ``(sigma_z^2)^T (sum_h w_h mu_h^j . mu_h^j) + sum_h w_h z^T Sigma_h^j z + sum_h w_h
+    (z^T mu_h^j - m_j)^2``: encoder, parameter and between-hypothesis parts (no noise).
+    """
+    return predict(state, z, sigma_z2).sigma_tot2
+
+
+def marginal_decoder(state: BeamState) -> tuple[Array, Array]:
+    """Moment-matched beam-marginal decoder posterior (Eq. 9 mixture over ``theta``).
+
+    Returns ``mean (d, l) = sum_h w_h mu_h`` and ``cov (d, l, l) = sum_h w_h (Sigma_h +
+    (mu_h - mean)(mu_h - mean)^T)`` per output row.
+    """
+    w = jax.nn.softmax(state.log_scores)
+    mean = jnp.einsum("k,kdi->di", w, state.means)
+    dev = state.means - mean
+    sq = state.sqrt_covariances
+    within = jnp.einsum("k,kdij,kdlj->dil", w, sq, sq)  # (d_c, l, l)
+    cov = within + jnp.einsum("k,kdi,kdj->dij", w, dev, dev)
+    return mean, 0.5 * (cov + jnp.swapaxes(cov, -1, -2))
+
+
+# -------------------------------------------------------------------------- update
+
+
+def posterior_update(
+    mean: Array,
+    sqrt_cov: Array,
+    z: ArrayLike,
+    delta: ArrayLike,
+    sigma2: ArrayLike,
+    gamma: ArrayLike = 1.0,
+) -> tuple[Array, Array]:
+    """Eq. 6 for one hypothesis and all outputs, in square-root (Potter) form.
+
+    Tempered prior ``N(mu, Sigma / gamma)`` with ``Sigma = W W^T``; returns the posterior
+    ``(mu', W')`` after observing ``delta`` (``(d,)``) at ``z`` (``(l,)``):
+    ``Sigma' = (gamma Sigma^{-1} + z z^T / sigma^2)^{-1}`` and
+    ``mu' = Sigma' (gamma Sigma^{-1} mu + z delta / sigma^2)``.
+
+    Shapes: ``mean (d, l)``, ``sqrt_cov (d_c, l, l)`` with ``d_c in {1, d}`` (one
+    covariance shared by all outputs, or one per output), ``sigma2`` scalar or ``(d,)``
+    (must be uniform when ``d_c = 1``), ``gamma ()``.
+    """
+    dtype = mean.dtype
+    z, delta = jnp.asarray(z, dtype), jnp.asarray(delta, dtype)
+    sigma2 = _noise(sigma2, mean.shape[0], dtype)
+    gamma = jnp.asarray(gamma, dtype)
+    a = jnp.einsum("dji,j->di", sqrt_cov, z)
+    b = jnp.einsum("dij,dj->di", sqrt_cov, a)
+    q = jnp.sum(a * a, axis=-1)
+    r = delta - mean @ z
+    return _potter(mean, sqrt_cov, a, b, q, r, sigma2, sigma2[: sqrt_cov.shape[0]], gamma)
+
+
+def _potter(mean, sqrt_cov, a, b, q, r, sigma2, sigma2_cov, gamma):
+    """Eq. 6 from precomputed projections (shapes broadcast over leading axes).
+
+    ``s = z^T Sigma z / gamma + sigma^2``; ``mu' = mu + (Sigma z / gamma) r / s``;
+    ``W' = (W - c (Sigma z) (W^T z)^T / gamma) / sqrt(gamma)`` with
+    ``c = 1 / (s + sigma sqrt(s))``, which gives ``W' W'^T = Sigma/gamma - (Sigma z)(Sigma
+    z)^T / (gamma^2 s)`` exactly (Sherman--Morrison of Eq. 6) and is PSD by construction.
+    ``sigma2`` is per output ``(d,)``, ``sigma2_cov`` per stored covariance ``(d_c,)``.
+    """
+    gamma = jnp.asarray(gamma)[..., None]  # broadcast against the output axis
+    s = q / gamma + sigma2  # (.., d)
+    new_mean = mean + b * (r / (s * gamma))[..., None]
+    s_cov = q / gamma + sigma2_cov  # (.., d_c)
+    c = 1.0 / (gamma * (s_cov + jnp.sqrt(sigma2_cov * s_cov)))
+    outer = b[..., :, None] * a[..., None, :]
+    new_w = (sqrt_cov - c[..., None, None] * outer) * jax.lax.rsqrt(gamma)[..., None, None]
+    return new_mean, new_w
+
+
+def top_k(values: Array, k: int) -> tuple[Array, Array]:
+    """The ``k`` largest entries of a 1-D array, descending, ties to the lower index.
+
+    Same result as ``jax.lax.top_k`` (Algorithm 1 line 17, beam pruning), computed by
+    pairwise ranking: for the ``2K <= 60`` candidates of a beam this is one fused
+    ``O(K^2)`` comparison kernel, several times faster on CPU than the sort behind
+    ``lax.top_k``. ``values`` must be free of NaN (``-inf`` is fine).
+    """
+    n = values.shape[0]
+    i = jnp.arange(n)
+    before = (values[None, :] > values[:, None]) | (
+        (values[None, :] == values[:, None]) & (i[None, :] < i[:, None])
+    )
+    rank = jnp.sum(before, axis=1)  # a permutation of 0..n-1
+    hit = rank[None, :] == jnp.arange(k)[:, None]
+    idx = jnp.sum(jnp.where(hit, i[None, :], 0), axis=1)
+    return values[idx], idx
+
+
+def _log_marginal(q: Array, r: Array, sigma2: Array, gamma: ArrayLike) -> Array:
+    """Eq. 7: ``log p(delta | z, c)`` per hypothesis, summed over outputs; ``(K,)``.
+
+    ``q = z^T Sigma z`` is ``(K, d_c)`` and broadcasts against ``r`` ``(K, d)``.
+    """
+    s = q / gamma + sigma2
+    return -0.5 * jnp.sum(_LOG_2PI + jnp.log(s) + r * r / s, axis=-1)
+
+
+def _update(
+    state: BeamState, z: Array, delta: Array, config: AdaptationConfig, proj: _Projections
+) -> tuple[BeamState, UpdateInfo]:
+    dtype = state.means.dtype
+    K, d, _ = state.means.shape
+    pi = jnp.asarray(config.pi, dtype)
+    beta2 = jnp.square(jnp.asarray(config.beta, dtype))
+    sigma2 = _noise(config.sigma2, d, dtype)
+    d_cov = state.sqrt_covariances.shape[1]
+    if d_cov == 1 and d > 1 and jnp.ndim(config.sigma2) > 0:
+        raise ValueError(
+            "this state shares one covariance across outputs (initialised with a scalar "
+            "sigma2); per-output sigma2 needs a state initialised with a (d,) sigma2"
+        )
+
+    r = delta - proj.m  # (K, d) innovation under each parent
+    ll0 = _log_marginal(proj.q, r, sigma2, 1.0)
+    ll1 = _log_marginal(proj.q, r, sigma2, beta2)
+    # Eq. 8 in log-odds form: logit p(c=1|.) = log Lambda + log(pi / (1 - pi)).
+    logit = ll1 - ll0 + jnp.log(pi) - jnp.log1p(-pi)
+    logp1 = jax.nn.log_sigmoid(logit)
+    logp0 = jax.nn.log_sigmoid(-logit)
+
+    # Lemma 2 / Algorithm 1: L_k = L_{k-1} + log p(delta|z,c) + log p(c|.), both branches.
+    prev = state.log_scores
+    cand = jnp.concatenate([prev + ll0 + logp0, prev + ll1 + logp1])
+    top, idx = top_k(cand, K)
+    parent = idx % K
+    branch = idx >= K
+    gamma = jnp.where(branch, beta2, jnp.ones((), dtype))
+
+    new_mean, new_w = _potter(
+        state.means[parent],
+        state.sqrt_covariances[parent],
+        proj.a[parent],
+        proj.b[parent],
+        proj.q[parent],
+        r[parent],
+        sigma2,
+        sigma2[:d_cov],
+        gamma,
+    )
+
+    shift = top[0]  # top_k is sorted: the best candidate (always finite) leads
+    k = state.step + 1
+    last = jnp.where(branch, k, state.last_changepoint[parent])
+    new_state = BeamState(
+        means=new_mean,
+        sqrt_covariances=new_w,
+        log_scores=top - shift,
+        log_offset=state.log_offset + shift,
+        num_changepoints=state.num_changepoints[parent] + branch.astype(jnp.int32),
+        last_changepoint=last,
+        is_changepoint=branch,
+        step=k,
+        sigma2=sigma2,
+    )
+
+    w_prev = jax.nn.softmax(prev)
+    w_new = jax.nn.softmax(new_state.log_scores)
+    p1 = jnp.exp(logp1)
+    mix = jnp.logaddexp(jnp.log(pi) + ll1, jnp.log1p(-pi) + ll0)
+    log_evidence = jax.nn.logsumexp(mix, b=w_prev)
+    prev_map_last = state.last_changepoint[jnp.argmax(prev)]
+    info = UpdateInfo(
+        p_change=p1,
+        cp_prob=w_prev @ p1,
+        cp_mass=jnp.sum(jnp.where(branch, w_new, 0.0)),
+        changepoint=last[0] > prev_map_last,
+        map_last_changepoint=last[0],
+        log_evidence=log_evidence,
+    )
+    return new_state, info
+
+
+def update(
+    state: BeamState, z: ArrayLike, delta: ArrayLike, config: AdaptationConfig
+) -> tuple[BeamState, UpdateInfo]:
+    """Algorithm 1 lines 8-16: expand every hypothesis into ``c_k in {0,1}``, score, prune.
+
+    For each hypothesis: Eq. 7 marginal log-likelihood under the tempered prior
+    ``N(mu, Sigma/gamma)`` for ``gamma in {1, beta^2}`` (Eq. 5), the Eq. 8 changepoint
+    posterior ``p1``, and the candidate scores ``L + log p(delta|z,c) + log(c p1 + (1-c)
+    (1-p1))`` (Lemma 2); the top-``K`` of the ``2K`` candidates (``jax.lax.top_k``) get
+    the Eq. 6 posterior update.
+
+    Args:
+        state: beam after step ``k - 1``.
+        z: ``(l,)`` latent features ``z_k``.
+        delta: ``(d,)`` residual ``delta_k = x_{k+1} - f_nom(x_k, u_k)``.
+        config: hyperparameters (``K`` is taken from ``state``).
+    """
+    dtype = state.means.dtype
+    z = jnp.asarray(z, dtype)
+    delta = jnp.asarray(delta, dtype)
+    return _update(state, z, delta, config, _project(state, z))
+
+
+def step(
+    state: BeamState,
+    z: ArrayLike,
+    delta: ArrayLike,
+    config: AdaptationConfig,
+    sigma_z2: ArrayLike | None = None,
+) -> tuple[BeamState, Prediction, UpdateInfo]:
+    """One iteration of Algorithm 1: predict at ``z_k`` (Eq. 9), then update with
+    ``delta_k`` and prune (Eqs. 5-8, Lemma 2). The prediction is made *before* ``delta_k``
+    is seen, from the same projections the update reuses.
+    """
+    dtype = state.means.dtype
+    z = jnp.asarray(z, dtype)
+    delta = jnp.asarray(delta, dtype)
+    proj = _project(state, z)
+    pred = _mixture(state, proj, sigma_z2)
+    new_state, info = _update(state, z, delta, config, proj)
+    return new_state, pred, info
+
+
+# ------------------------------------------------------------------ packed fast path
+
+
+class PackedBeam(NamedTuple):
+    """A :class:`BeamState` plus ``pi, beta, tau2`` in two flat buffers.
+
+    At this problem size a jitted call costs a few microseconds per argument and result
+    leaf, more than the arithmetic of a step, so the real-time loop passes two buffers:
+    ``floats = [means, sqrt_covariances, log_scores, log_offset, sigma2, pi, beta, tau2]``
+    (state dtype) and ``ints = [num_changepoints, last_changepoint, is_changepoint, step]``
+    (int32). Use :func:`pack`, :func:`unpack` and :func:`make_packed_step`.
+    """
+
+    floats: Array
+    ints: Array
+
+
+def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
+    """Flatten ``state`` and the traced hyperparameters of ``config`` into a :class:`PackedBeam`."""
+    dtype = state.means.dtype
+    hyper = jnp.stack([jnp.asarray(v, dtype) for v in (config.pi, config.beta, config.tau2)])
+    floats = jnp.concatenate(
+        [
+            state.means.ravel(),
+            state.sqrt_covariances.ravel(),
+            state.log_scores,
+            state.log_offset[None],
+            state.sigma2,
+            hyper,
+        ]
+    )
+    ints = jnp.concatenate(
+        [
+            state.num_changepoints,
+            state.last_changepoint,
+            state.is_changepoint.astype(jnp.int32),
+            state.step[None],
+        ]
+    )
+    return PackedBeam(floats, ints)
+
+
+def unpack(packed: PackedBeam, K: int, d: int, l: int) -> tuple[BeamState, AdaptationConfig]:
+    """Inverse of :func:`pack` for a beam of ``K`` hypotheses, ``d`` outputs, ``l`` features."""
+    f, n = packed.floats, packed.ints
+    d_cov = (f.shape[0] - (K * d * l + K + d + 4)) // (K * l * l)
+    sizes = (K * d * l, K * d_cov * l * l, K, 1, d, 1, 1, 1)
+    offsets = [0]
+    for size in sizes:
+        offsets.append(offsets[-1] + size)
+    means, sq, scores, offset, sigma2, pi, beta, tau2 = (
+        f[offsets[i] : offsets[i + 1]] for i in range(len(sizes))
+    )
+    state = BeamState(
+        means=means.reshape(K, d, l),
+        sqrt_covariances=sq.reshape(K, d_cov, l, l),
+        log_scores=scores,
+        log_offset=offset[0],
+        num_changepoints=n[:K],
+        last_changepoint=n[K : 2 * K],
+        is_changepoint=n[2 * K : 3 * K] != 0,
+        step=n[3 * K],
+        sigma2=sigma2,
+    )
+    noise = sigma2[0] if d_cov == 1 else sigma2  # keeps the shared-covariance contract
+    return state, AdaptationConfig(K=K, pi=pi[0], beta=beta[0], tau2=tau2[0], sigma2=noise)
+
+
+def packed_step(
+    packed: PackedBeam, inputs: Array, *, K: int, d: int, l: int
+) -> tuple[PackedBeam, Array]:
+    """:func:`step` on a :class:`PackedBeam` (Algorithm 1, one iteration).
+
+    Args:
+        packed: the beam and hyperparameters.
+        inputs: ``[z (l), delta (d), sigma_z2 (l)]`` in the state dtype (zeros for
+            ``sigma_z2`` when the encoder variance is not used).
+
+    Returns:
+        the new packed beam and ``outputs`` (see :func:`unpack_outputs`).
+    """
+    state, config = unpack(packed, K, d, l)
+    z, delta, sigma_z2 = inputs[:l], inputs[l : l + d], inputs[l + d :]
+    new_state, pred, info = step(state, z, delta, config, sigma_z2)
+    dtype = state.means.dtype
+    outputs = jnp.concatenate(
+        [
+            *pred,
+            info.p_change,
+            jnp.stack([info.cp_prob, info.cp_mass, info.log_evidence]),
+            jnp.stack([info.changepoint, info.map_last_changepoint]).astype(dtype),
+        ]
+    )
+    return pack(new_state, config), outputs
+
+
+def unpack_outputs(outputs, d: int, K: int) -> tuple[Prediction, UpdateInfo]:
+    """Split the ``outputs`` of :func:`packed_step` (NumPy or JAX array) by slicing only.
+
+    ``map_last_changepoint`` comes back in the state dtype (exact below ``2**24`` steps
+    in float32; the int32 value is ``ints[K]`` of the returned :class:`PackedBeam`).
+    """
+    pred = Prediction(*(outputs[i * d : (i + 1) * d] for i in range(7)))
+    o = 7 * d
+    info = UpdateInfo(
+        p_change=outputs[o : o + K],
+        cp_prob=outputs[o + K],
+        cp_mass=outputs[o + K + 1],
+        log_evidence=outputs[o + K + 2],
+        changepoint=outputs[o + K + 3] != 0,
+        map_last_changepoint=outputs[o + K + 4],
+    )
+    return pred, info
+
+
+def make_packed_step(K: int, d: int, l: int):
+    """Jitted :func:`packed_step` for fixed sizes; donates the packed beam (in-place update).
+
+    Returns ``fn(packed, inputs) -> (packed, outputs)``. The packed beam passed in must
+    not be used again after the call.
+    """
+    return jax.jit(partial(packed_step, K=K, d=d, l=l), donate_argnums=0)

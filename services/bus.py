@@ -1,0 +1,483 @@
+"""Eclipse Zenoh bus of the service stack: configurations, key expressions, QoS, :class:`Bus`.
+
+Key expressions are ``arcade/<vehicle>/<topic>`` (topics: :data:`~services.messages.TOPICS`)
+and liveliness tokens ``arcade/<vehicle>/alive/<service>``; one vehicle name per vehicle
+lets several vehicles share a bus.
+
+Readiness protocol (no sleeps): a service declares its subscriptions first and its
+liveliness token last (:meth:`Bus.declare_alive`). Declarations travel in order on a link,
+so a peer that sees the token (:meth:`Bus.wait_alive`) knows the subscriptions are in
+place and its next ``put`` is delivered.
+
+Default configuration (:func:`peer_config`, ``deploy/zenoh/peer-loopback.json5``): peer
+mode on loopback, multicast scouting off, no router. Every peer tries to listen on one
+well-known *hub* endpoint (``tcp/127.0.0.1:7450``; failing to bind it is not an error),
+listens on an ephemeral loopback port and connects to the hub. Whichever process starts
+first owns the hub; gossip then tells every peer about the others' ephemeral endpoints and
+they link directly (peers do not route for each other). If the hub owner exits, the next
+peer to start binds the hub port and the others reconnect to it. Several independent stacks
+on one machine need different hub ports.
+
+Multi-host deployments use a router (``mode: "router"`` in a Python session, see
+:func:`router_config`; ``zenohd`` is not on PyPI) and clients (:func:`client_config`) so
+that the router's access control applies: ``deploy/zenoh/router-acl.json5`` lets only
+the controller put ``setpoint`` and only the simulator/bridge put ``mocap``/``imu``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import threading
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Generic, TypeVar
+
+import msgpack
+import zenoh
+
+from services.messages import (
+    TOPICS,
+    Message,
+    MessageError,
+    Reason,
+    Receiver,
+    RejectCounter,
+    message_type,
+    safe_handler,
+)
+
+__all__ = [
+    "DEFAULT_HUB",
+    "LOOPBACK_ANY",
+    "QOS",
+    "Bus",
+    "Publisher",
+    "QoS",
+    "Subscription",
+    "alive_key",
+    "client_config",
+    "config_path",
+    "key_expr",
+    "load_config",
+    "peer_config",
+    "router_config",
+]
+
+log = logging.getLogger("arcade.bus")
+
+#: Well-known loopback endpoint of the default peer mesh.
+DEFAULT_HUB = "tcp/127.0.0.1:7450"
+#: An ephemeral loopback endpoint (the OS picks the port).
+LOOPBACK_ANY = "tcp/127.0.0.1:0"
+#: Connection retry of peers: fast on loopback, capped at 1 s.
+_RETRY = {"period_init_ms": 50, "period_max_ms": 1000, "period_increase_factor": 2}
+_NAME = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
+_ENCODING = "application/msgpack"
+
+M = TypeVar("M", bound=Message)
+
+
+# --------------------------------------------------------------------------- names
+
+
+def _check_name(kind: str, name: str) -> str:
+    # Key-expression chunks: no '/', wildcards or '$'.
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        raise ValueError(f"invalid {kind} name {name!r} (letters, digits, '_', '.', '-')")
+    return name
+
+
+def key_expr(vehicle: str, topic: str) -> str:
+    """``arcade/<vehicle>/<topic>``."""
+    if topic not in TOPICS:
+        raise ValueError(f"unknown topic {topic!r}; topics are {TOPICS}")
+    return f"arcade/{_check_name('vehicle', vehicle)}/{topic}"
+
+
+def alive_key(vehicle: str, service: str) -> str:
+    """Liveliness token ``arcade/<vehicle>/alive/<service>`` (``service`` may be ``*``)."""
+    if service != "*":
+        _check_name("service", service)
+    return f"arcade/{_check_name('vehicle', vehicle)}/alive/{service}"
+
+
+# ----------------------------------------------------------------------------- QoS
+
+
+@dataclass(frozen=True)
+class QoS:
+    """Publication QoS of a topic."""
+
+    priority: zenoh.Priority
+    congestion_control: zenoh.CongestionControl
+    express: bool
+
+
+_DROP, _BLOCK = zenoh.CongestionControl.DROP, zenoh.CongestionControl.BLOCK
+#: Per-topic QoS. The control path (mocap -> state -> setpoint) is express (no batching)
+#: and high priority; streams drop on congestion (a newer sample supersedes a late one);
+#: events and commands block rather than get lost.
+QOS: Mapping[str, QoS] = MappingProxyType(
+    {
+        "mocap": QoS(zenoh.Priority.INTERACTIVE_HIGH, _DROP, True),
+        "imu": QoS(zenoh.Priority.INTERACTIVE_HIGH, _DROP, True),
+        "state": QoS(zenoh.Priority.REAL_TIME, _DROP, True),
+        "setpoint": QoS(zenoh.Priority.REAL_TIME, _DROP, True),
+        "model": QoS(zenoh.Priority.DATA_HIGH, _DROP, False),
+        "residual": QoS(zenoh.Priority.DATA, _DROP, False),
+        "event": QoS(zenoh.Priority.DATA, _BLOCK, False),
+        "command": QoS(zenoh.Priority.INTERACTIVE_HIGH, _BLOCK, False),
+    }
+)
+
+
+# -------------------------------------------------------------------------- configs
+
+
+def _config(tree: Mapping[str, Any]) -> zenoh.Config:
+    return zenoh.Config.from_json5(json.dumps(tree))
+
+
+def peer_config(
+    hub: str | None = DEFAULT_HUB,
+    *,
+    listen: Sequence[str] = (LOOPBACK_ANY,),
+    connect: Sequence[str] = (),
+    gossip: bool = True,
+) -> zenoh.Config:
+    """Peer mode without multicast scouting (the embedded default, see module docstring).
+
+    Args:
+        hub: endpoint every peer tries to listen on and connects to; ``None`` for none.
+        listen: further listen endpoints (an ephemeral loopback port by default, which
+            gossip advertises so that peers link directly).
+        connect: further endpoints to connect to (retried until they answer).
+        gossip: learn other peers' endpoints from the peers already connected.
+    """
+    hub_eps = [hub] if hub else []
+    return _config(
+        {
+            "mode": "peer",
+            # The hub port is taken by whichever peer came first: not an error.
+            "listen": {"endpoints": hub_eps + list(listen), "exit_on_failure": False},
+            "connect": {
+                "endpoints": hub_eps + list(connect),
+                "exit_on_failure": False,
+                "retry": _RETRY,
+            },
+            # No multicast, hence nothing to wait for at open.
+            "scouting": {
+                "delay": 0,
+                "multicast": {"enabled": False},
+                "gossip": {"enabled": gossip},
+            },
+        }
+    )
+
+
+def router_config(
+    listen: Sequence[str] = ("tcp/0.0.0.0:7447",), *, connect: Sequence[str] = ()
+) -> zenoh.Config:
+    """A router (a Python session in ``mode: "router"``) listening on ``listen``.
+
+    For access control, TLS or user/password, start from the files in ``deploy/zenoh/``
+    (:func:`load_config`).
+    """
+    return _config(
+        {
+            "mode": "router",
+            "listen": {"endpoints": list(listen)},
+            "connect": {"endpoints": list(connect)},
+            "scouting": {"multicast": {"enabled": False}},
+        }
+    )
+
+
+def client_config(
+    connect: Sequence[str],
+    *,
+    user: str | None = None,
+    password: str | None = None,
+    root_ca: str | Path | None = None,
+    cert: str | Path | None = None,
+    key: str | Path | None = None,
+) -> zenoh.Config:
+    """Client of a router at ``connect`` (opening fails if none answers).
+
+    ``user``/``password`` authenticate (the router's ACL subjects name users); ``root_ca``
+    verifies a ``tls/`` router; ``cert``/``key`` add a client certificate for mTLS.
+    """
+    tree: dict[str, Any] = {
+        "mode": "client",
+        "connect": {"endpoints": list(connect)},
+        "scouting": {"multicast": {"enabled": False}},
+    }
+    transport: dict[str, Any] = {}
+    if user is not None or password is not None:
+        transport["auth"] = {"usrpwd": {"user": user, "password": password}}
+    tls = {
+        k: str(v)
+        for k, v in (
+            ("root_ca_certificate", root_ca),
+            ("connect_certificate", cert),
+            ("connect_private_key", key),
+        )
+        if v is not None
+    }
+    if cert is not None or key is not None:
+        tls["enable_mtls"] = True  # type: ignore[assignment]
+    if tls:
+        transport["link"] = {"tls": tls}
+    if transport:
+        tree["transport"] = transport
+    return _config(tree)
+
+
+def config_path(name: str = "peer-loopback.json5") -> Path:
+    """Path of a configuration shipped in ``deploy/zenoh/``."""
+    path = Path(str(resources.files("deploy") / "zenoh" / name))
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    return path
+
+
+def load_config(path: str | Path, overrides: Mapping[str, Any] | None = None) -> zenoh.Config:
+    """Load a JSON5 configuration and apply ``overrides`` (``{"listen/endpoints": [...]}``)."""
+    config = zenoh.Config.from_file(str(path))
+    for key, value in (overrides or {}).items():
+        config.insert_json5(key, json.dumps(value))
+    return config
+
+
+# ------------------------------------------------------------------------------ bus
+
+
+class Publisher(Generic[M]):
+    """Publishes one topic: encodes records, assigns ``seq`` (from 1) and ``src``."""
+
+    def __init__(self, bus: Bus, topic: str):
+        self.topic = topic
+        self.type: type[Message] = message_type(topic)
+        self.key = bus.key(topic)
+        self._src = bus.src
+        qos = QOS[topic]
+        self._pub = bus.session.declare_publisher(
+            self.key,
+            encoding=zenoh.Encoding(_ENCODING).with_schema(
+                f"{self.type.SCHEMA}/{self.type.VERSION}"
+            ),
+            priority=qos.priority,
+            congestion_control=qos.congestion_control,
+            express=qos.express,
+        )
+        self._seq = 0
+        self._lock = threading.Lock()
+
+    @property
+    def seq(self) -> int:
+        """``seq`` of the last record put (0: none yet)."""
+        return self._seq
+
+    def put(self, record: M) -> int:
+        """Publish ``record``; its ``seq`` and ``src`` are replaced. Returns the ``seq``."""
+        if type(record) is not self.type:
+            raise TypeError(f"{self.topic} carries {self.type.__name__}, not {type(record)}")
+        wire = record.to_wire()
+        with self._lock:  # seq order == put order
+            self._seq += 1
+            wire["seq"], wire["src"] = self._seq, self._src
+            payload = msgpack.packb(wire, use_bin_type=True)
+            if len(payload) > self.type.MAX_BYTES:
+                raise MessageError(Reason.OVERSIZE, f"{len(payload)} > {self.type.MAX_BYTES}")
+            self._pub.put(payload)
+            return self._seq
+
+    def close(self) -> None:
+        self._pub.undeclare()
+
+
+class Subscription:
+    """A validated subscription; ``receiver.checker`` holds per-publisher order stats."""
+
+    def __init__(self, sub: Any, topic: str, receiver: Receiver):
+        self._sub, self.topic, self.receiver = sub, topic, receiver
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+class Bus:
+    """One service's connection to the bus of one vehicle.
+
+    Use as a context manager (or :meth:`open`/:meth:`close`)::
+
+        with Bus("quad1", "controller", peer_config()) as bus:
+            bus.subscribe("state", on_state)
+            bus.declare_alive()                    # after the subscriptions
+            bus.wait_alive(["estimator"], timeout=10.0)
+            bus.put(Setpoint(u=u, state_seq=s.seq, stamp=s.stamp))
+
+    Subscription callbacks run on Zenoh's threads; every payload is validated and
+    order-checked first, and nothing a payload or a callback does escapes: failures are
+    counted in :attr:`rejects` and logged.
+    """
+
+    def __init__(
+        self,
+        vehicle: str = "default",
+        name: str = "service",
+        config: zenoh.Config | None = None,
+        *,
+        rejects: RejectCounter | None = None,
+    ):
+        self.vehicle = _check_name("vehicle", vehicle)
+        self.name = _check_name("service", name)
+        self.config = config
+        self.rejects = rejects or RejectCounter(logger=logging.getLogger(f"arcade.bus.{name}"))
+        self._session: zenoh.Session | None = None
+        self._src = ""
+        self._publishers: dict[str, Publisher[Any]] = {}
+        self._subscriptions: list[Subscription] = []
+        self._tokens: dict[str, Any] = {}
+        self._alive: set[str] = set()
+        self._alive_listeners: list[Callable[[str, bool], None]] = []
+        self._cond = threading.Condition()
+
+    # -- lifecycle
+    def open(self) -> Bus:
+        """Open the Zenoh session (idempotent) and start tracking liveliness."""
+        if self._session is None:
+            session = zenoh.open(self.config if self.config is not None else peer_config())
+            self._session = session
+            self._src = f"{self.name}/{session.zid()}"
+            self._alive_sub = session.liveliness().declare_subscriber(
+                alive_key(self.vehicle, "*"), self._on_alive, history=True
+            )
+        return self
+
+    def close(self) -> None:
+        """Withdraw tokens, undeclare everything and close the session."""
+        if self._session is None:
+            return
+        session, self._session = self._session, None
+        for token in self._tokens.values():
+            token.undeclare()
+        self._tokens.clear()
+        self._publishers.clear()
+        self._subscriptions.clear()
+        session.close()
+
+    def __enter__(self) -> Bus:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def session(self) -> zenoh.Session:
+        """The underlying Zenoh session (raises if the bus is not open)."""
+        if self._session is None:
+            raise RuntimeError("bus is not open")
+        return self._session
+
+    @property
+    def src(self) -> str:
+        """Publisher id stamped on every message: ``<name>/<session id>``."""
+        self.session  # noqa: B018  # raises when closed
+        return self._src
+
+    def key(self, topic: str) -> str:
+        """Key expression of ``topic`` on this vehicle."""
+        return key_expr(self.vehicle, topic)
+
+    # -- data
+    def publisher(self, topic: str) -> Publisher[Any]:
+        """The (cached) publisher of ``topic``; one ``seq`` sequence per topic and bus."""
+        if topic not in self._publishers:
+            self._publishers[topic] = Publisher(self, topic)
+        return self._publishers[topic]
+
+    def put(self, record: Message) -> int:
+        """Publish ``record`` on its topic (see :meth:`Publisher.put`)."""
+        return self.publisher(record.TOPIC).put(record)
+
+    def subscribe(
+        self,
+        topic: str,
+        callback: Callable[[Any], Any],
+        *,
+        check_order: bool = True,
+        max_age: float | None = None,
+        clock: Callable[[], float] | None = None,
+    ) -> Subscription:
+        """Call ``callback(record)`` for every valid, in-order message on ``topic``.
+
+        Invalid, out-of-order or stale (``max_age`` seconds on ``clock``) messages and
+        exceptions of ``callback`` are counted in :attr:`rejects` instead.
+        """
+        receiver = Receiver(topic, check_order=check_order, max_age=max_age, clock=clock)
+        handler = safe_handler(
+            lambda sample: receiver(sample.payload.to_bytes()),
+            callback,
+            self.rejects,
+            topic=topic,
+        )
+        sub = Subscription(
+            self.session.declare_subscriber(self.key(topic), handler), topic, receiver
+        )
+        self._subscriptions.append(sub)
+        return sub
+
+    # -- liveliness
+    def declare_alive(self, service: str | None = None) -> None:
+        """Declare ``arcade/<vehicle>/alive/<service>`` (default: this bus's name).
+
+        Call after the subscriptions (see the readiness protocol in the module docstring).
+        """
+        service = self.name if service is None else service
+        if service not in self._tokens:
+            key = alive_key(self.vehicle, service)
+            self._tokens[service] = self.session.liveliness().declare_token(key)
+
+    def withdraw_alive(self, service: str | None = None) -> None:
+        """Undeclare a token declared by :meth:`declare_alive`."""
+        token = self._tokens.pop(self.name if service is None else service, None)
+        if token is not None:
+            token.undeclare()
+
+    @property
+    def alive(self) -> frozenset[str]:
+        """Services of this vehicle whose liveliness token is currently visible."""
+        with self._cond:
+            return frozenset(self._alive)
+
+    def wait_alive(self, services: Iterable[str], timeout: float) -> None:
+        """Block until every service in ``services`` is alive; ``TimeoutError`` otherwise."""
+        wanted = set(services)
+        with self._cond:
+            if not self._cond.wait_for(lambda: wanted <= self._alive, timeout):
+                missing = sorted(wanted - self._alive)
+                raise TimeoutError(f"not alive after {timeout} s: {missing}")
+
+    def on_alive_change(self, callback: Callable[[str, bool], None]) -> None:
+        """Call ``callback(service, alive)`` on every liveliness change (Zenoh thread)."""
+        with self._cond:
+            self._alive_listeners.append(callback)
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        service = str(sample.key_expr).rsplit("/", 1)[-1]
+        up = sample.kind == zenoh.SampleKind.PUT
+        with self._cond:
+            (self._alive.add if up else self._alive.discard)(service)
+            listeners = list(self._alive_listeners)
+            self._cond.notify_all()
+        for listener in listeners:
+            try:
+                listener(service, up)
+            except Exception:
+                log.exception("liveliness listener failed")

@@ -1,0 +1,266 @@
+"""Injectable physical effects: the model discrepancies the simulator can switch on.
+
+An effects file is TOML with one table per effect, keyed by the canonical names in
+:data:`EFFECTS`, e.g.::
+
+    [rotor_drag]
+    d = [0.4, 0.4, 0.05]
+
+    [wind]
+    velocity_mps = [2.0, 0.0, 0.0]
+
+A vehicle file may carry the same tables under ``[effects]`` (``[effects.rotor_drag]``);
+:func:`load_effects` accepts either layout. Unknown effect names, unknown parameters,
+wrong shapes and values outside the plausible range are rejected with a ``ValueError``
+that names the offending entry, so a typo never silently turns an effect off.
+
+The parameter table :data:`EFFECTS` is plain data (unit, plausible range, default,
+description) so the discrepancy library can mirror it. Physical forms, world ENU / body
+FLU, ``v_rel = v - wind`` the air-relative velocity of the airframe:
+
+``rotor_drag``
+    Linear rotor (blade-flapping / induced) drag, Faessler et al. form with constant
+    coefficients: ``F_body = -m * diag(d) @ R^T v_rel``, where ``m`` is the vehicle mass
+    (airframe + electromagnet, what the nominal model uses), so ``d`` is directly the
+    acceleration coefficient [1/s]. Both drag terms act at the centre of mass of the
+    rigid vehicle (airframe, electromagnet, rigid payload): a pure force, no moment.
+``quadratic_drag``
+    Bluff-body drag per body axis: ``F_body,i = -c_i * |v_b,i| * v_b,i`` with
+    ``v_b = R^T v_rel``; ``c_i = rho * C_d * A_i / 2`` [kg/m].
+``ground_effect``
+    Cheeseman-Bennett in-ground-effect thrust gain per rotor,
+    ``T_IGE / T_OGE = 1 / (1 - (R / (4 h))^2)`` with ``h`` the rotor height above the
+    floor, clamped to ``h >= R / 2`` (gain at most 4/3) where the formula stops holding.
+``thrust_scale``
+    Actual / nominal thrust coefficient: every rotor produces ``scale`` times the thrust
+    the mixer asked for (max thrust and yaw reaction torque scale with it).
+``motor_lag``
+    Replaces the first-order motor (thrust) time constant of the vehicle file.
+``rate_lag``
+    Extra lag in front of the body-rate controller: the body-rate setpoints pass through a
+    pure transport delay ``delay_s`` and then a first-order filter ``time_constant_s``
+    (the collective thrust is not delayed).
+``com_offset``
+    Centre-of-mass offset of the airframe in the body frame. Thrust still acts at the
+    rotors, so an offset produces a torque the rate loop's integrator has to cancel. The
+    simulator's ground-truth position stays the airframe's geometric centre (the
+    motion-capture rigid-body origin).
+``wind``
+    Constant wind velocity in the world frame. It acts only through the drag terms
+    (``rotor_drag`` and/or ``quadratic_drag`` use ``v_rel = v - wind``); an effects set
+    with wind but no drag term is rejected because the wind would do nothing. The payload
+    feels no aerodynamic force.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+
+class ParamSpec(NamedTuple):
+    """One effect parameter: unit, plausible range (per element), default and meaning.
+
+    ``shape`` is ``()`` for a scalar or ``(3,)`` for a vector. ``default`` ``None`` means
+    the parameter must be given.
+    """
+
+    unit: str
+    low: float
+    high: float
+    default: float | tuple[float, ...] | None
+    shape: tuple[int, ...]
+    description: str
+
+
+#: Canonical effect names -> parameter name -> :class:`ParamSpec`.
+# fmt: off
+EFFECTS: dict[str, dict[str, ParamSpec]] = {
+    "rotor_drag": {
+        "d": ParamSpec("1/s", 0.0, 2.0, None, (3,),
+                       "linear drag acceleration coefficients along body x, y, z; "
+                       "F_body = -m diag(d) R^T (v - wind)"),
+    },
+    "quadratic_drag": {
+        "c": ParamSpec("kg/m", 0.0, 0.2, None, (3,),
+                       "quadratic drag coefficients along body x, y, z; "
+                       "F_body,i = -c_i |v_b,i| v_b,i"),
+    },
+    "ground_effect": {
+        "rotor_radius_m": ParamSpec("m", 0.01, 0.2, 0.0381, (),
+                                    "rotor radius R in the Cheeseman-Bennett gain "
+                                    "1 / (1 - (R / 4h)^2); default 3-inch propeller"),
+    },
+    "thrust_scale": {
+        "scale": ParamSpec("1", 0.5, 1.5, None, (),
+                           "actual / nominal rotor thrust coefficient"),
+    },
+    "motor_lag": {
+        "time_constant_s": ParamSpec("s", 0.002, 0.2, None, (),
+                                     "first-order motor thrust time constant "
+                                     "(replaces the vehicle file's value)"),
+    },
+    "rate_lag": {
+        "delay_s": ParamSpec("s", 0.0, 0.1, 0.0, (),
+                             "transport delay of the body-rate setpoints before the "
+                             "rate controller"),
+        "time_constant_s": ParamSpec("s", 0.0, 0.3, 0.0, (),
+                                     "first-order filter on the body-rate setpoints "
+                                     "before the rate controller"),
+    },
+    "com_offset": {
+        "offset_m": ParamSpec("m", -0.03, 0.03, None, (3,),
+                              "airframe centre-of-mass offset from the geometric centre, "
+                              "body FLU"),
+    },
+    "wind": {
+        "velocity_mps": ParamSpec("m/s", -15.0, 15.0, None, (3,),
+                                  "constant wind velocity, world ENU; acts through the "
+                                  "drag effects"),
+    },
+}
+# fmt: on
+
+
+@dataclass(frozen=True)
+class Effects:
+    """A validated set of active effects: name -> parameter name -> value.
+
+    Scalars are floats, vectors are read-only float arrays of shape (3,). Missing
+    optional parameters are filled with their defaults.
+    """
+
+    params: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.params
+
+    def __iter__(self):
+        return iter(self.params)
+
+    def get(self, name: str, param: str, default: Any = None) -> Any:
+        """The value of ``param`` of effect ``name``, or ``default`` when it is not active."""
+        if name not in self.params:
+            return default
+        return self.params[name][param]
+
+    def to_dict(self) -> dict[str, dict[str, float | list[float]]]:
+        """A TOML/JSON-ready copy (vectors as lists)."""
+        out: dict[str, dict[str, float | list[float]]] = {}
+        for name, ps in self.params.items():
+            out[name] = {
+                k: (v.tolist() if isinstance(v, np.ndarray) else float(v)) for k, v in ps.items()
+            }
+        return out
+
+    def merged(self, other: Effects) -> Effects:
+        """Effects of ``self`` with the effects named in ``other`` replaced by ``other``'s."""
+        combined = {**self.params, **other.params}
+        return validate_effects({k: dict(v) for k, v in combined.items()})
+
+
+NO_EFFECTS = Effects()
+
+
+def _check_value(name: str, pname: str, spec: ParamSpec, value: Any) -> float | np.ndarray:
+    where = f"effect [{name}] parameter {pname!r}"
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: expected a number or list of numbers, got {value!r}") from exc
+    if arr.shape != spec.shape:
+        want = "a scalar" if spec.shape == () else f"a list of {spec.shape[0]} numbers"
+        raise ValueError(f"{where}: expected {want}, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{where}: non-finite value {value!r}")
+    if np.any(arr < spec.low) or np.any(arr > spec.high):
+        raise ValueError(
+            f"{where}: {value!r} outside the plausible range [{spec.low}, {spec.high}] {spec.unit}"
+        )
+    if spec.shape == ():
+        return float(arr)
+    arr = arr.copy()
+    arr.setflags(write=False)
+    return arr
+
+
+def validate_effects(tables: Mapping[str, Any]) -> Effects:
+    """Check effect tables against :data:`EFFECTS` and fill defaults."""
+    out: dict[str, dict[str, Any]] = {}
+    for name, table in tables.items():
+        if name not in EFFECTS:
+            known = ", ".join(sorted(EFFECTS))
+            raise ValueError(f"unknown effect {name!r}; known effects: {known}")
+        if not isinstance(table, Mapping):
+            raise ValueError(f"effect [{name}] must be a table of parameters, got {table!r}")
+        specs = EFFECTS[name]
+        unknown = set(table) - set(specs)
+        if unknown:
+            raise ValueError(
+                f"effect [{name}]: unknown parameter(s) {sorted(unknown)}; known: {sorted(specs)}"
+            )
+        values: dict[str, Any] = {}
+        for pname, spec in specs.items():
+            if pname in table:
+                values[pname] = _check_value(name, pname, spec, table[pname])
+            elif spec.default is None:
+                raise ValueError(f"effect [{name}]: missing required parameter {pname!r}")
+            else:
+                values[pname] = _check_value(name, pname, spec, spec.default)
+        out[name] = values
+    if "wind" in out and not ({"rotor_drag", "quadratic_drag"} & set(out)):
+        raise ValueError(
+            "effect [wind] acts through the drag terms: add [rotor_drag] and/or "
+            "[quadratic_drag] as well"
+        )
+    return Effects(out)
+
+
+def load_effects(source: str | Path | Mapping[str, Any] | Effects | None) -> Effects:
+    """Effects from a TOML file, a mapping of tables, an :class:`Effects`, or ``None``.
+
+    A file (or mapping) with an ``effects`` table, such as a vehicle file, uses that
+    table; otherwise every top-level table is an effect.
+    """
+    if source is None:
+        return NO_EFFECTS
+    if isinstance(source, Effects):
+        return source
+    if isinstance(source, str | Path):
+        path = Path(source)
+        if not path.is_file():
+            raise FileNotFoundError(f"effects file not found: {path}")
+        with path.open("rb") as f:
+            tables: Mapping[str, Any] = tomllib.load(f)
+        if "effects" in tables:
+            tables = tables["effects"]
+        return validate_effects(tables)
+    if "effects" in source and isinstance(source["effects"], Mapping):
+        source = source["effects"]
+    return validate_effects(source)
+
+
+# --- force / gain terms used by the simulator (numpy, body FLU, world ENU) ---
+
+
+def drag_force_body(effects: Effects, v_rel_body: np.ndarray, vehicle_mass: float) -> np.ndarray:
+    """Total drag force in the body frame [N] from ``rotor_drag`` and ``quadratic_drag``."""
+    f = np.zeros(3)
+    d = effects.get("rotor_drag", "d")
+    if d is not None:
+        f -= vehicle_mass * d * v_rel_body
+    c = effects.get("quadratic_drag", "c")
+    if c is not None:
+        f -= c * np.abs(v_rel_body) * v_rel_body
+    return f
+
+
+def ground_effect_gain(height_m: np.ndarray, rotor_radius_m: float) -> np.ndarray:
+    """Cheeseman-Bennett thrust ratio T_IGE / T_OGE for rotor heights above the floor."""
+    h = np.maximum(np.asarray(height_m, dtype=float), 0.5 * rotor_radius_m)
+    return 1.0 / (1.0 - (rotor_radius_m / (4.0 * h)) ** 2)

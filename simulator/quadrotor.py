@@ -1,0 +1,326 @@
+"""In-process MuJoCo quadrotor: the "real vehicle" of the project (paper Sec. V-B, App. D).
+
+One :class:`QuadrotorSim` is a 0.55 kg quad-x with a 20 g electromagnet, an optional
+payload (swinging on a light cable and releasable mid-flight, or rigidly attached), a
+PX4-like body-rate loop, first-order motors, motion capture and a gyro stream, and the
+injectable effects of :mod:`simulator.effects`.
+
+Input, as PX4's offboard attitude-rate interface takes it (design §4):
+``u = [collective thrust N, body-rate setpoints rad/s (roll, pitch, yaw; FLU)]``,
+clamped to ``[0, 4 * max_thrust]`` and ``+-max_rate``. Ground truth
+``x = [p(3), v(3), q(4, w first), omega(3)]`` of the airframe (world ENU, body FLU, SI;
+``p``/``v`` of the airframe's geometric centre, the motion-capture origin).
+
+Per physics step (default 1 ms): the rate loop runs when due (default 500 Hz, its gyro
+reading is noisy and biased like the streamed one), each rotor's thrust follows its
+command with the motor time constant (exact first-order discretisation; motor lag is done
+here rather than with MuJoCo actuator dynamics so that thrust effects can act on the
+lagged thrust), effects scale the thrust and add drag, MuJoCo integrates, and the sensors
+sample the new state.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from arcade.vehicle import load_vehicle
+from simulator.effects import Effects, drag_force_body, ground_effect_gain, load_effects
+from simulator.mjcf import (
+    PAYLOAD_RADIUS,
+    RELEASE_EQUALITY,
+    ROTOR_SITES,
+    build_mjcf,
+    rotor_geometry,
+)
+from simulator.mocap import (
+    GyroConfig,
+    GyroEmulator,
+    GyroSample,
+    MocapConfig,
+    MocapEmulator,
+    MocapSample,
+)
+from simulator.rate_controller import Mixer, RateController, RateGains, SetpointLag
+
+
+class QuadrotorSim:
+    """MuJoCo quadrotor with rate loop, payload, sensors and effects.
+
+    Args:
+        vehicle: vehicle file path, an already loaded vehicle dict, or ``None`` for the
+            shipped default. Effects in its ``[effects]`` table are applied.
+        payload_mass: payload [kg]; 0 means no payload (and no cable).
+        cable_length: cable length [m]; ``None`` takes ``payload.cable_length_m``.
+        rigid_payload: attach the payload rigidly under the electromagnet instead.
+        effects: effects file, mapping or :class:`~simulator.effects.Effects`; an effect
+            named here replaces the vehicle file's effect of the same name.
+        mocap, gyro: sensor settings.
+        seed: seeds all sensor noise.
+        timestep: physics step [s].
+    """
+
+    def __init__(
+        self,
+        vehicle: str | Path | dict[str, Any] | None = None,
+        *,
+        payload_mass: float = 0.0,
+        cable_length: float | None = None,
+        rigid_payload: bool = False,
+        effects: str | Path | dict[str, Any] | Effects | None = None,
+        mocap: MocapConfig | None = None,
+        gyro: GyroConfig | None = None,
+        seed: int = 0,
+        timestep: float = 0.001,
+    ):
+        self.vehicle = vehicle if isinstance(vehicle, dict) else load_vehicle(vehicle)
+        if not 1e-4 <= timestep <= 0.005:
+            raise ValueError(f"timestep must be in [1e-4, 5e-3] s, got {timestep}")
+        self.effects = load_effects(self.vehicle.get("effects")).merged(load_effects(effects))
+        self.payload_mass = float(payload_mass)
+        self.rigid_payload = bool(rigid_payload) and self.payload_mass > 0.0
+        self._swinging = self.payload_mass > 0.0 and not self.rigid_payload
+
+        xml = build_mjcf(
+            self.vehicle,
+            payload_mass=self.payload_mass,
+            cable_length=cable_length,
+            rigid_payload=self.rigid_payload,
+            com_offset=self.effects.get("com_offset", "offset_m"),
+            timestep=timestep,
+        )
+        self.model = mujoco.MjModel.from_xml_string(xml)
+        self.data = mujoco.MjData(self.model)
+        self.dt = float(self.model.opt.timestep)
+        self.gravity = -float(self.model.opt.gravity[2])
+        m = self.model
+        self._airframe = m.body("airframe").id
+        self._sites = np.array([m.site(n).id for n in ROTOR_SITES])
+        self._anchor_site = m.site("magnet_anchor").id
+        self._payload_body = m.body("payload").id if self.payload_mass > 0.0 else -1
+        if self._swinging:
+            self._hook_body = m.body("hook").id
+            self._eq = m.equality(RELEASE_EQUALITY).id
+            self._hook_qadr = m.jnt_qposadr[m.joint("hook_root").id]
+            self._hook_vadr = m.jnt_dofadr[m.joint("hook_root").id]
+            self._pay_qadr = m.jnt_qposadr[m.joint("payload_root").id]
+            self._pay_vadr = m.jnt_dofadr[m.joint("payload_root").id]
+            self.cable_length = float(m.tendon_range[m.tendon("cable").id, 1])
+        else:
+            self.cable_length = 0.0
+        # Airframe + electromagnet (+ rigid payload): the subtree rooted at the airframe.
+        self._airframe_subtree_mass = float(m.body_subtreemass[self._airframe])
+        self.vehicle_mass = float(self.vehicle["body"]["mass_kg"]) + float(
+            self.vehicle.get("payload", {}).get("electromagnet_mass_kg", 0.02)
+        )
+
+        rotors = self.vehicle["rotors"]
+        rl = self.vehicle["rate_loop"]
+        self.max_thrust = float(rotors["max_thrust_n"])
+        self.max_rate = np.asarray(rl["max_rate_rad_s"], dtype=float).reshape(3)
+        self.mixer = Mixer(
+            rotor_geometry(self.vehicle), float(rotors["yaw_moment_coeff_m"]), self.max_thrust
+        )
+        rate_hz = float(rl.get("rate_hz", 500.0))
+        self._rate_div = max(1, round(1.0 / (rate_hz * self.dt)))
+        rate_dt = self._rate_div * self.dt
+        self.rate_controller = RateController(RateGains.from_vehicle(self.vehicle), rate_dt)
+        self._lag = SetpointLag(
+            self.effects.get("rate_lag", "delay_s", 0.0),
+            self.effects.get("rate_lag", "time_constant_s", 0.0),
+            rate_dt,
+        )
+        tau_m = self.effects.get(
+            "motor_lag", "time_constant_s", float(rotors["motor_time_constant_s"])
+        )
+        self.motor_time_constant = float(tau_m)
+        self._motor_alpha = 1.0 - math.exp(-self.dt / self.motor_time_constant)
+        self._thrust_gain = float(self.effects.get("thrust_scale", "scale", 1.0))
+        self._ge_radius = self.effects.get("ground_effect", "rotor_radius_m")
+        self._drag = "rotor_drag" in self.effects or "quadratic_drag" in self.effects
+        wind = self.effects.get("wind", "velocity_mps")
+        self._wind = np.zeros(3) if wind is None else np.asarray(wind, dtype=float)
+
+        mocap_rng, gyro_rng = (
+            np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2)
+        )
+        self.mocap = MocapEmulator(mocap or MocapConfig(), mocap_rng)
+        self.gyro = GyroEmulator(gyro or GyroConfig(), gyro_rng)
+        self.reset()
+
+    # ------------------------------------------------------------------ set-up
+
+    def reset(
+        self,
+        position=(0.0, 0.0, 1.0),
+        yaw: float = 0.0,
+        velocity=(0.0, 0.0, 0.0),
+    ) -> np.ndarray:
+        """Place the vehicle level at ``position`` with ``yaw`` [rad] and ``velocity``.
+
+        Time restarts at 0, the payload (re)attaches and hangs straight down on a taut
+        cable (resting on the floor if the cable is longer than the height), motors spin
+        at hover thrust and the setpoint is "hover, zero rates". Returns the state.
+        """
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        p = np.asarray(position, dtype=float).reshape(3)
+        v = np.asarray(velocity, dtype=float).reshape(3)
+        d.qpos[0:3] = p
+        d.qpos[3:7] = [math.cos(0.5 * yaw), 0.0, 0.0, math.sin(0.5 * yaw)]
+        d.qvel[0:3] = v
+        if self._swinging:
+            d.eq_active[self._eq] = 1
+            mujoco.mj_kinematics(m, d)
+            anchor = d.site_xpos[self._anchor_site].copy()
+            below = anchor - np.array([0.0, 0.0, self.cable_length + PAYLOAD_RADIUS])
+            below[2] = max(below[2], PAYLOAD_RADIUS)
+            d.qpos[self._hook_qadr : self._hook_qadr + 7] = [*anchor, 1.0, 0.0, 0.0, 0.0]
+            d.qpos[self._pay_qadr : self._pay_qadr + 7] = [*below, 1.0, 0.0, 0.0, 0.0]
+            d.qvel[self._hook_vadr : self._hook_vadr + 3] = v
+            d.qvel[self._pay_vadr : self._pay_vadr + 3] = v
+        mujoco.mj_forward(m, d)
+        self._k = 0
+        self._t_goal = 0.0
+        hover_cmd = self.hover_thrust() / self._thrust_gain
+        self._setpoint = np.array([min(hover_cmd, 4.0 * self.max_thrust), 0.0, 0.0, 0.0])
+        self._thrust_cmd = np.full(4, min(hover_cmd / 4.0, self.max_thrust))
+        self._thrust = self._thrust_cmd.copy()
+        self._saturation = np.zeros(3)
+        self.rate_controller.reset(d.qvel[3:6])
+        self._lag.reset(np.zeros(3))
+        self.mocap.reset(0.0)
+        self.gyro.reset(0.0)
+        self.mocap.observe(0.0, d.qpos[0:3], d.qpos[3:7])
+        self.gyro.observe(0.0, d.qvel[3:6])
+        return self.state()
+
+    # ------------------------------------------------------------------ inputs
+
+    def set_setpoint(self, u) -> np.ndarray:
+        """Set ``[thrust N, roll, pitch, yaw rate rad/s]``; returns it clamped to the limits."""
+        u = np.asarray(u, dtype=float).reshape(-1)
+        if u.shape != (4,) or not np.all(np.isfinite(u)):
+            raise ValueError(f"setpoint must be 4 finite numbers, got {u!r}")
+        self._setpoint = np.concatenate(
+            [
+                [min(max(u[0], 0.0), 4.0 * self.max_thrust)],
+                np.clip(u[1:], -self.max_rate, self.max_rate),
+            ]
+        )
+        return self._setpoint.copy()
+
+    @property
+    def setpoint(self) -> np.ndarray:
+        """The (clamped) setpoint the rate loop currently follows."""
+        return self._setpoint.copy()
+
+    def release_payload(self) -> bool:
+        """Switch the electromagnet off. True if a payload was attached and is now free."""
+        if self.rigid_payload:
+            raise RuntimeError("a rigidly attached payload cannot be released")
+        if not self._swinging or not self.payload_attached:
+            return False
+        self.data.eq_active[self._eq] = 0
+        return True
+
+    # ------------------------------------------------------------------ stepping
+
+    def step(self, duration: float) -> np.ndarray:
+        """Advance by ``duration`` seconds; returns the state.
+
+        Time moves in whole physics steps; the requested durations are accumulated, so
+        e.g. repeated ``step(1 / 30)`` keeps 30 Hz on average instead of drifting.
+        """
+        if duration < 0.0:
+            raise ValueError(f"duration must be >= 0, got {duration}")
+        self._t_goal += duration
+        for _ in range(round(self._t_goal / self.dt) - self._k):
+            self._physics_step()
+        return self.state()
+
+    def _rate_tick(self) -> None:
+        omega_meas = self.gyro.measure(self.data.qvel[3:6])
+        rate_sp = self._lag.update(self._setpoint[1:])
+        torque = self.rate_controller.update(rate_sp, omega_meas, self._saturation)
+        self._thrust_cmd, self._saturation = self.mixer.mix(self._setpoint[0], torque)
+
+    def _physics_step(self) -> None:
+        m, d = self.model, self.data
+        if self._k % self._rate_div == 0:
+            self._rate_tick()
+        self._thrust += self._motor_alpha * (self._thrust_cmd - self._thrust)
+        force = self._thrust * self._thrust_gain
+        if self._ge_radius is not None:
+            force = force * ground_effect_gain(d.site_xpos[self._sites, 2], self._ge_radius)
+        d.ctrl[:] = force
+        if self._drag:
+            rot = d.xmat[self._airframe].reshape(3, 3)
+            v_rel_b = rot.T @ (d.qvel[0:3] - self._wind)
+            f_w = rot @ drag_force_body(self.effects, v_rel_b, self.vehicle_mass)
+            # xfrc_applied acts at the airframe body's own CoM; the moment term moves the
+            # force to the CoM of airframe + electromagnet (+ rigid payload): pure force.
+            a = d.subtree_com[self._airframe] - d.xipos[self._airframe]
+            d.xfrc_applied[self._airframe, 0:3] = f_w
+            d.xfrc_applied[self._airframe, 3:6] = (
+                a[1] * f_w[2] - a[2] * f_w[1],
+                a[2] * f_w[0] - a[0] * f_w[2],
+                a[0] * f_w[1] - a[1] * f_w[0],
+            )
+        mujoco.mj_step(m, d)
+        self._k += 1
+        t = self._k * self.dt
+        self.mocap.observe(t, d.qpos[0:3], d.qpos[3:7])
+        self.gyro.observe(t, d.qvel[3:6])
+
+    # ------------------------------------------------------------------ outputs
+
+    @property
+    def time(self) -> float:
+        """Simulation time [s] since the last reset."""
+        return self._k * self.dt
+
+    def state(self) -> np.ndarray:
+        """Ground-truth airframe state ``[p, v, q (w first), omega]`` (13,)."""
+        d = self.data
+        return np.concatenate([d.qpos[0:3], d.qvel[0:3], d.qpos[3:7], d.qvel[3:6]])
+
+    def read_mocap(self) -> list[MocapSample]:
+        """Motion-capture samples that have arrived by now (each once), oldest first."""
+        return self.mocap.read(self.time)
+
+    def read_gyro(self) -> list[GyroSample]:
+        """Gyro samples that have arrived by now (each once), oldest first."""
+        return self.gyro.read(self.time)
+
+    @property
+    def payload_attached(self) -> bool:
+        """Whether a payload hangs from (or is fixed to) the vehicle."""
+        if self._swinging:
+            return bool(self.data.eq_active[self._eq])
+        return self.rigid_payload
+
+    def payload_position(self) -> np.ndarray | None:
+        """World position of the payload's centre, or ``None`` without a payload."""
+        if self._payload_body < 0:
+            return None
+        return self.data.xpos[self._payload_body].copy()
+
+    def carried_mass(self) -> float:
+        """Mass the rotors carry [kg]: airframe, electromagnet and attached payload/cable."""
+        mass = self._airframe_subtree_mass
+        if self._swinging and self.payload_attached:
+            mass += float(self.model.body_mass[self._hook_body] + self.payload_mass)
+        return mass
+
+    def hover_thrust(self) -> float:
+        """Total weight the rotors must carry [N] (with ``thrust_scale`` the command differs)."""
+        return self.carried_mass() * self.gravity
+
+    def rotor_thrusts(self) -> np.ndarray:
+        """Actual rotor thrusts of the last step [N] (PX4 order), after all effects."""
+        return self.data.ctrl.copy()
