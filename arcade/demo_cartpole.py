@@ -46,9 +46,10 @@ def fly(vld, key, x0, schedule: cd.Schedule, adaptive: bool) -> dict[str, np.nda
         theta, _ = adaptation.marginal_decoder(beam)
         if adaptive:
             model = (vld, theta)
-            s2 = adaptation.sigma_tot2(
-                beam, vld.features(x, u_prev), vld.latent_variance(x, u_prev)
-            )
+            # sigma_tot^2 is in normalised residual units; Q modulation (Sec. IV) takes
+            # the physical variance, the units the paper's alpha2 is chosen for.
+            z, s2z = vld.features(x, u_prev), vld.latent_variance(x, u_prev)
+            s2 = adaptation.sigma_tot2(beam, z, s2z) * vld.delta_scale**2
         else:
             model, s2 = (vld, zero_theta), None
         sol = controller.solve(x, x_ref, u_ref, u_warm, u_prev, model, s2)

@@ -2,12 +2,14 @@
 
 The residual model is ``delta_k = theta z_k + eps_k`` with ``eps_k ~ N(0, diag(sigma^2))``
 (Eq. 4). Every output row ``theta^j`` has a Gaussian posterior per hypothesis ``h`` of a
-beam of ``K`` changepoint histories. One step of Algorithm 1:
+beam of ``K`` changepoint histories. Equation numbers follow the paper's source: Eq. 5
+tempering, Eq. 6 posterior, Eq. 7 score recursion (Lemma 3), Eq. 8 marginal likelihood,
+Eq. 9 changepoint posterior, Eq. 10 beam predictive. One step of Algorithm 1:
 
-1. predict with the beam mixture (Eq. 9, Sec. IV ``sigma_tot``);
+1. predict with the beam mixture (Eq. 10, Sec. IV ``sigma_tot``);
 2. for every hypothesis and both branches ``c_k in {0, 1}`` (tempering ``gamma in
-   {1, beta^2}``, Eq. 5) evaluate the marginal likelihood (Eq. 7), the changepoint
-   posterior (Eq. 8) and the candidate score (Lemma 2);
+   {1, beta^2}``, Eq. 5) evaluate the marginal likelihood (Eq. 8), the changepoint
+   posterior (Eq. 9) and the candidate score (Eq. 7, Lemma 3);
 3. keep the top-``K`` of the ``2K`` candidates and apply the posterior update (Eq. 6)
    to the survivors only. The update of a candidate depends on its parent and branch
    alone, so pruning before updating gives the same beam at half the work.
@@ -24,7 +26,7 @@ presets) every output has the same covariance: the state then stores one square 
 hypothesis, ``(K, 1, l, l)``, instead of ``d`` identical copies.
 
 Scores are stored shifted by a common constant so that the best one is ``0``
-(``log_offset`` keeps the shift): softmax weights (Eq. 9) and top-``K`` pruning are
+(``log_offset`` keeps the shift): softmax weights (Eq. 10) and top-``K`` pruning are
 invariant to the shift, and float32 scores do not lose resolution as the raw cumulative
 log-likelihood grows without bound.
 
@@ -38,7 +40,6 @@ score: they get zero weight and are displaced by real candidates first.
 from __future__ import annotations
 
 import math
-from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -83,7 +84,7 @@ class BeamState(NamedTuple):
         sqrt_covariances: ``(K, d_c, l, l)`` square roots ``W`` with ``Sigma = W W^T``;
             ``d_c = 1`` (shared by all outputs) when the state was initialised with a
             scalar ``sigma2``, else ``d_c = d``.
-        log_scores: ``(K,)`` cumulative scores ``L_{k,h}`` (Lemma 2) minus ``log_offset``;
+        log_scores: ``(K,)`` cumulative scores ``L_{k,h}`` (Eq. 7, Lemma 3) minus ``log_offset``;
             ``-inf`` marks an unused slot.
         log_offset: ``()`` common shift; the raw score is ``log_scores + log_offset``.
         num_changepoints: ``(K,)`` int32, changepoints on the hypothesis' path.
@@ -111,12 +112,11 @@ class BeamState(NamedTuple):
         w = self.sqrt_covariances
         cov = jnp.einsum("...ij,...kj->...ik", w, w)
         cov = 0.5 * (cov + jnp.swapaxes(cov, -1, -2))  # exactly symmetric, not just to rounding
-        K, d, l = self.means.shape
-        return jnp.broadcast_to(cov, (K, d, l, l))
+        return jnp.broadcast_to(cov, (*self.means.shape, self.means.shape[-1]))
 
     @property
     def weights(self) -> Array:
-        """``(K,)`` beam weights ``w_h = softmax(L_{k,h})`` (Eq. 9)."""
+        """``(K,)`` beam weights ``w_h = softmax(L_{k,h})`` (Eq. 10)."""
         return jax.nn.softmax(self.log_scores)
 
     @property
@@ -126,9 +126,9 @@ class BeamState(NamedTuple):
 
 
 class Prediction(NamedTuple):
-    """Beam-marginal one-step prediction of the residual (Eq. 9, Sec. IV), all ``(d,)``.
+    """Beam-marginal one-step prediction of the residual (Eq. 10, Sec. IV), all ``(d,)``.
 
-    ``variance = param + between + noise + encoder``: the variance of the Eq. 9 mixture,
+    ``variance = param + between + noise + encoder``: the variance of the Eq. 10 mixture,
     plus the first-order encoder term when an encoder variance is given.
     ``sigma_tot2 = encoder + param + between`` is the Sec. IV quantity that modulates the
     MPC cost; as in the paper it excludes the observation noise ``sigma_j^2``, which no
@@ -148,7 +148,7 @@ class UpdateInfo(NamedTuple):
     """Diagnostics of one update of Algorithm 1.
 
     Attributes:
-        p_change: ``(K,)`` Eq. 8 changepoint posterior of each previous hypothesis.
+        p_change: ``(K,)`` Eq. 9 changepoint posterior of each previous hypothesis.
         cp_prob: ``()`` beam-weighted changepoint posterior ``sum_h w_h p_h(c_k=1|.)``.
         cp_mass: ``()`` weight of the new beam on hypotheses whose latest step is a
             changepoint.
@@ -226,7 +226,7 @@ def _project(state: BeamState, z: Array) -> _Projections:
     a = jnp.einsum("kdji,kdj->kdi", w, zb)
     b = jnp.einsum("kdij,kdj->kdi", w, a)
     q = jnp.sum(a * a, axis=-1)
-    m = state.means @ z
+    m = jnp.sum(state.means * z, axis=-1)
     return _Projections(a, b, q, m)
 
 
@@ -239,15 +239,16 @@ def _encoder_term(state: BeamState, weights: Array, sigma_z2: ArrayLike | None) 
     if sigma_z2 is None:
         return jnp.zeros(state.means.shape[1], state.means.dtype)
     sz = jnp.asarray(sigma_z2, state.means.dtype)
-    second = jnp.einsum("k,kdi->di", weights, state.means * state.means)
-    return second @ jnp.broadcast_to(sz, state.means.shape[-1:])
+    return jnp.sum(weights[:, None, None] * sz * jnp.square(state.means), axis=(0, 2))
 
 
 def _mixture(state: BeamState, proj: _Projections, sigma_z2: ArrayLike | None) -> Prediction:
-    w = jax.nn.softmax(state.log_scores)
-    mean = w @ proj.m
-    param = jnp.broadcast_to(w @ proj.q, mean.shape)
-    between = w @ jnp.square(proj.m - mean)
+    w = jax.nn.softmax(state.log_scores)[:, None]
+    # Weighted sums as multiply-reduce rather than dots: they fuse into fewer kernels.
+    mean = jnp.sum(w * proj.m, axis=0)
+    param = jnp.broadcast_to(jnp.sum(w * proj.q, axis=0), mean.shape)
+    between = jnp.sum(w * jnp.square(proj.m - mean), axis=0)
+    w = w[:, 0]
     noise = state.sigma2
     encoder = _encoder_term(state, w, sigma_z2)
     tot = encoder + param + between
@@ -255,7 +256,7 @@ def _mixture(state: BeamState, proj: _Projections, sigma_z2: ArrayLike | None) -
 
 
 def predict(state: BeamState, z: ArrayLike, sigma_z2: ArrayLike | None = None) -> Prediction:
-    """Beam-marginal predictive distribution of the residual at latent input ``z`` (Eq. 9).
+    """Beam-marginal predictive distribution of the residual at latent input ``z`` (Eq. 10).
 
     With weights ``w_h = softmax(L_{k,h})`` and ``m_j = sum_h w_h z^T mu_h^j`` the mixture
     variance splits into ``param = sum_h w_h z^T Sigma_h^j z``, ``between = sum_h w_h
@@ -282,7 +283,7 @@ def sigma_tot2(state: BeamState, z: ArrayLike, sigma_z2: ArrayLike | None = None
 
 
 def marginal_decoder(state: BeamState) -> tuple[Array, Array]:
-    """Moment-matched beam-marginal decoder posterior (Eq. 9 mixture over ``theta``).
+    """Moment-matched beam-marginal decoder posterior (Eq. 10 mixture over ``theta``).
 
     Returns ``mean (d, l) = sum_h w_h mu_h`` and ``cov (d, l, l) = sum_h w_h (Sigma_h +
     (mu_h - mean)(mu_h - mean)^T)`` per output row.
@@ -319,6 +320,8 @@ def posterior_update(
     (must be uniform when ``d_c = 1``), ``gamma ()``.
     """
     dtype = mean.dtype
+    if sqrt_cov.shape[0] == 1 and mean.shape[0] > 1 and jnp.ndim(sigma2) > 0:
+        raise ValueError("a covariance shared by all outputs needs a scalar sigma2")
     z, delta = jnp.asarray(z, dtype), jnp.asarray(delta, dtype)
     sigma2 = _noise(sigma2, mean.shape[0], dtype)
     gamma = jnp.asarray(gamma, dtype)
@@ -351,7 +354,7 @@ def _potter(mean, sqrt_cov, a, b, q, r, sigma2, sigma2_cov, gamma):
 def top_k(values: Array, k: int) -> tuple[Array, Array]:
     """The ``k`` largest entries of a 1-D array, descending, ties to the lower index.
 
-    Same result as ``jax.lax.top_k`` (Algorithm 1 line 17, beam pruning), computed by
+    Same result as ``jax.lax.top_k`` (Algorithm 1, "prune beam"), computed by
     pairwise ranking: for the ``2K <= 60`` candidates of a beam this is one fused
     ``O(K^2)`` comparison kernel, several times faster on CPU than the sort behind
     ``lax.top_k``. ``values`` must be free of NaN (``-inf`` is fine).
@@ -368,7 +371,7 @@ def top_k(values: Array, k: int) -> tuple[Array, Array]:
 
 
 def _log_marginal(q: Array, r: Array, sigma2: Array, gamma: ArrayLike) -> Array:
-    """Eq. 7: ``log p(delta | z, c)`` per hypothesis, summed over outputs; ``(K,)``.
+    """Eq. 8: ``log p(delta | z, c)`` per hypothesis, summed over outputs; ``(K,)``.
 
     ``q = z^T Sigma z`` is ``(K, d_c)`` and broadcasts against ``r`` ``(K, d)``.
     """
@@ -394,12 +397,12 @@ def _update(
     r = delta - proj.m  # (K, d) innovation under each parent
     ll0 = _log_marginal(proj.q, r, sigma2, 1.0)
     ll1 = _log_marginal(proj.q, r, sigma2, beta2)
-    # Eq. 8 in log-odds form: logit p(c=1|.) = log Lambda + log(pi / (1 - pi)).
+    # Eq. 9 in log-odds form: logit p(c=1|.) = log Lambda + log(pi / (1 - pi)).
     logit = ll1 - ll0 + jnp.log(pi) - jnp.log1p(-pi)
     logp1 = jax.nn.log_sigmoid(logit)
     logp0 = jax.nn.log_sigmoid(-logit)
 
-    # Lemma 2 / Algorithm 1: L_k = L_{k-1} + log p(delta|z,c) + log p(c|.), both branches.
+    # Eq. 7 / Algorithm 1: L_k = L_{k-1} + log p(delta|z,c) + log p(c|.), both branches.
     prev = state.log_scores
     cand = jnp.concatenate([prev + ll0 + logp0, prev + ll1 + logp1])
     top, idx = top_k(cand, K)
@@ -407,17 +410,15 @@ def _update(
     branch = idx >= K
     gamma = jnp.where(branch, beta2, jnp.ones((), dtype))
 
-    new_mean, new_w = _potter(
-        state.means[parent],
-        state.sqrt_covariances[parent],
-        proj.a[parent],
-        proj.b[parent],
-        proj.q[parent],
-        r[parent],
-        sigma2,
-        sigma2[:d_cov],
-        gamma,
+    # One gather of everything the survivors need from their parents.
+    parts = (state.means, state.sqrt_covariances, proj.a, proj.b, proj.q, r)
+    rows = jnp.concatenate([x.reshape(K, -1) for x in parts], axis=1)[parent]
+    sizes = [math.prod(x.shape[1:]) for x in parts]
+    splits = [sum(sizes[: i + 1]) for i in range(len(sizes) - 1)]
+    mean_p, w_p, a_p, b_p, q_p, r_p = (
+        x.reshape(K, *y.shape[1:]) for x, y in zip(jnp.split(rows, splits, axis=1), parts)
     )
+    new_mean, new_w = _potter(mean_p, w_p, a_p, b_p, q_p, r_p, sigma2, sigma2[:d_cov], gamma)
 
     shift = top[0]  # top_k is sorted: the best candidate (always finite) leads
     k = state.step + 1
@@ -454,13 +455,20 @@ def _update(
 def update(
     state: BeamState, z: ArrayLike, delta: ArrayLike, config: AdaptationConfig
 ) -> tuple[BeamState, UpdateInfo]:
-    """Algorithm 1 lines 8-16: expand every hypothesis into ``c_k in {0,1}``, score, prune.
+    """Algorithm 1 after "observe new data": expand every hypothesis into ``c_k in {0,1}``,
+    score, prune.
 
-    For each hypothesis: Eq. 7 marginal log-likelihood under the tempered prior
-    ``N(mu, Sigma/gamma)`` for ``gamma in {1, beta^2}`` (Eq. 5), the Eq. 8 changepoint
+    For each hypothesis: Eq. 8 marginal log-likelihood under the tempered prior
+    ``N(mu, Sigma/gamma)`` for ``gamma in {1, beta^2}`` (Eq. 5), the Eq. 9 changepoint
     posterior ``p1``, and the candidate scores ``L + log p(delta|z,c) + log(c p1 + (1-c)
-    (1-p1))`` (Lemma 2); the top-``K`` of the ``2K`` candidates (``jax.lax.top_k``) get
-    the Eq. 6 posterior update.
+    (1-p1))`` (Eq. 7, Lemma 3); the top-``K`` of the ``2K`` candidates (:func:`top_k`, the
+    same selection as ``jax.lax.top_k``) get the Eq. 6 posterior update. The new beam is
+    sorted by score, so slot 0 is the MAP hypothesis.
+
+    Algorithm 1 is followed as written: ``log p(c_k|.)`` is the Eq. 9 *posterior*, which
+    already contains ``p(delta_k|c_k)``, so the data term enters a candidate's score twice
+    and two sibling candidates differ by ``2 log Lambda_k + log(pi / (1 - pi))`` (with
+    ``Lambda_k`` the Eq. 9 likelihood ratio) rather than by the log posterior odds.
 
     Args:
         state: beam after step ``k - 1``.
@@ -481,8 +489,8 @@ def step(
     config: AdaptationConfig,
     sigma_z2: ArrayLike | None = None,
 ) -> tuple[BeamState, Prediction, UpdateInfo]:
-    """One iteration of Algorithm 1: predict at ``z_k`` (Eq. 9), then update with
-    ``delta_k`` and prune (Eqs. 5-8, Lemma 2). The prediction is made *before* ``delta_k``
+    """One iteration of Algorithm 1: predict at ``z_k`` (Eq. 10), then update with
+    ``delta_k`` and prune (Eqs. 5-9, Lemma 3). The prediction is made *before* ``delta_k``
     is seen, from the same projections the update reuses.
     """
     dtype = state.means.dtype
@@ -498,33 +506,31 @@ def step(
 
 
 class PackedBeam(NamedTuple):
-    """A :class:`BeamState` plus ``pi, beta, tau2`` in two flat buffers.
+    """A :class:`BeamState` plus ``pi, beta, tau2`` in four arrays, for the real-time loop.
 
-    At this problem size a jitted call costs a few microseconds per argument and result
-    leaf, more than the arithmetic of a step, so the real-time loop passes two buffers:
-    ``floats = [means, sqrt_covariances, log_scores, log_offset, sigma2, pi, beta, tau2]``
-    (state dtype) and ``ints = [num_changepoints, last_changepoint, is_changepoint, step]``
-    (int32). Use :func:`pack`, :func:`unpack` and :func:`make_packed_step`.
+    At this problem size a jitted call costs about as much per argument and result leaf
+    as the arithmetic of a whole step, so the loop passes the two large arrays as they are
+    and everything small in one float and one int buffer:
+    ``floats = [log_scores (K), log_offset, sigma2 (d), pi, beta, tau2]`` (state dtype),
+    ``ints = [num_changepoints (K), last_changepoint (K), is_changepoint (K), step]``.
+    (Flattening the large arrays into the float buffer too would save two leaves but makes
+    XLA fuse the update into one slow concatenation kernel.) See :func:`make_packed_step`.
     """
 
+    means: Array
+    sqrt_covariances: Array
     floats: Array
     ints: Array
 
 
 def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
-    """Flatten ``state`` and the traced hyperparameters of ``config`` into a :class:`PackedBeam`."""
+    """``state`` and the traced hyperparameters of ``config`` as a :class:`PackedBeam`.
+
+    ``state`` stays valid after the packed beam has been donated to a step.
+    """
     dtype = state.means.dtype
     hyper = jnp.stack([jnp.asarray(v, dtype) for v in (config.pi, config.beta, config.tau2)])
-    floats = jnp.concatenate(
-        [
-            state.means.ravel(),
-            state.sqrt_covariances.ravel(),
-            state.log_scores,
-            state.log_offset[None],
-            state.sigma2,
-            hyper,
-        ]
-    )
+    floats = jnp.concatenate([state.log_scores, state.log_offset[None], state.sigma2, hyper])
     ints = jnp.concatenate(
         [
             state.num_changepoints,
@@ -533,38 +539,33 @@ def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
             state.step[None],
         ]
     )
-    return PackedBeam(floats, ints)
+    # Copies, so that donating the packed beam never invalidates ``state``.
+    return PackedBeam(jnp.copy(state.means), jnp.copy(state.sqrt_covariances), floats, ints)
 
 
-def unpack(packed: PackedBeam, K: int, d: int, l: int) -> tuple[BeamState, AdaptationConfig]:
-    """Inverse of :func:`pack` for a beam of ``K`` hypotheses, ``d`` outputs, ``l`` features."""
+def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
+    """Inverse of :func:`pack` (sizes are read from the array shapes)."""
+    K, d, _ = packed.means.shape
     f, n = packed.floats, packed.ints
-    d_cov = (f.shape[0] - (K * d * l + K + d + 4)) // (K * l * l)
-    sizes = (K * d * l, K * d_cov * l * l, K, 1, d, 1, 1, 1)
-    offsets = [0]
-    for size in sizes:
-        offsets.append(offsets[-1] + size)
-    means, sq, scores, offset, sigma2, pi, beta, tau2 = (
-        f[offsets[i] : offsets[i + 1]] for i in range(len(sizes))
-    )
+    sigma2 = f[K + 1 : K + 1 + d]
+    pi, beta, tau2 = f[K + 1 + d], f[K + 2 + d], f[K + 3 + d]
     state = BeamState(
-        means=means.reshape(K, d, l),
-        sqrt_covariances=sq.reshape(K, d_cov, l, l),
-        log_scores=scores,
-        log_offset=offset[0],
+        means=packed.means,
+        sqrt_covariances=packed.sqrt_covariances,
+        log_scores=f[:K],
+        log_offset=f[K],
         num_changepoints=n[:K],
         last_changepoint=n[K : 2 * K],
         is_changepoint=n[2 * K : 3 * K] != 0,
         step=n[3 * K],
         sigma2=sigma2,
     )
-    noise = sigma2[0] if d_cov == 1 else sigma2  # keeps the shared-covariance contract
-    return state, AdaptationConfig(K=K, pi=pi[0], beta=beta[0], tau2=tau2[0], sigma2=noise)
+    shared = packed.sqrt_covariances.shape[1] == 1
+    noise = sigma2[0] if shared else sigma2  # keeps the shared-covariance contract
+    return state, AdaptationConfig(K=K, pi=pi, beta=beta, tau2=tau2, sigma2=noise)
 
 
-def packed_step(
-    packed: PackedBeam, inputs: Array, *, K: int, d: int, l: int
-) -> tuple[PackedBeam, Array]:
+def packed_step(packed: PackedBeam, inputs: Array) -> tuple[PackedBeam, Array]:
     """:func:`step` on a :class:`PackedBeam` (Algorithm 1, one iteration).
 
     Args:
@@ -575,7 +576,8 @@ def packed_step(
     Returns:
         the new packed beam and ``outputs`` (see :func:`unpack_outputs`).
     """
-    state, config = unpack(packed, K, d, l)
+    state, config = unpack(packed)
+    _, d, l = state.means.shape
     z, delta, sigma_z2 = inputs[:l], inputs[l : l + d], inputs[l + d :]
     new_state, pred, info = step(state, z, delta, config, sigma_z2)
     dtype = state.means.dtype
@@ -609,10 +611,10 @@ def unpack_outputs(outputs, d: int, K: int) -> tuple[Prediction, UpdateInfo]:
     return pred, info
 
 
-def make_packed_step(K: int, d: int, l: int):
-    """Jitted :func:`packed_step` for fixed sizes; donates the packed beam (in-place update).
+def make_packed_step():
+    """Jitted :func:`packed_step` that donates the packed beam (updated in place).
 
-    Returns ``fn(packed, inputs) -> (packed, outputs)``. The packed beam passed in must
-    not be used again after the call.
+    Returns ``fn(packed, inputs) -> (packed, outputs)``; the packed beam passed in must not
+    be used after the call. Compiles once per beam size, dimensions and dtype.
     """
-    return jax.jit(partial(packed_step, K=K, d=d, l=l), donate_argnums=0)
+    return jax.jit(packed_step, donate_argnums=0)

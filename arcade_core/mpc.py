@@ -1,6 +1,6 @@
 """Uncertainty-modulated nonlinear MPC by direct shooting (Sec. IV, Appendix D).
 
-At every control step the optimal control problem (Sec. IV, Eq. of the OCP)
+At every control step the optimal control problem of Sec. IV
 
     min_U  sum_{i<N} ||x_i - x^r_i||^2_{Q_k} + ||u_i - u^r_i||^2_R + ||x_N - x^r_N||^2_P
            + w_s sum_i ||u_i - u_{i-1}||^2 + w_c sum_i ||viol(x_i)||^2
@@ -19,7 +19,8 @@ Design decisions:
   3-5 iterations, where Levenberg-Marquardt (available as ``solver``) spends iterations
   on trust-region adjustments. The iteration count is capped (``max_steps``) so the
   solve time is bounded, and the normal equations are solved by Cholesky (``J`` is tall
-  and has full column rank thanks to the input-cost rows), ~10x cheaper than QR.
+  and has full column rank thanks to the input-cost rows), several times cheaper than
+  a QR factorisation of ``J``.
 - **Jacobian.** The rollout has a custom forward-mode rule: the per-step linearisations
   ``A_i = df/dx``, ``B_i = df/du`` are computed in parallel over the horizon (``nx + nu``
   tangents per step instead of ``N * nu``), then propagated with the tangent-linear
@@ -86,7 +87,7 @@ class MPCConfig(eqx.Module):
     max_steps: int = eqx.field(static=True, default=8)
     rtol: float = eqx.field(static=True, default=1e-3)
     atol: float = eqx.field(static=True, default=1e-4)
-    solver: str = eqx.field(static=True, default="gauss_newton")
+    solver: str = eqx.field(static=True, default="gauss_newton")  # | dogleg | levenberg_marquardt
 
     @property
     def nx(self) -> int:
@@ -104,7 +105,7 @@ class MPCSolution(NamedTuple):
     x_pred: Array  # (N+1, nx) predicted states, x_pred[0] = x0
     cost: Array  # scalar J at the solution
     iterations: Array  # solver steps taken
-    converged: Array  # bool: solver tolerance met and solution finite
+    converged: Array  # bool: tolerance met, finite, no worse than the warm start
 
 
 def quadrotor_mpc_config(
@@ -124,7 +125,7 @@ def quadrotor_mpc_config(
     ``params`` is accepted for symmetry with the model; the gains do not depend on it.
     """
     del params
-    arr = lambda v: jnp.asarray(v, dtype=dtype)  # noqa: E731
+    arr = lambda v: jnp.asarray(v, dtype=dtype or float)  # noqa: E731
     cfg = dict(
         Q=arr([40, 40, 60, 10, 10, 10, 1, 10, 10, 10, 10, 10, 10]),
         P=arr([400, 400, 600, 20, 20, 20, 1, 10, 10, 10, 10, 10, 10]),
@@ -141,21 +142,24 @@ def quadrotor_mpc_config(
 def cartpole_mpc_config(N: int = 25, dt: float = CARTPOLE_DT, dtype=None, **overrides: Any):
     """Cartpole MPC (Appendix D testbed; the paper gives no gains, these are ours).
 
-    State cost on ``[x, xdot, theta, thetadot]`` emphasises the pole angle; force bound
-    ±20 N; a 1.25 s horizon (25 steps at 0.05 s, about three time constants of the
-    nominal pole). The smoothness weight is lowered to 0.01 because the input is a
-    force of several newtons, not a normalised command.
+    State cost on ``[x, xdot, theta, thetadot]`` emphasises the pole angle, with a heavy
+    terminal weight; force bound ±20 N; a 1.25 s horizon (25 steps at 0.05 s, about three
+    time constants of the nominal pole). The smoothness weight is lowered to 0.01 because
+    the input is a force of several newtons, not a normalised command. The unstable,
+    often saturated cartpole problem uses the trust-region Dogleg solver, which stays
+    reliable where plain Gauss-Newton can overshoot.
     """
-    arr = lambda v: jnp.asarray(v, dtype=dtype)  # noqa: E731
+    arr = lambda v: jnp.asarray(v, dtype=dtype or float)  # noqa: E731
     cfg = dict(
-        Q=arr([1.0, 0.1, 10.0, 0.1]),
-        P=arr([10.0, 1.0, 100.0, 1.0]),
+        Q=arr([1.0, 0.5, 10.0, 0.5]),
+        P=arr([100.0, 50.0, 1000.0, 50.0]),
         R=arr([0.01]),
         u_min=arr([-20.0]),
         u_max=arr([20.0]),
         N=N,
         dt=dt,
         smooth_weight=0.01,
+        solver="dogleg",
     )
     cfg.update(overrides)
     return MPCConfig(**cfg)
@@ -254,21 +258,6 @@ def _rollout_arrays(step_fn, static, x0, U, dynamic):
     return roll(x0, U, dynamic)
 
 
-def _quiet(**kwargs: Any) -> None:
-    del kwargs
-
-
-class _GaussNewtonArmijo(optx.AbstractGaussNewton):
-    """Gauss-Newton direction with a backtracking Armijo line search (globalised GN)."""
-
-    rtol: float
-    atol: float
-    descent: optx.NewtonDescent
-    norm: Callable = optx.max_norm
-    search: optx.BacktrackingArmijo = optx.BacktrackingArmijo(decrease_factor=0.5, slope=0.1)
-    verbose: Callable[..., None] = _quiet
-
-
 class _Problem(NamedTuple):
     x0: Array
     x_ref: Array
@@ -313,7 +302,11 @@ def make_controller(step_fn: StepFn, config: MPCConfig) -> Controller:
         lo_idx = np.flatnonzero(np.isfinite(np.asarray(cfg.x_min)))
 
     def residuals(U: Array, X: Array, prob: _Problem) -> Array:
-        sq = jnp.sqrt
+        """Weighted residuals whose squared sum is the OCP cost J (Sec. IV, Appendix D)."""
+
+        def sq(w):  # square root of a weight, in the working precision
+            return jnp.sqrt(jnp.asarray(w, X.dtype))
+
         stage = sq(prob.q_stage) * (X[:-1] - prob.x_ref[:-1])
         terminal = sq(cfg.P) * (X[-1] - prob.x_ref[-1])
         inputs = sq(cfg.R) * (U - prob.u_ref)
@@ -322,13 +315,18 @@ def make_controller(step_fn: StepFn, config: MPCConfig) -> Controller:
         parts = [stage.ravel(), terminal, inputs.ravel(), smooth.ravel()]
         w_c = sq(cfg.constraint_weight)
         if hi_idx.size:
-            parts.append(w_c * jax.nn.relu(X[1:, hi_idx] - cfg.x_max[hi_idx]).ravel())
+            x_max = jnp.asarray(cfg.x_max, X.dtype)[hi_idx]
+            parts.append(w_c * jax.nn.relu(X[1:, hi_idx] - x_max).ravel())
         if lo_idx.size:
-            parts.append(w_c * jax.nn.relu(cfg.x_min[lo_idx] - X[1:, lo_idx]).ravel())
+            x_min = jnp.asarray(cfg.x_min, X.dtype)[lo_idx]
+            parts.append(w_c * jax.nn.relu(x_min - X[1:, lo_idx]).ravel())
         return jnp.concatenate(parts)
 
+    def bounds(dtype) -> tuple[Array, Array]:
+        return jnp.asarray(cfg.u_min, dtype), jnp.asarray(cfg.u_max, dtype)
+
     def fn(z: Array, prob: _Problem) -> Array:
-        U = _squash(z, cfg.u_min, cfg.u_max)
+        U = _squash(z, *bounds(z.dtype))
         X = rollout(prob.x0, U, prob.model)
         return residuals(U, X, prob)
 
@@ -336,10 +334,6 @@ def make_controller(step_fn: StepFn, config: MPCConfig) -> Controller:
     linear_solver = lx.Normal(lx.Cholesky())
     if cfg.solver == "gauss_newton":
         solver = optx.GaussNewton(rtol=cfg.rtol, atol=cfg.atol, linear_solver=linear_solver)
-    elif cfg.solver == "gauss_newton_armijo":
-        solver = _GaussNewtonArmijo(
-            rtol=cfg.rtol, atol=cfg.atol, descent=optx.NewtonDescent(linear_solver=linear_solver)
-        )
     elif cfg.solver == "dogleg":
         solver = optx.Dogleg(rtol=cfg.rtol, atol=cfg.atol, linear_solver=linear_solver)
     elif cfg.solver == "levenberg_marquardt":
@@ -359,21 +353,21 @@ def make_controller(step_fn: StepFn, config: MPCConfig) -> Controller:
         model: Any,
         sigma_tot2: Array | None = None,
     ) -> MPCSolution:
-        q_stage = cfg.Q if sigma_tot2 is None else modulate_q(
-            cfg.Q, sigma_tot2, cfg.alpha1, cfg.alpha2
-        )
+        Q = jnp.asarray(cfg.Q, x0.dtype)
+        q_stage = Q if sigma_tot2 is None else modulate_q(Q, sigma_tot2, cfg.alpha1, cfg.alpha2)
         q_stage = jnp.broadcast_to(q_stage, (cfg.N, cfg.nx)).astype(x0.dtype)
         prob = _Problem(x0, x_ref, u_ref, u_prev, model, q_stage)
-        z0 = _unsquash(u_warm, cfg.u_min, cfg.u_max)
+        lo, hi = bounds(u_warm.dtype)
+        z0 = _unsquash(u_warm, lo, hi)
         sol = optx.least_squares(
             fn, solver, z0, args=prob, max_steps=cfg.max_steps, throw=False
         )
-        U = _squash(sol.value, cfg.u_min, cfg.u_max)
+        U = _squash(sol.value, lo, hi)
         X = rollout(x0, U, model)
         cost = jnp.sum(residuals(U, X, prob) ** 2)
         # Safeguards: never hand out a non-finite plan, nor one worse than the warm start
         # (undamped Gauss-Newton can overshoot far from the optimum).
-        U_safe = jnp.clip(u_warm, cfg.u_min, cfg.u_max)
+        U_safe = jnp.clip(u_warm, lo, hi)
         X_safe = rollout(x0, U_safe, model)
         cost_safe = jnp.sum(residuals(U_safe, X_safe, prob) ** 2)
         finite = jnp.isfinite(cost) & jnp.all(jnp.isfinite(U)) & jnp.all(jnp.isfinite(X))

@@ -15,6 +15,7 @@ their numbers change.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple, Protocol
 
 import jax
@@ -158,6 +159,7 @@ def flat_state(
     return x, u
 
 
+@partial(jax.jit, static_argnames=("N", "dt"))
 def quadrotor_reference(
     t0: Array | float,
     N: int,
@@ -169,6 +171,7 @@ def quadrotor_reference(
     """MPC references over a horizon: ``x_ref`` (N+1, 13) at ``t0 + i dt`` and ``u_ref`` (N, 4).
 
     Differential flatness of the nominal quadrotor (Appendix D); see ``flat_state``.
+    Jitted (``N`` and ``dt`` static) because it is called at every control step.
     """
     t0 = jnp.asarray(t0, dtype=jnp.result_type(t0, float))
     times = t0 + dt * jnp.arange(N + 1, dtype=t0.dtype)

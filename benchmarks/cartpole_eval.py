@@ -32,7 +32,8 @@ import numpy as np
 
 from arcade_core import adaptation, encoder, metrics
 from arcade_core.baselines import gp, mlp, sysid
-from arcade_core.dynamics.cartpole import cartpole_nominal_step
+from arcade_core.dynamics.cartpole import cartpole_nominal_step, cartpole_true_step
+from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_TRUE
 from benchmarks import cartpole_data as cd
 
 STATE_NAMES = ("x", "xdot", "theta", "thetadot")
@@ -194,6 +195,19 @@ def run_mlp(net: mlp.MLPResidual, lr, X, U):
     return jax.lax.scan(body, state0, (X[:-1], U, X[1:]))[1]
 
 
+def run_oracle(schedule: cd.Schedule, X, U):
+    """Reference, not a method: the true model with the interventions and the mean
+    disturbance known. Its error is the irreducible part (the random force), a floor no
+    learner can go below."""
+    p = CARTPOLE_TRUE
+
+    def one(x, u, f, s):
+        params = p._replace(M=p.M * s, m=p.m * s)
+        return cartpole_true_step(None, x, u, params, CARTPOLE_DT, force=f, u_dist=p.dist_mean)
+
+    return jax.vmap(one)(X[:-1], U, jnp.asarray(schedule.force), jnp.asarray(schedule.mass_scale))
+
+
 def _crmse_batch(xhat, X) -> np.ndarray:
     return np.asarray(jax.vmap(metrics.crmse)(jnp.asarray(X[:, 1:]), xhat))
 
@@ -308,6 +322,7 @@ def evaluate(
         )(X, U),
         "offline_only": jax.jit(jax.vmap(lambda X, U: run_offline_only(m.vld, X, U)))(X, U),
     }
+    runs["oracle_true_model"] = jax.jit(jax.vmap(lambda X, U: run_oracle(sched, X, U)))(X, U)
     online_crmse = {name: _crmse_batch(xhat, online_data.X) for name, xhat in runs.items()}
     cp = changepoint_quality(np.asarray(ours_out[2]))
 

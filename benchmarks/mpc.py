@@ -39,10 +39,17 @@ def run(
     speed: float = 2.5,
     warmup: int = 5,
     seed: int = 0,
-    solver: str = "levenberg_marquardt",
+    solver: str | None = None,
     max_steps: int | None = None,
+    quick: bool = False,
 ) -> dict:
-    """Time ``steps`` closed-loop MPC solves; returns the latency summary (ms)."""
+    """Time ``steps`` closed-loop MPC solves; returns the latency summary (ms).
+
+    ``solver``/``max_steps`` override the Appendix D quadrotor configuration's defaults;
+    ``quick`` times 60 solves (smoke run).
+    """
+    if quick:
+        steps = min(steps, 60)
     from arcade import jaxsetup
 
     jaxsetup.configure(x64=False)
@@ -57,7 +64,9 @@ def run(
 
     f32 = jnp.float32
     params = QuadrotorParams(inertia=jnp.asarray(QuadrotorParams().inertia, f32))
-    overrides = {"solver": solver}
+    overrides = {}
+    if solver is not None:
+        overrides["solver"] = solver
     if max_steps is not None:
         overrides["max_steps"] = max_steps
     cfg = quadrotor_mpc_config(dtype=f32, **overrides)
@@ -109,7 +118,7 @@ def run(
         "machine": machine(),
         "horizon": N,
         "dtype": "float32",
-        "solver": solver,
+        "solver": cfg.solver,
         "max_steps": cfg.max_steps,
         "steps": steps,
         "speed_mps": speed,
@@ -125,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--speed", type=float, default=2.5)
-    parser.add_argument("--solver", default="levenberg_marquardt")
+    parser.add_argument("--solver", help="gauss_newton | dogleg | levenberg_marquardt")
     parser.add_argument("--max-steps", type=int, default=None)
     args = parser.parse_args(argv)
     result = run(

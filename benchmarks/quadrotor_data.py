@@ -4,12 +4,15 @@ Training flights carry *rigidly attached* payloads of 10, 100 and 200 g (3 min e
 validation flights 75, 125 and 175 g (1 min each, different random trajectories). The
 "expert pilot" is :class:`ExpertPilot`, a cascaded position/attitude controller that
 produces what the vehicle's offboard interface takes (collective thrust + body-rate
-setpoints) while tracking a smooth random cubic spline through random waypoints (mean
+setpoints) while tracking a smooth random cubic Hermite spline through random waypoints (mean
 segment speeds 0.3-2.0 m/s, peak speed capped at 2.5 m/s, peak acceleration at 6 m/s^2,
-a slowly varying yaw). Like a human pilot it does not know the payload: it uses the
-nominal mass and trims the extra weight with the integral of the height error. White
-Gaussian excitation (0.3 N thrust, 0.3 rad/s rates, clipped at 2 sigma) is added to every
-setpoint so that the data are informative about the input channels.
+a slowly varying yaw). Like a human pilot it knows the payload only through the hover
+throttle it trimmed after take-off.
+Low-pass Gaussian excitation (AR(1) with a 0.5 s correlation time; 0.8 N thrust, 0.3 rad/s
+rates) is added to the setpoints so that the data are informative about the input
+channels. It is deliberately slow, like a pilot's stick: the motors lag the thrust command
+by 25 ms, so white per-step excitation would teach the residual model that thrust acts
+only half as strongly as it does once the motors have caught up.
 
 Rates and residuals. The pilot (like the closed-loop MPC of ``quadrotor_closedloop``)
 updates its setpoint every :data:`CONTROL_DT` = 0.05 s (20 Hz) and holds it in between;
@@ -40,7 +43,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import CubicHermiteSpline
 
 from arcade.vehicle import load_vehicle, quadrotor_params
 from arcade_core.dynamics import quadrotor_step
@@ -53,16 +56,17 @@ LOG_PER_CONTROL = round(CONTROL_DT / LOG_DT)
 TRAIN_PAYLOADS_G = (10.0, 100.0, 200.0)
 VAL_PAYLOADS_G = (75.0, 125.0, 175.0)
 #: Bump when the generator changes so that cached logs are regenerated.
-DATA_VERSION = 1
+DATA_VERSION = 5
 
 #: Flight envelope of the random trajectories (world ENU, m).
-BOX_LOW = np.array([-2.0, -2.0, 0.7])
-BOX_HIGH = np.array([2.0, 2.0, 2.0])
-START = np.array([0.0, 0.0, 1.0])
+BOX_LOW = np.array([-2.0, -2.0, 1.2])
+BOX_HIGH = np.array([2.0, 2.0, 2.6])
+START = np.array([0.0, 0.0, 1.8])
 MAX_SPEED = 2.5  # m/s
 MAX_ACCEL = 6.0  # m/s^2
 SEGMENT_SPEED = (0.3, 2.0)  # mean speed between waypoints, m/s
-EXCITATION_STD = np.array([0.3, 0.3, 0.3, 0.3])  # thrust N, rates rad/s
+EXCITATION_STD = np.array([0.8, 0.3, 0.3, 0.3])  # thrust N, rates rad/s
+EXCITATION_TAU_S = 0.5  # correlation time of the excitation
 HOVER_LEAD_S = 3.0  # hover at the start so the pilot's trim settles
 
 
@@ -70,7 +74,7 @@ HOVER_LEAD_S = 3.0  # hover at the start so the pilot's trim settles
 
 
 class RandomPath:
-    """Smooth random reference: clamped cubic spline through random waypoints.
+    """Smooth random reference: C1 cubic Hermite spline through random waypoints.
 
     Segment durations follow random mean speeds in :data:`SEGMENT_SPEED`; the whole
     time axis is then stretched until the peak speed is at most :data:`MAX_SPEED` and the
@@ -99,8 +103,12 @@ class RandomPath:
         self.yaw_phase = rng.uniform(0.0, 2.0 * np.pi)
 
     @staticmethod
-    def _fit(times: np.ndarray, pts: np.ndarray) -> CubicSpline:
-        return CubicSpline(times, pts, bc_type="clamped")
+    def _fit(times: np.ndarray, pts: np.ndarray) -> CubicHermiteSpline:
+        # Catmull-Rom velocities (central differences, rest at both ends): unlike a global
+        # C2 spline this cannot overshoot far between unevenly spaced waypoints.
+        vel = np.zeros_like(pts)
+        vel[1:-1] = (pts[2:] - pts[:-2]) / (times[2:] - times[:-2])[:, None]
+        return CubicHermiteSpline(times, pts, vel)
 
     def __call__(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Position, velocity, acceleration and yaw at time ``t``."""
@@ -129,8 +137,9 @@ class ExpertPilot:
     """Cascaded position (PID) / attitude (P) controller emitting thrust + body rates.
 
     Position loop: ``a = a_ref + Kp e_p + Kd e_v + Ki int(e_p)`` with the tilt limited to
-    ``max_tilt``; thrust vector ``F = m_nom (a + g e3)`` (the *nominal* mass: the payload is
-    unknown and trimmed by the integrator), collective thrust ``F . z_body``. Attitude
+    ``max_tilt``; thrust vector ``F = m (a + g e3)``, collective thrust ``F . z_body``,
+    where ``m`` is the mass implied by the hover throttle the pilot trimmed after take-off
+    (:meth:`trim`), as a pilot knows how heavy the vehicle feels. Attitude
     loop (geometric, Lee et al. 2010): ``omega_cmd = -K_R vee(R_d^T R - R^T R_d) / 2``.
     """
 
@@ -151,9 +160,10 @@ class ExpertPilot:
         self.integral = np.zeros(3)
 
     def trim(self, hover_thrust: float) -> None:
-        """Preset the height integrator so that ``hover_thrust`` [N] holds the height."""
+        """Learn the hover thrust [N] (after take-off): feedback is scaled by the mass it
+        implies, the integrator only removes what is left."""
+        self.mass = hover_thrust / self.gravity
         self.integral[:] = 0.0
-        self.integral[2] = (hover_thrust / self.mass - self.gravity) / self.ki
 
     def __call__(self, x: np.ndarray, ref, dt: float) -> np.ndarray:
         p_ref, v_ref, a_ref, yaw = ref
@@ -223,11 +233,15 @@ def fly_expert(
     X = np.empty((n, 13))
     U = np.empty((n, 4))
     X[0] = x
+    # AR(1) excitation: low-pass Gaussian noise with correlation time EXCITATION_TAU_S.
+    a = np.exp(-CONTROL_DT / EXCITATION_TAU_S)
+    noise = np.zeros(4)
     for k in range(steps):
         t = k * CONTROL_DT
         u = pilot(x, path(t), CONTROL_DT)
-        noise = np.clip(rng_noise.standard_normal(4), -2.0, 2.0) * excitation_std
-        u = sim.set_setpoint(u + noise)
+        w = np.clip(rng_noise.standard_normal(4), -2.0, 2.0)
+        noise = a * noise + np.sqrt(1.0 - a * a) * w
+        u = sim.set_setpoint(u + noise * excitation_std)
         for j in range(LOG_PER_CONTROL):
             i = k * LOG_PER_CONTROL + j
             U[i] = u

@@ -346,7 +346,8 @@ class Bus:
         self._tokens: dict[str, Any] = {}
         self._alive: set[str] = set()
         self._alive_listeners: list[Callable[[str, bool], None]] = []
-        self._cond = threading.Condition()
+        self._cond = threading.Condition()  # guards the liveliness view
+        self._pub_lock = threading.Lock()
 
     # -- lifecycle
     def open(self) -> Bus:
@@ -398,9 +399,10 @@ class Bus:
     # -- data
     def publisher(self, topic: str) -> Publisher[Any]:
         """The (cached) publisher of ``topic``; one ``seq`` sequence per topic and bus."""
-        if topic not in self._publishers:
-            self._publishers[topic] = Publisher(self, topic)
-        return self._publishers[topic]
+        with self._pub_lock:  # callbacks publish from Zenoh threads: create each one once
+            if topic not in self._publishers:
+                self._publishers[topic] = Publisher(self, topic)
+            return self._publishers[topic]
 
     def put(self, record: Message) -> int:
         """Publish ``record`` on its topic (see :meth:`Publisher.put`)."""

@@ -281,6 +281,8 @@ class _Array:
             return None
         if isinstance(v, list):
             arr = _from_nested(name, v, len(self.shape))
+        elif isinstance(v, int | float | str | bytes | Mapping | np.generic):
+            raise MessageError(Reason.BAD_TYPE, f"expected an array, got {_tname(v)}", field=name)
         else:
             try:
                 arr = np.asarray(v)
@@ -357,13 +359,18 @@ def _tname(v: Any) -> str:
     return type(v).__name__
 
 
+_NUMBER = (float, int, np.floating, np.integer)
+
+
 def _from_nested(name: str, v: list, ndim: int) -> np.ndarray:
-    """Strictly parse nested wire lists of numbers (no bools, strings or ragged rows)."""
+    """Strictly parse nested lists of real numbers (no bools, strings or ragged rows)."""
     if ndim == 1:
         for x in v:
-            t = type(x)
-            if t is not float and t is not int:
-                raise MessageError(Reason.BAD_TYPE, f"array element is {t.__name__}", field=name)
+            if isinstance(x, _NUMBER) and not isinstance(x, bool | np.bool_):
+                continue
+            if isinstance(x, list):
+                raise MessageError(Reason.BAD_SHAPE, "too many nesting levels", field=name)
+            raise MessageError(Reason.BAD_TYPE, f"array element is {_tname(x)}", field=name)
         try:
             return np.array(v, dtype=np.float64)
         except OverflowError as e:

@@ -27,11 +27,18 @@ def model(data):
     return gp.fit(x, u, delta, num_points=100, num_steps=100, key=jax.random.PRNGKey(1))
 
 
+@jax.jit
 def _push_all(state, x, u, delta):
     def step(s, xs):
         return gp.update(s, *xs), None
 
     return jax.lax.scan(step, state, (x, u, delta))[0]
+
+
+_predict = jax.jit(gp.predict)
+_predict_many = jax.jit(jax.vmap(gp.predict, in_axes=(None, 0, 0)))
+_condition = jax.jit(gp.condition)
+_init = jax.jit(gp.init, static_argnames="capacity")
 
 
 def test_marginal_likelihood_increases(data, model):
@@ -52,17 +59,17 @@ def test_marginal_likelihood_increases(data, model):
 
 def test_interpolates_known_function(data, model):
     x, u, delta = data
-    state = _push_all(gp.init(model, capacity=50), x[:50], u[:50], delta[:50])
+    state = _push_all(_init(model, capacity=50), x[:50], u[:50], delta[:50])
     kx, ku = jax.random.split(jax.random.PRNGKey(5))
     xt = jax.random.uniform(kx, (100, 2), minval=-0.9, maxval=0.9)
     ut = jax.random.uniform(ku, (100, 1), minval=-0.9, maxval=0.9)
-    mean, var = jax.vmap(lambda a, b: gp.predict(state, a, b))(xt, ut)
+    mean, var = _predict_many(state, xt, ut)
     rmse = np.sqrt(np.mean((np.asarray(mean) - np.asarray(_truth(xt, ut))) ** 2, axis=0))
     spread = np.std(np.asarray(_truth(xt, ut)), axis=0)
     assert np.all(rmse < 0.05 * spread)
     assert np.all(np.asarray(var) >= 0.0)
     # Far from the data the latent variance returns to the prior signal variance.
-    _, var_far = gp.predict(state, x[0] + 50.0, u[0])
+    _, var_far = _predict(state, x[0] + 50.0, u[0])
     prior = (
         np.exp(np.asarray(model.hyper.log_signal_var))
         * np.asarray(model.standardizer.out_scale) ** 2
@@ -72,8 +79,8 @@ def test_interpolates_known_function(data, model):
 
 
 def test_empty_gp_predicts_prior(model):
-    state = gp.init(model, capacity=50)
-    mean, var = gp.predict(state, jnp.zeros(2), jnp.zeros(1))
+    state = _init(model, capacity=50)
+    mean, var = _predict(state, jnp.zeros(2), jnp.zeros(1))
     np.testing.assert_allclose(mean, model.standardizer.out_mean, atol=1e-12)
     prior = (
         np.exp(np.asarray(model.hyper.log_signal_var))
@@ -84,7 +91,7 @@ def test_empty_gp_predicts_prior(model):
 
 def test_fifo_keeps_last_50_samples(data, model):
     x, u, delta = data
-    state = _push_all(gp.init(model, capacity=50), x[:70], u[:70], delta[:70])
+    state = _push_all(_init(model, capacity=50), x[:70], u[:70], delta[:70])
     assert int(state.buffer.count) == 50
     s = model.standardizer
     expected = (jnp.concatenate([x[20:70], u[20:70]], axis=1) - s.in_mean) / s.in_scale
@@ -95,17 +102,15 @@ def test_fifo_keeps_last_50_samples(data, model):
 
     np.testing.assert_allclose(rows(state.buffer.inputs), rows(expected), atol=1e-12)
     # Same predictions as a GP conditioned on exactly those samples (order does not matter).
-    ref = gp.condition(model, x[20:70][::-1], u[20:70][::-1], delta[20:70][::-1])
-    for i in (0, 21, 77, 150):
-        m1, v1 = gp.predict(state, x[i], u[i])
-        m2, v2 = gp.predict(ref, x[i], u[i])
-        np.testing.assert_allclose(m1, m2, atol=1e-8)
-        np.testing.assert_allclose(v1, v2, atol=1e-8)
+    ref = _condition(model, x[20:70][::-1], u[20:70][::-1], delta[20:70][::-1])
+    idx = jnp.array([0, 21, 77, 150])
+    for a, b in zip(_predict_many(state, x[idx], u[idx]), _predict_many(ref, x[idx], u[idx])):
+        np.testing.assert_allclose(a, b, atol=1e-8)
 
 
 def test_masked_slots_do_not_change_predictions(data, model):
     x, u, delta = data
-    state = _push_all(gp.init(model, capacity=50), x[:20], u[:20], delta[:20])
+    state = _push_all(_init(model, capacity=50), x[:20], u[:20], delta[:20])
     # Fill the 30 empty slots with garbage, then push one more real sample.
     buf = state.buffer
     junk = state._replace(
@@ -113,22 +118,19 @@ def test_masked_slots_do_not_change_predictions(data, model):
             inputs=buf.inputs.at[20:].set(0.3), targets=buf.targets.at[20:].set(1e3)
         )
     )
-    junk = gp.update(junk, x[20], u[20], delta[20])
+    junk = jax.jit(gp.update)(junk, x[20], u[20], delta[20])
     assert int(junk.buffer.count) == 21
-    ref = gp.condition(model, x[:21], u[:21], delta[:21])
-    for i in (3, 20, 100):
-        m1, v1 = gp.predict(junk, x[i], u[i])
-        m2, v2 = gp.predict(ref, x[i], u[i])
-        np.testing.assert_allclose(m1, m2, atol=1e-8)
-        np.testing.assert_allclose(v1, v2, atol=1e-8)
+    ref = _condition(model, x[:21], u[:21], delta[:21])
+    idx = jnp.array([3, 20, 100])
+    for a, b in zip(_predict_many(junk, x[idx], u[idx]), _predict_many(ref, x[idx], u[idx])):
+        np.testing.assert_allclose(a, b, atol=1e-8)
 
 
 def test_update_and_predict_jit(model):
-    state = gp.init(model, capacity=50)
+    state = _init(model, capacity=50)
     upd = jax.jit(gp.update)
-    pred = jax.jit(gp.predict)
     state = upd(state, jnp.ones(2), jnp.zeros(1), jnp.array([0.5, -0.5]))
-    mean, var = pred(state, jnp.ones(2), jnp.zeros(1))
+    mean, var = _predict(state, jnp.ones(2), jnp.zeros(1))
     assert mean.shape == (2,) and var.shape == (2,)
     assert np.all(np.isfinite(np.asarray(mean)))
     # Conditioning on one exact sample pulls the mean towards it.

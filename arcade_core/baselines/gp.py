@@ -19,6 +19,7 @@ be jitted, scanned and vmapped. The FIFO buffer and the standardiser are shared 
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -28,11 +29,13 @@ import jax.scipy.linalg as jsl
 import optax
 from jax import Array
 
-#: Added to every GP noise variance (standardised units): keeps Cholesky factors of
-#: near-noiseless data well defined.
-NOISE_FLOOR = 1e-6
-#: Diagonal jitter (standardised units) on top of the noise variance.
-JITTER = 1e-8
+#: Added to every GP noise variance (standardised units, so relative to the output
+#: variance): keeps Cholesky factors of near-noiseless data well defined. Single precision
+#: needs a larger floor than double precision.
+NOISE_FLOOR = {"float64": 1e-6, "float32": 1e-3}
+#: Diagonal jitter relative to the signal variance (very long lengthscales make the
+#: kernel matrix nearly rank one).
+JITTER = {"float64": 1e-10, "float32": 1e-6}
 
 
 # ---------------------------------------------------------------------------------------
@@ -147,14 +150,15 @@ def ard_rbf(a: Array, b: Array, log_signal_var: Array, log_lengthscale: Array) -
 
 
 def _noise_var(log_noise_var: Array) -> Array:
-    return jnp.exp(log_noise_var) + NOISE_FLOOR
+    return jnp.exp(log_noise_var) + NOISE_FLOOR.get(log_noise_var.dtype.name, 1e-3)
 
 
 def _masked_gram(z: Array, mask: Array, lsv: Array, lls: Array, lnv: Array) -> Array:
     """Kernel matrix plus noise on valid slots, identity on empty ones."""
     k = ard_rbf(z, z, lsv, lls)
     both = mask[:, None] & mask[None, :]
-    diag = jnp.where(mask, _noise_var(lnv) + JITTER, 1.0)
+    jitter = JITTER.get(lsv.dtype.name, 1e-6) * jnp.exp(lsv)
+    diag = jnp.where(mask, _noise_var(lnv) + jitter, 1.0)
     return jnp.where(both, k, 0.0) + jnp.diag(diag)
 
 
@@ -197,23 +201,32 @@ def _standardise_out(s: Standardizer, y: Array) -> Array:
 # ---------------------------------------------------------------------------------------
 
 
-def _optimise(hyper: GPHyperparams, z: Array, y: Array, num_steps: int, lr: float):
-    opt = optax.adam(lr)
+@functools.partial(jax.jit, static_argnames=("num_points", "num_steps"))
+def _fit(z, delta, key, hyper, learning_rate, *, num_points: int, num_steps: int):
+    std = fit_standardizer(z, delta)
+    if z.shape[0] > num_points:
+        idx = jax.random.choice(key, z.shape[0], (num_points,), replace=False)
+        z, delta = z[idx], delta[idx]
+    zs, ys = _standardise_in(std, z), _standardise_out(std, delta)
+    opt = optax.adam(learning_rate)
 
     def loss(h: GPHyperparams) -> Array:
-        return -jnp.sum(log_marginal_likelihood(h, z, y)) / z.shape[0]
+        return -jnp.sum(log_marginal_likelihood(h, zs, ys)) / zs.shape[0]
 
     def step(carry, _):
         h, st = carry
-        val, g = jax.value_and_grad(loss)(h)
-        upd, st = opt.update(g, st, h)
-        return (optax.apply_updates(h, upd), st), val
+        g = jax.grad(loss)(h)
+        upd, st_new = opt.update(g, st, h)
+        # A step whose gradient is not finite (failed factorisation) is skipped.
+        ok = jnp.all(jnp.array([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(g)]))
 
-    (hyper, _), losses = jax.lax.scan(step, (hyper, opt.init(hyper)), None, length=num_steps)
-    return hyper, losses
+        def keep(new, old):
+            return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)
 
+        return (keep(optax.apply_updates(h, upd), h), keep(st_new, st)), None
 
-_optimise_jit = jax.jit(_optimise, static_argnums=(3, 4))
+    (hyper, _), _ = jax.lax.scan(step, (hyper, opt.init(hyper)), None, length=num_steps)
+    return GPModel(hyper=hyper, standardizer=std)
 
 
 def fit(
@@ -242,16 +255,11 @@ def fit(
     """
     z = jnp.concatenate([jnp.atleast_2d(x), jnp.atleast_2d(u)], axis=1)
     delta = jnp.atleast_2d(delta)
-    std = fit_standardizer(z, delta)
-    if z.shape[0] > num_points:
-        key = jax.random.PRNGKey(0) if key is None else key
-        idx = jax.random.choice(key, z.shape[0], (num_points,), replace=False)
-        z, delta = z[idx], delta[idx]
-    zs, ys = _standardise_in(std, z), _standardise_out(std, delta)
+    key = jax.random.PRNGKey(0) if key is None else key
     hyper = initial_hyperparams(z.shape[1], delta.shape[1]) if init is None else init
-    hyper = jax.tree.map(lambda a: jnp.asarray(a, zs.dtype), hyper)
-    hyper, _ = _optimise_jit(hyper, zs, ys, num_steps, learning_rate)
-    return GPModel(hyper=hyper, standardizer=std)
+    hyper = jax.tree.map(lambda a: jnp.asarray(a, z.dtype), hyper)
+    lr = jnp.asarray(learning_rate, z.dtype)
+    return _fit(z, delta, key, hyper, lr, num_points=num_points, num_steps=num_steps)
 
 
 # ---------------------------------------------------------------------------------------
@@ -307,7 +315,8 @@ def update(state: GPState, x: Array, u: Array, delta: Array) -> GPState:
 def condition(model: GPModel, x: Array, u: Array, delta: Array) -> GPState:
     """A GP conditioned on a whole batch (capacity = number of rows).
 
-    For offline-only evaluation: condition once on a (sub)set of training data.
+    For offline-only evaluation: condition once on a (sub)set of training data. Rows are
+    taken as chronological: a later :func:`update` overwrites the first row first.
     """
     s = model.standardizer
     z = _standardise_in(s, jnp.concatenate([x, u], axis=1))

@@ -118,33 +118,54 @@ class SysIDModel(eqx.Module):
     active: Array  # (T, d) bool
 
 
-def _masked_ridge(gram: Array, rhs: Array, mask: Array, ridge: float) -> Array:
-    """Ridge solution restricted to ``mask`` (inactive coefficients are exactly 0)."""
-    m = mask.astype(gram.dtype)
-    a = gram * m[:, None] * m[None, :] + jnp.diag(ridge * m + (1.0 - m))
-    return jnp.linalg.solve(a, rhs * m)
+def _masked_ridge(r: Array, b: Array, mask: Array, ridge: Array) -> Array:
+    """Ridge least squares on the columns in ``mask``; inactive coefficients are 0.
+
+    Works on the triangular factor ``r`` of the library (``Theta = Q r``), so the
+    conditioning is that of the library, not of its Gram matrix (which matters in single
+    precision, where trigonometric and polynomial columns are nearly collinear).
+    """
+    m = mask.astype(r.dtype)
+    a = jnp.concatenate([r * m[None, :], jnp.sqrt(ridge) * jnp.diag(m)])
+    rhs = jnp.concatenate([b, jnp.zeros_like(b)])
+    return jnp.linalg.lstsq(a, rhs)[0] * m
 
 
-def _stlsq(gram: Array, rhs: Array, alive: Array, threshold: float, ridge: float, iters: int):
-    """STLSQ (Brunton et al. 2016, Alg. "sequentially thresholded least squares").
+def _stlsq(r: Array, rhs: Array, alive: Array, threshold: Array, ridge: Array, iters: int):
+    """STLSQ (Brunton et al. 2016, "sequentially thresholded least squares") with ridge.
 
-    Normalised ``gram`` (T, T) and ``rhs`` (T, d); returns normalised coefficients and
-    the active mask, both (T, d).
+    ``r`` (T, T) is the triangular factor of the normalised library, ``rhs`` (T, d) the
+    projected normalised targets; returns normalised coefficients and the active mask,
+    both (T, d).
     """
 
     def per_output(b: Array, alive_j: Array):
         def body(_, active):
-            xi = _masked_ridge(gram, b, active, ridge)
+            xi = _masked_ridge(r, b, active, ridge)
             return active & (jnp.abs(xi) >= threshold)
 
         active = jax.lax.fori_loop(0, iters, body, alive_j)
-        return _masked_ridge(gram, b, active, ridge), active
+        return _masked_ridge(r, b, active, ridge), active
 
     xi, active = jax.vmap(per_output, in_axes=1, out_axes=1)(rhs, alive)
     return xi, active
 
 
-_stlsq_jit = jax.jit(_stlsq, static_argnums=5)
+@eqx.filter_jit
+def _fit(library: Library, z: Array, delta: Array, threshold: Array, ridge: Array, iters: int):
+    theta = jax.vmap(library)(z)  # (N, T)
+    n = theta.shape[0]
+    col = jnp.sqrt(jnp.mean(theta**2, axis=0))
+    alive = col > 1e-12  # identically-zero columns can never be selected
+    col = jnp.where(alive, col, 1.0)
+    out = jnp.sqrt(jnp.mean(delta**2, axis=0))
+    out = jnp.where(out > 1e-12, out, 1.0)
+    # Scaled so that r^T r is the normalised Gram matrix (columns of unit mean square).
+    q, r = jnp.linalg.qr(theta / col / jnp.sqrt(n))
+    rhs = q.T @ (delta / out / jnp.sqrt(n))
+    alive = jnp.broadcast_to(alive[:, None], rhs.shape)
+    xi, active = _stlsq(r, rhs, alive, threshold, ridge, iters)
+    return SysIDModel(library=library, coef=xi * out[None, :] / col[:, None], active=active)
 
 
 def fit(
@@ -171,20 +192,9 @@ def fit(
     x, u, delta = jnp.atleast_2d(x), jnp.atleast_2d(u), jnp.atleast_2d(delta)
     if library is None:
         library = make_library(x.shape[1], u.shape[1], degree=degree, angle_indices=angle_indices)
-    theta = jax.vmap(library)(jnp.concatenate([x, u], axis=1))  # (N, T)
-    n = theta.shape[0]
-    col = jnp.sqrt(jnp.mean(theta**2, axis=0))
-    alive = col > 1e-12  # identically-zero columns can never be selected
-    col = jnp.where(alive, col, 1.0)
-    out = jnp.sqrt(jnp.mean(delta**2, axis=0))
-    out = jnp.where(out > 1e-12, out, 1.0)
-    tn = theta / col
-    gram = tn.T @ tn / n
-    rhs = tn.T @ (delta / out) / n
-    alive2 = jnp.broadcast_to(alive[:, None], rhs.shape)
-    xi, active = _stlsq_jit(gram, rhs, alive2, float(threshold), float(ridge), int(iterations))
-    coef = xi * out[None, :] / col[:, None]
-    return SysIDModel(library=library, coef=coef, active=active)
+    z = jnp.concatenate([x, u], axis=1)
+    thr = jnp.asarray(threshold, z.dtype)
+    return _fit(library, z, delta, thr, jnp.asarray(ridge, z.dtype), int(iterations))
 
 
 def predict(model: SysIDModel, x: Array, u: Array) -> Array:

@@ -1,0 +1,675 @@
+"""Closed-loop quadrotor evaluation, in process (Sec. V-B, Table III, Fig. 5, Table V).
+
+Scenario (every trial): the MuJoCo quadrotor (:class:`simulator.QuadrotorSim`) carries a
+*swinging* payload on a 0.5 m cable; it climbs from 0.6 m to the centre of the
+figure-eight at 1.2 m (2.5 s), hovers (1.5 s), then flies two laps of the figure-eight
+(:class:`arcade_core.trajectories.FigureEight`, 3 m x 1.5 m) at the mean speed of the cell.
+The first 2 s of the figure-eight ramp the speed up smoothly (:class:`RampedPath`) so the
+reference starts at rest. The payload is released just before the second lap (at 95 % of
+the first lap, jittered by up to two control periods per trial). Trials differ in the
+simulator's sensor-noise seed, the start position (2 cm std in x and y) and the release
+jitter.
+
+Control: one MPC solve per control period ``dt = 0.05 s`` (20 Hz), N = 20 (1 s), Appendix D
+weights, on the ground-truth state; the setpoint is held in between while the simulator
+runs its 500 Hz rate loop and 1 kHz physics. Per method, the whole per-step update
+(learning from the last transition, reference window, MPC solve, warm-start shift) is one
+jitted function, so the Python loop only moves a handful of arrays per step.
+
+Methods:
+
+- ``nominal``: MPC on ``f_nom``;
+- ``l1``: nominal MPC + L1-adaptive thrust augmentation (:mod:`arcade_core.baselines.l1`,
+  default bandwidths);
+- ``gp``: GP-MPC, GP mean (FIFO 50, re-conditioned every step) inside the rollout, no
+  variance in the cost;
+- ``mlp``: MLP-MPC, last-layer SGD (FIFO 50; learning rate tuned open-loop, see
+  :mod:`benchmarks.quadrotor_openloop`), unscented-transform variance modulating ``Q``;
+- ``ours_no_cp``: VLD + BLR without changepoints (``K = 1``, ``pi = 0``);
+- ``ours``: full ARCADE: beam-marginal decoder mean inside the rollout, ``Q`` modulated
+  by ``sigma_tot^2`` (Sec. IV), Appendix D values (``K = 15``, ``pi = 0.05``,
+  ``beta = 0.997``, ``tau^2 = sigma^2 = 0.1``).
+
+Units of the variance that modulates ``Q`` (Sec. IV, ``alpha1 = 10``, ``alpha2 = 1e3``):
+the paper does not say. Here it is the variance of the residual in the units each model
+learns in: for ours the normalised residual of the VLD (``delta / delta_scale``, in which
+the observation noise is ``sigma_j^2 = 0.1``), for the MLP its standardised output
+(``delta / std(delta)``). The UT input distribution of the MLP is the state-estimation
+noise of the motion-capture/gyro emulation (:data:`MLP_INPUT_STD`).
+
+Metrics (``arcade_core.metrics``) on the control-rate samples of the figure-eight part
+(from its start to the end of the second lap): 3-D position RMSE, z RMSE; the shift
+magnitude and the 0.05 m settling time of the z error at the release.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from arcade_core import adaptation, encoder, metrics, mpc
+from arcade_core.baselines import gp, l1, mlp
+from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff, flat_state
+from benchmarks import quadrotor_data as qd
+from benchmarks.quadrotor_data import f_nom
+
+METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
+PAYLOADS_G = (75.0, 125.0, 175.0)
+SPEEDS_MPS = (0.5, 1.5, 2.5)
+BEAM_SIZES = (5, 10, 15, 20, 30)
+DT = qd.CONTROL_DT
+FIFO = 50
+#: UT input standard deviations of the MLP-MPC: mocap/gyro-level state noise, exact inputs.
+MLP_INPUT_STD = np.array([3e-4] * 3 + [1e-2] * 3 + [2e-3] * 4 + [5e-3] * 3 + [0.0] * 4)
+#: A flight whose position error exceeds this is stopped and counted as a crash [m].
+CRASH_ERROR_M = 2.0
+
+
+# --------------------------------------------------------------------------- scenario
+
+
+class RampedPath(NamedTuple):
+    """A path flown on a warped clock ``s(t)`` whose rate ramps smoothly from 0 to 1.
+
+    ``ds/dt = smoothstep5(t / ramp)``: velocity, acceleration and jerk of the reference are
+    continuous and zero at ``t = 0``, so it chains with a hover (thrust and body rates of
+    the flat reference stay continuous). ``s(t) = ramp (2.5 r^4 - 3 r^5 + r^6)`` for
+    ``r = t / ramp <= 1``, then ``ramp / 2 + (t - ramp)``.
+    """
+
+    path: FigureEight
+    ramp: Array | float
+
+    def clock(self, t: Array) -> Array:
+        r = jnp.clip(t / self.ramp, 0.0, 1.0)
+        s_ramp = self.ramp * r**4 * (2.5 - 3.0 * r + r**2)
+        return jnp.where(t < self.ramp, s_ramp, 0.5 * self.ramp + (t - self.ramp))
+
+    def position(self, t: Array) -> Array:
+        return self.path.position(self.clock(t))
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One cell of Table III plus the fixed flight plan (module docstring)."""
+
+    payload_g: float = 175.0
+    speed_mps: float = 2.5
+    start: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    center: tuple[float, float, float] = (0.0, 0.0, 1.5)
+    takeoff_s: float = 2.5
+    hover_s: float = 1.5
+    ramp_s: float = 2.0
+    laps: float = 2.0
+    release_fraction: float = 0.95  # of the first lap; None-like values < 0 disable it
+    cable_length_m: float | None = None
+
+    @property
+    def figure_eight(self) -> FigureEight:
+        return FigureEight(center=self.center, speed=self.speed_mps)
+
+    @property
+    def lap_s(self) -> float:
+        return float(self.figure_eight.period())
+
+    @property
+    def t_figure(self) -> float:
+        """Start of the figure-eight [s]."""
+        return self.takeoff_s + self.hover_s
+
+    def t_of_clock(self, s: float) -> float:
+        """Flight time at which the figure-eight clock reads ``s`` (s >= ramp / 2)."""
+        return self.t_figure + self.ramp_s + (s - 0.5 * self.ramp_s)
+
+    @property
+    def t_release(self) -> float:
+        return self.t_of_clock(self.release_fraction * self.lap_s)
+
+    @property
+    def t_end(self) -> float:
+        return self.t_of_clock(self.laps * self.lap_s)
+
+    def path(self):
+        """The reference as one pytree path (all numbers as arrays: no recompilation)."""
+        f = jnp.asarray
+        fig = FigureEight(center=f(self.center), half_length=f(1.5), half_width=f(0.75),
+                          speed=f(self.speed_mps))
+        hover_then_fig = Chain(Hover(f(self.center)), RampedPath(fig, f(self.ramp_s)),
+                               f(self.hover_s))
+        return Chain(Takeoff(f(self.start), f(self.center), f(self.takeoff_s)),
+                     hover_then_fig, f(self.takeoff_s))
+
+
+@jax.jit
+def _reference(path, times):
+    params = qd.nominal_params()
+    return jax.vmap(lambda t: flat_state(path, t, params))(times)
+
+
+def reference(scenario: Scenario, n_steps: int, N: int) -> tuple[Array, Array]:
+    """Flat reference states (n_steps + N + 1, 13) and inputs at every control instant."""
+    dtype = jnp.result_type(float)
+    times = jnp.arange(n_steps + N + 1, dtype=dtype) * DT
+    path = jax.tree.map(lambda a: jnp.asarray(a, dtype), scenario.path())
+    return _reference(path, times)
+
+
+# --------------------------------------------------------------------------- methods
+
+
+class Method(NamedTuple):
+    """How one method learns and what it hands the MPC (all pure JAX).
+
+    ``learn(a, x_prev, u_prev, x) -> a`` consumes the transition of the last period;
+    ``model(a)`` is the pytree passed to the MPC's ``step_fn``; ``sigma(a, x, u)`` the
+    variance that modulates ``Q`` (``None``: no modulation); ``correction(a, x)`` an
+    additive input correction (L1); ``info(a)`` two diagnostics (changepoint flag, cp prob).
+    """
+
+    name: str
+    step_fn: Callable
+    learn: Callable
+    model: Callable
+    sigma: Callable
+    correction: Callable
+    info: Callable
+
+
+def _zero_info(a):
+    return jnp.zeros(2)
+
+
+def _no_correction(a, x):
+    return jnp.zeros(4, x.dtype)
+
+
+def _nominal_step(x, u, model):
+    return f_nom(x, u)
+
+
+def nominal_method() -> Method:
+    return Method("nominal", _nominal_step, lambda a, xp, up, x: a, lambda a: jnp.zeros(()),
+                  lambda a, x, u: None, _no_correction, _zero_info)
+
+
+def l1_method() -> Method:
+    def learn(a, xp, up, x):
+        return l1.update(a, x, up, DT)
+
+    return Method("l1", _nominal_step, learn, lambda a: jnp.zeros(()), lambda a, x, u: None,
+                  l1.correction, _zero_info)
+
+
+def gp_method() -> Method:
+    def step_fn(x, u, state):
+        return f_nom(x, u) + gp.predict(state, x, u)[0]
+
+    def learn(a, xp, up, x):
+        return gp.update(a, xp, up, x - f_nom(xp, up))
+
+    return Method("gp", step_fn, learn, lambda a: a, lambda a, x, u: None, _no_correction,
+                  _zero_info)
+
+
+def mlp_method() -> Method:
+    def step_fn(x, u, state):
+        return f_nom(x, u) + mlp.predict_mean(state, x, u)
+
+    def learn(a, xp, up, x):
+        return mlp.update(a, xp, up, x - f_nom(xp, up))
+
+    def sigma(a, x, u):
+        # UT variance in the network's standardised output units (module docstring).
+        return mlp.predict(a, x, u)[1] / a.model.standardizer.out_scale**2
+
+    return Method("mlp", step_fn, learn, lambda a: a, sigma, _no_correction, _zero_info)
+
+
+class BeamAgent(NamedTuple):
+    """Adaptive state of ours: frozen VLD, beam, hyperparameters, last update's info."""
+
+    vld: encoder.VLD
+    beam: adaptation.BeamState
+    config: adaptation.AdaptationConfig
+    changepoint: Array
+    cp_prob: Array
+
+
+def beam_method(name: str = "ours") -> Method:
+    def step_fn(x, u, model):
+        vld, theta = model
+        return f_nom(x, u) + vld.predict_residual(x, u, theta)
+
+    def learn(a: BeamAgent, xp, up, x):
+        z = a.vld.features(xp, up)
+        dn = a.vld.normalise_residual(x - f_nom(xp, up))
+        beam, info = adaptation.update(a.beam, z, dn, a.config)
+        return a._replace(beam=beam, changepoint=info.changepoint.astype(z.dtype),
+                          cp_prob=info.cp_prob)
+
+    def model(a: BeamAgent):
+        # Moment-matched beam marginal of the decoder (Eq. 9): its mean drives the rollout.
+        return a.vld, adaptation.marginal_decoder(a.beam)[0]
+
+    def sigma(a: BeamAgent, x, u):
+        z = a.vld.features(x, u)
+        return adaptation.sigma_tot2(a.beam, z, a.vld.latent_variance(x, u))
+
+    def info(a: BeamAgent):
+        return jnp.stack([a.changepoint, a.cp_prob])
+
+    return Method(name, step_fn, learn, model, sigma, _no_correction, info)
+
+
+def make_method(name: str) -> Method:
+    if name == "nominal":
+        return nominal_method()
+    if name == "l1":
+        return l1_method()
+    if name == "gp":
+        return gp_method()
+    if name == "mlp":
+        return mlp_method()
+    if name in ("ours", "ours_no_cp") or name.startswith("ours_K"):
+        return beam_method(name)
+    raise ValueError(f"unknown method {name!r} (one of {', '.join(METHODS)})")
+
+
+def initial_agent(name: str, models, dtype) -> Any:
+    """The method's adaptive state at take-off (arrays in ``dtype``)."""
+    from benchmarks.quadrotor_openloop import no_cp_config
+
+    def cast(tree):
+        return _cast(tree, dtype)
+
+    p = qd.nominal_params()
+    if name == "nominal":
+        return jnp.zeros((), dtype)
+    if name == "l1":
+        return l1.init(l1.L1Params(mass=p.mass, gravity=p.gravity, rate_tau=p.rate_tau), dtype)
+    if name == "gp":
+        return cast(gp.init(models.gp, FIFO))
+    if name == "mlp":
+        std = jnp.asarray(MLP_INPUT_STD, dtype)
+        return cast(mlp.init(cast(models.mlp), std[:13], std[13:], capacity=FIFO,
+                             learning_rate=models.mlp_lr))
+    cfg = adaptation.quadrotor_config()
+    if name == "ours_no_cp":
+        cfg = no_cp_config(cfg)
+    elif name.startswith("ours_K"):
+        cfg = cfg._replace(K=int(name[len("ours_K"):]))
+    vld = cast(models.vld)
+    beam = adaptation.init(vld.theta0, cfg)
+    traced_cfg = adaptation.AdaptationConfig(
+        K=jnp.asarray(cfg.K), pi=jnp.asarray(cfg.pi, dtype), beta=jnp.asarray(cfg.beta, dtype),
+        tau2=jnp.asarray(cfg.tau2, dtype), sigma2=jnp.asarray(cfg.sigma2, dtype))
+    zero = jnp.zeros((), dtype)
+    return BeamAgent(vld, beam, traced_cfg, zero, zero)
+
+
+# --------------------------------------------------------------------------- controller
+
+
+class Carry(NamedTuple):
+    """What the per-step update carries from one control period to the next."""
+
+    agent: Any
+    u_warm: Array  # (N, 4) shifted previous MPC solution
+    u_mpc: Array  # (4,) previous MPC output (smoothness reference)
+    x_prev: Array  # (13,) state at the previous control instant
+    started: Array  # () bool: x_prev / the applied input are real
+
+
+def mpc_config(dtype) -> mpc.MPCConfig:
+    """Appendix D MPC with the vehicle's actuator limits (thrust 16 N, rate limits)."""
+    from arcade.vehicle import load_vehicle
+
+    v = load_vehicle()
+    rate = tuple(float(r) for r in v["rate_loop"]["max_rate_rad_s"])
+    cfg = mpc.quadrotor_mpc_config(dt=DT, rate_limit=rate, dtype=dtype)
+    u_max = cfg.u_max.at[0].set(4.0 * float(v["rotors"]["max_thrust_n"]))
+    return mpc.quadrotor_mpc_config(dt=DT, rate_limit=rate, dtype=dtype, u_max=u_max)
+
+
+def make_controller_step(method: Method, cfg: mpc.MPCConfig):
+    """The jitted per-step update of one method (see module docstring).
+
+    ``step(carry, x, u_applied, k, x_ref_all, u_ref_all) -> (carry, u, diag)`` where
+    ``u_applied`` is what the vehicle actually executed over the last period and ``k``
+    the control-step index into the precomputed references. ``diag`` =
+    ``[sigma (13), changepoint, cp_prob, solver iterations, converged]``.
+    """
+    controller = mpc.make_controller(method.step_fn, cfg)
+    N = cfg.N
+
+    def step(carry: Carry, x, u_applied, k, x_ref_all, u_ref_all):
+        learned = method.learn(carry.agent, carry.x_prev, u_applied, x)
+        agent = jax.tree.map(lambda a, b: jnp.where(carry.started, a, b), learned, carry.agent)
+        x_ref = jax.lax.dynamic_slice_in_dim(x_ref_all, k, N + 1)
+        u_ref = jax.lax.dynamic_slice_in_dim(u_ref_all, k, N)
+        sigma = method.sigma(agent, x, carry.u_warm[0])
+        sol = controller.solve(x, x_ref, u_ref, carry.u_warm, carry.u_mpc,
+                               method.model(agent), sigma)
+        u_b = sol.u[0]
+        u = jnp.clip(u_b + method.correction(agent, x), cfg.u_min, cfg.u_max)
+        sig = jnp.zeros(13, x.dtype) if sigma is None else sigma
+        diag = jnp.concatenate([sig, method.info(agent).astype(x.dtype),
+                                jnp.stack([sol.iterations, sol.converged]).astype(x.dtype)])
+        new = Carry(agent, mpc.shift_warm_start(sol.u), u_b, x, jnp.ones((), bool))
+        return new, u, diag
+
+    return jax.jit(step)
+
+
+# --------------------------------------------------------------------------- flights
+
+
+@dataclass
+class Flight:
+    """One closed-loop flight at the control rate."""
+
+    method: str
+    scenario: Scenario
+    seed: int
+    t: np.ndarray  # (n,)
+    x: np.ndarray  # (n, 13)
+    x_ref: np.ndarray  # (n, 13)
+    u: np.ndarray  # (n, 4) applied
+    diag: np.ndarray  # (n, 17)
+    t_release: float
+    crashed: bool
+    step_ms: np.ndarray  # (n,) wall time of the jitted update per step
+    metrics: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def error(self) -> np.ndarray:
+        return self.x[:, :3] - self.x_ref[:, :3]
+
+
+class Runner:
+    """Builds (once) and caches the jitted per-step update of each method."""
+
+    def __init__(self, models, dtype=None):
+        self.models = models
+        self.dtype = jnp.result_type(float) if dtype is None else dtype
+        self.cfg = mpc_config(self.dtype)
+        self._steps: dict[str, Callable] = {}
+
+    def step_fn(self, name: str) -> Callable:
+        key = name
+        if key not in self._steps:
+            self._steps[key] = make_controller_step(make_method(name), self.cfg)
+        return self._steps[key]
+
+    def fly(self, name: str, scenario: Scenario, seed: int = 0) -> Flight:
+        """Fly one trial; returns the log with its metrics."""
+        from simulator import QuadrotorSim
+
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 0x51]))
+        sim_seed = int(rng.integers(2**31))
+        offset = np.array([*rng.normal(0.0, 0.02, 2), 0.0])
+        jitter = int(rng.integers(-2, 3))
+        n = int(np.ceil(scenario.t_end / DT - 1e-9)) + 1
+        k_release = round(scenario.t_release / DT) + jitter
+        N = self.cfg.N
+        x_ref_all, u_ref_all = reference(scenario, n, N)
+        sim = QuadrotorSim(payload_mass=scenario.payload_g / 1000.0,
+                           cable_length=scenario.cable_length_m, seed=sim_seed)
+        x = sim.reset(np.asarray(scenario.start) + offset)
+        step = self.step_fn(name)
+        dt = self.dtype
+        agent = initial_agent(name, self.models, dt)
+        # Warm start and smoothness reference: the nominal hover input (Appendix D U_0).
+        p = qd.nominal_params()
+        u0 = jnp.asarray([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0], dt)
+        carry = Carry(agent, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x, dt),
+                      jnp.zeros((), bool))
+        u_applied = np.asarray(u0)
+        X, U, D, T_ms = (np.zeros((n, 13)), np.zeros((n, 4)), np.zeros((n, 17)), np.zeros(n))
+        x_ref_np = np.asarray(x_ref_all[:n])
+        crashed = False
+        n_done = n
+        for k in range(n):
+            if k == k_release:
+                sim.release_payload()
+            X[k] = x
+            t0 = time.perf_counter()
+            carry, u, diag = step(carry, jnp.asarray(x, dt), jnp.asarray(u_applied, dt),
+                                  k, x_ref_all, u_ref_all)
+            u = np.asarray(u)
+            T_ms[k] = 1e3 * (time.perf_counter() - t0)
+            D[k] = np.asarray(diag)
+            u_applied = sim.set_setpoint(u)
+            U[k] = u_applied
+            if (np.linalg.norm(x[:3] - x_ref_np[k, :3]) > CRASH_ERROR_M or x[2] < 0.02
+                    or not np.all(np.isfinite(x))):
+                crashed, n_done = True, k + 1
+                break
+            x = sim.step(DT)
+        t = np.arange(n_done) * DT
+        flight = Flight(name, scenario, seed, t, X[:n_done], x_ref_np[:n_done], U[:n_done],
+                        D[:n_done], k_release * DT, crashed, T_ms[:n_done])
+        flight.metrics = flight_metrics(flight)
+        return flight
+
+
+def flight_metrics(f: Flight) -> dict[str, float]:
+    """RMSE, z-RMSE on the figure-eight part; shift and settling at the release."""
+    inf = float("inf")
+    if f.crashed:
+        return {"rmse_m": inf, "rmse_z_m": inf, "shift_m": inf, "settling_s": inf,
+                "crashed": 1.0}
+    sel = f.t >= f.scenario.t_figure - 1e-9
+    p, pr = jnp.asarray(f.x[sel, :3]), jnp.asarray(f.x_ref[sel, :3])
+    e_z = jnp.asarray(f.error[:, 2])
+    t = jnp.asarray(f.t)
+    settle = metrics.settling_time(t, e_z, f.t_release, band=0.05)
+    return {
+        "rmse_m": float(metrics.position_rmse(p, pr)),
+        "rmse_z_m": float(metrics.z_rmse(p, pr)),
+        "shift_m": float(metrics.shift_magnitude(t, e_z, f.t_release)),
+        "settling_s": float(settle.time),
+        "crashed": 0.0,
+    }
+
+
+# --------------------------------------------------------------------------- tables
+
+
+KEYS = ("rmse_m", "rmse_z_m", "shift_m", "settling_s")
+
+
+def _mean(values: Sequence[float]) -> float:
+    return float(np.mean(np.asarray(values, float)))
+
+
+def run_closedloop(
+    quick: bool = False,
+    trials: int = 10,
+    methods: Sequence[str] | None = None,
+    cells: Sequence[tuple[float, float]] | None = None,
+    out=None,
+    progress: Callable[[str], None] = lambda msg: None,
+    models=None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Table III analogue: every (payload, speed) cell x method, ``trials`` seeded flights.
+
+    ``quick``: one trial of the 175 g / 2.5 m/s cell (a few minutes on a laptop CPU,
+    most of it compiling the six controllers). ``cells`` are ``(payload_g, speed_mps)``
+    pairs. Returns ``{"cells": [{payload_g, speed_mps, method, rmse_m, rmse_z_m, shift_m,
+    settling_s, settled_fraction, crashed}, ...] (means over trials), "trials": [...]
+    (per-trial values), "improvement_over_nominal": ..., "settings": ...}``. ``out``: a
+    folder for figures and the Fig. 5 time series.
+    """
+    from benchmarks.quadrotor_openloop import prepare_models
+
+    t_start = time.perf_counter()
+    methods = tuple(methods) if methods is not None else METHODS
+    if quick:
+        trials = 1
+        cells = cells if cells is not None else [(175.0, 2.5)]
+    if cells is None:
+        cells = [(p, s) for p in PAYLOADS_G for s in SPEEDS_MPS]
+    if models is None:
+        models = prepare_models(quick=quick, seed=seed, progress=progress)
+    runner = Runner(models)
+    rows, per_trial, fig5 = [], [], {}
+    for pay, speed in cells:
+        scen = Scenario(payload_g=float(pay), speed_mps=float(speed))
+        for name in methods:
+            progress(f"{pay:g} g, {speed:g} m/s: {name} ({trials} trial(s))")
+            vals: dict[str, list[float]] = {k: [] for k in (*KEYS, "crashed")}
+            step_ms = []
+            for trial in range(trials):
+                f = runner.fly(name, scen, seed=seed * 1000 + trial)
+                step_ms.append(float(np.median(f.step_ms[1:])) if f.step_ms.size > 1 else 0.0)
+                for k in vals:
+                    vals[k].append(f.metrics[k])
+                per_trial.append({"payload_g": pay, "speed_mps": speed, "method": name,
+                                  "trial": trial, **f.metrics})
+                if trial == 0 and (pay, speed) == (175.0, 2.5):
+                    fig5[name] = f
+            settled = [np.isfinite(v) for v in vals["settling_s"]]
+            rows.append({
+                "payload_g": pay, "speed_mps": speed, "method": name,
+                **{k: _mean(vals[k]) for k in KEYS},
+                "settled_fraction": float(np.mean(settled)),
+                "crashed": float(np.mean(vals["crashed"])),
+                "step_ms_median": float(np.median(step_ms)),
+            })
+    result: dict[str, Any] = {
+        "cells": rows,
+        "trials": per_trial,
+        "improvement_over_nominal": improvement(rows),
+        "settings": {"quick": quick, "trials": trials, "control_dt": DT, "horizon": 20,
+                     "dtype": str(jnp.dtype(runner.dtype)), "mlp_lr": models.mlp_lr,
+                     "methods": list(methods), "cells": [list(c) for c in cells]},
+    }
+    if out is not None:
+        from pathlib import Path
+
+        from benchmarks import quadrotor_figures as figs
+
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        if fig5:
+            figs.tracking_error_figure(out / "quadrotor_tracking_175g_2.5mps.png", fig5)
+            np.savez_compressed(out / "quadrotor_flights_175g_2.5mps.npz", **{
+                f"{m}_{k}": getattr(f, k) for m, f in fig5.items()
+                for k in ("t", "x", "x_ref", "u", "diag")})
+        figs.metric_bars_figure(out / "quadrotor_metrics.png", rows)
+    result["wall_time_s"] = time.perf_counter() - t_start
+    return result
+
+
+def improvement(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per cell: RMSE reduction of every method relative to the nominal MPC [%]."""
+    out = []
+    by_cell: dict[tuple[float, float], dict[str, float]] = {}
+    for r in rows:
+        by_cell.setdefault((r["payload_g"], r["speed_mps"]), {})[r["method"]] = r["rmse_m"]
+    for (pay, speed), vals in by_cell.items():
+        if "nominal" not in vals:
+            continue
+        base = vals["nominal"]
+        out.append({"payload_g": pay, "speed_mps": speed, **{
+            m: 100.0 * (base - v) / base for m, v in vals.items() if m != "nominal"}})
+    return out
+
+
+def run_beam_ablation(
+    beam_sizes: Sequence[int] = BEAM_SIZES,
+    trials: int = 3,
+    payload_g: float = 175.0,
+    speed_mps: float = 1.5,
+    quick: bool = False,
+    models=None,
+    progress: Callable[[str], None] = lambda msg: None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Table V analogue: tracking RMSE and adaptation time per step vs beam size ``K``.
+
+    The adaptation time is that of Algorithm 1 alone (``adaptation.update`` + the
+    beam-marginal prediction, jitted, excluding the MPC), timed by replaying the
+    transitions of the first trial's flight; median over steps.
+    """
+    from benchmarks.quadrotor_openloop import prepare_models
+
+    if models is None:
+        models = prepare_models(quick=quick, seed=seed, progress=progress)
+    if quick:
+        trials = 1
+    runner = Runner(models)
+    scen = Scenario(payload_g=payload_g, speed_mps=speed_mps)
+    rows = []
+    for K in beam_sizes:
+        name = f"ours_K{int(K)}"
+        progress(f"beam ablation: K = {K}")
+        flights = [runner.fly(name, scen, seed=seed * 1000 + i) for i in range(trials)]
+        rmse = [f.metrics["rmse_m"] for f in flights]
+        rows.append({"K": int(K), "rmse_m": _mean(rmse),
+                     "adapt_ms_per_step": adaptation_time_ms(models.vld, int(K), flights[0],
+                                                             runner.dtype)})
+    return {"rows": rows, "payload_g": payload_g, "speed_mps": speed_mps, "trials": trials}
+
+
+def adaptation_time_ms(vld: encoder.VLD, K: int, flight: Flight, dtype) -> float:
+    """Median wall time [ms] of one jitted adaptation step (update + predict), replayed."""
+    cfg = adaptation.quadrotor_config()._replace(K=K)
+    vld = _cast(vld, dtype)
+    state = adaptation.init(vld.theta0, cfg)
+
+    @jax.jit
+    def one(state, xp, up, x):
+        z = vld.features(xp, up)
+        dn = vld.normalise_residual(x - f_nom(xp, up))
+        state, pred, _ = adaptation.step(state, z, dn, cfg, vld.latent_variance(xp, up))
+        return state, pred.mean
+
+    xs = jnp.asarray(flight.x, dtype)
+    us = jnp.asarray(flight.u, dtype)
+    times = []
+    for k in range(xs.shape[0] - 1):
+        t0 = time.perf_counter()
+        state, mean = one(state, xs[k], us[k], xs[k + 1])
+        jax.block_until_ready(mean)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times[1:]) * 1e3)
+
+
+def _cast(tree, dtype):
+    """Floating-point array leaves of ``tree`` converted to ``dtype`` (others untouched)."""
+
+    def one(a):
+        if isinstance(a, jax.Array | np.ndarray) and jnp.issubdtype(a.dtype, jnp.floating):
+            return jnp.asarray(a, dtype)
+        return a
+
+    return jax.tree.map(one, tree)
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """Human-readable Table III analogue."""
+    lines = ["Closed-loop tracking (mean over trials): RMSE / z-RMSE [m], shift [m], "
+             "settling [s]"]
+    for r in result["cells"]:
+        lines.append(
+            f"  {r['payload_g']:5.0f} g {r['speed_mps']:.1f} m/s  {r['method']:11s} "
+            f"{r['rmse_m']:.3f} / {r['rmse_z_m']:.3f}  shift {r['shift_m']:.3f}  "
+            f"settle {r['settling_s']:.2f} ({100 * r['settled_fraction']:.0f} % settled)"
+            + ("  CRASHED" if r["crashed"] > 0 else "")
+        )
+    for imp in result["improvement_over_nominal"]:
+        lines.append(f"  improvement over nominal at {imp['payload_g']:g} g, "
+                     f"{imp['speed_mps']:g} m/s: " + ", ".join(
+                         f"{m} {v:.0f} %" for m, v in imp.items()
+                         if m not in ("payload_g", "speed_mps")))
+    return "\n".join(lines)

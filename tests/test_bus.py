@@ -1,0 +1,378 @@
+"""Zenoh bus: real sessions on loopback, liveliness readiness, rejects, ACL and mTLS routers."""
+
+from __future__ import annotations
+
+import json
+import queue
+import socket
+import subprocess
+import threading
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from services import bus as zbus
+from services.bus import Bus, client_config, load_config, peer_config
+from services.messages import Event, Mocap, Reason, Setpoint, State, encode
+
+pytestmark = pytest.mark.integration
+
+TIMEOUT = 10.0  # generous upper bound for a loaded machine; never a sleep
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def hub() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def state(stamp: float, z: float = 1.0) -> State:
+    return State(x=np.r_[0.0, 0.0, z, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0], stamp=stamp)
+
+
+def get(q: queue.Queue, what: str):
+    try:
+        return q.get(timeout=TIMEOUT)
+    except queue.Empty:
+        raise AssertionError(f"no {what} within {TIMEOUT} s") from None
+
+
+# ------------------------------------------------------------------- names, configs
+
+
+def test_key_expressions_and_names():
+    assert zbus.key_expr("quad1", "setpoint") == "arcade/quad1/setpoint"
+    assert zbus.alive_key("quad1", "controller") == "arcade/quad1/alive/controller"
+    assert zbus.alive_key("quad1", "*") == "arcade/quad1/alive/*"
+    for bad in ("a/b", "*", "", "q$1", "x y"):
+        with pytest.raises(ValueError):
+            zbus.key_expr(bad, "state")
+        with pytest.raises(ValueError):
+            Bus("quad1", bad)
+    with pytest.raises(ValueError):
+        zbus.key_expr("quad1", "telemetry")
+
+
+def test_qos_table():
+    assert set(zbus.QOS) == set(zbus.TOPICS)
+    for topic in ("state", "setpoint"):
+        qos = zbus.QOS[topic]
+        assert qos.express and qos.priority == zenoh.Priority.REAL_TIME
+        assert qos.congestion_control == zenoh.CongestionControl.DROP
+    for topic in ("mocap", "imu", "model", "residual"):
+        assert zbus.QOS[topic].congestion_control == zenoh.CongestionControl.DROP
+    for topic in ("event", "command"):
+        assert zbus.QOS[topic].congestion_control == zenoh.CongestionControl.BLOCK
+
+
+def test_shipped_configs_parse_and_default_matches_builder():
+    names = sorted(p.name for p in zbus.config_path().parent.glob("*.json5"))
+    assert names == [
+        "client-tls.json5",
+        "peer-loopback.json5",
+        "router-acl.json5",
+        "router-tls.json5",
+        "router-userpass.json5",
+        "router.json5",
+    ]
+    configs = {n: load_config(zbus.config_path(n)) for n in names}  # unknown keys would raise
+    assert json.loads(configs["router-acl.json5"].get_json("access_control/enabled"))
+    built, shipped = peer_config(), configs["peer-loopback.json5"]
+    for key in (
+        "mode",
+        "listen",
+        "connect",
+        "scouting/multicast/enabled",
+        "scouting/gossip/enabled",
+    ):
+        assert json.loads(built.get_json(key)) == json.loads(shipped.get_json(key)), key
+    assert json.loads(shipped.get_json("scouting/multicast/enabled")) is False
+    over = load_config(zbus.config_path(), {"listen/endpoints": ["tcp/127.0.0.1:1"]})
+    assert json.loads(over.get_json("listen/endpoints")) == ["tcp/127.0.0.1:1"]
+
+
+# ----------------------------------------------------------------- peer exchange
+
+
+def test_state_setpoint_exchange_with_liveliness_readiness():
+    h = hub()
+    setpoints: queue.Queue = queue.Queue()
+    with (
+        Bus("quad1", "estimator", peer_config(h)) as est,
+        Bus("quad1", "controller", peer_config(h)) as ctl,
+    ):
+
+        def on_state(s: State) -> None:
+            ctl.put(Setpoint(u=[5.0 + s.x[2], 0.0, 0.1, 0.0], state_seq=s.seq, stamp=s.stamp))
+
+        ctl.subscribe("state", on_state)
+        ctl.declare_alive()  # after the subscription: seeing it means the subscription is there
+        est.subscribe("setpoint", setpoints.put)
+        est.declare_alive()
+        est.wait_alive(["controller", "estimator"], TIMEOUT)
+        ctl.wait_alive(["estimator"], TIMEOUT)
+        assert {"controller", "estimator"} <= est.alive
+
+        for k in range(3):
+            assert est.put(state(stamp=0.01 * k, z=float(k))) == k + 1
+        got = [get(setpoints, "setpoint") for _ in range(3)]
+        assert [sp.state_seq for sp in got] == [1, 2, 3]
+        assert [sp.seq for sp in got] == [1, 2, 3]
+        assert [sp.thrust for sp in got] == [5.0, 6.0, 7.0]
+        assert [sp.stamp for sp in got] == [0.0, 0.01, 0.02]
+        assert all(sp.src == ctl.src and sp.src.startswith("controller/") for sp in got)
+        assert ctl.rejects.total == 0 and est.rejects.total == 0
+        with pytest.raises(TypeError):
+            est.publisher("state").put(Setpoint(u=[1.0, 0, 0, 0], state_seq=0, stamp=0.0))
+
+
+def test_qos_on_the_wire():
+    h = hub()
+    samples: queue.Queue = queue.Queue()
+    with Bus("v", "a", peer_config(h)) as a, Bus("v", "b", peer_config(h)) as b:
+        b.session.declare_subscriber("arcade/v/*", samples.put)
+        b.declare_alive()
+        a.wait_alive(["b"], TIMEOUT)
+        a.put(state(0.0))
+        a.put(Setpoint(u=[1.0, 0, 0, 0], state_seq=1, stamp=0.0))
+        for _ in range(2):
+            s = get(samples, "sample")
+            topic = str(s.key_expr).rsplit("/", 1)[-1]
+            assert s.priority == zbus.QOS[topic].priority == zenoh.Priority.REAL_TIME
+            assert s.express and s.congestion_control == zenoh.CongestionControl.DROP
+            assert str(s.encoding).startswith("application/msgpack")
+
+
+def test_malformed_payloads_are_counted_not_raised():
+    h = hub()
+    states: queue.Queue = queue.Queue()
+    with Bus("v", "est", peer_config(h)) as sub, Bus("v", "evil", peer_config(h)) as pub:
+
+        def on_state(s: State) -> None:
+            if s.x[2] < 0:
+                raise RuntimeError("service bug")
+            states.put(s)
+
+        sub.subscribe("state", on_state)
+        sub.declare_alive()
+        pub.wait_alive(["est"], TIMEOUT)
+        key = pub.key("state")
+        nan = state(0.0).to_wire()
+        nan["x"][0] = float("nan")
+        wrong = Setpoint(u=[1.0, 0, 0, 0], state_seq=0, stamp=0.0).to_wire()
+        forged = [state(5.0).replace(seq=9, src="x/1"), state(6.0).replace(seq=3, src="x/1")]
+        for payload in (
+            b"\x00\xff garbage",
+            msgpack.packb(nan),
+            msgpack.packb(wrong),
+            b"\xc1" * 5000,
+            *(encode(f) for f in forged),
+        ):
+            pub.session.put(key, payload)
+        pub.put(state(1.0, z=-1.0))  # the callback raises
+        pub.put(state(2.0, z=2.0))
+        # The bus's state publisher has a higher priority than the raw puts: any order.
+        received = sorted((get(states, "state") for _ in range(2)), key=lambda s: s.src)
+        good, forged_ok = received if received[0].src == pub.src else received[::-1]
+        assert forged_ok.src == "x/1" and forged_ok.seq == 9
+        assert good.src == pub.src and good.x[2] == 2.0 and good.seq == 2
+        assert sub.rejects.wait_total(6, TIMEOUT)
+        assert sub.rejects.counts == {
+            Reason.NOT_MSGPACK: 1,
+            Reason.NON_FINITE: 1,
+            Reason.BAD_SCHEMA: 1,
+            Reason.OVERSIZE: 1,
+            Reason.OUT_OF_ORDER: 1,
+            Reason.CALLBACK_ERROR: 1,
+        }
+        assert states.empty()
+
+
+def test_three_peers_find_each_other_through_the_hub():
+    h = hub()
+    got: queue.Queue = queue.Queue()
+    changes: queue.Queue = queue.Queue()
+    with Bus("v", "hub", peer_config(h)) as first:
+        b = Bus("v", "sim", peer_config(h)).open()
+        c = Bus("v", "ctl", peer_config(h)).open()
+        try:
+            c.subscribe("mocap", got.put)
+            c.declare_alive()
+            b.wait_alive(["ctl"], TIMEOUT)
+            q = [1.0, 0.0, 0.0, 0.0]
+            b.put(Mocap(position=[1.0, 2.0, 3.0], quaternion=q, capture_stamp=0.5, stamp=0.5))
+            m = get(got, "mocap")
+            assert m.src == b.src and list(m.position) == [1.0, 2.0, 3.0]
+            # peers link directly, not only through the hub
+            assert str(c.session.zid()) in {str(z) for z in b.session.info.peers_zid()}
+            first.wait_alive(["ctl"], TIMEOUT)
+            first.on_alive_change(lambda service, up: changes.put((service, up)))
+        finally:
+            c.close()
+            b.close()
+        assert get(changes, "liveliness change") == ("ctl", False)
+        assert "ctl" not in first.alive
+
+
+def test_wait_alive_times_out_with_missing_names():
+    with Bus("v", "lonely", peer_config(hub())) as bus:
+        bus.declare_alive()
+        bus.wait_alive(["lonely"], TIMEOUT)
+        with pytest.raises(TimeoutError, match="nobody"):
+            bus.wait_alive(["lonely", "nobody"], timeout=0.05)
+        bus.withdraw_alive()
+        with pytest.raises(RuntimeError):
+            Bus("v", "closed").session  # noqa: B018
+
+
+# ------------------------------------------------------------------------ routers
+
+
+USERS = {"controller": "c-pw", "simulator": "s-pw", "recorder": "r-pw"}
+
+
+def test_acl_router_only_controller_puts_setpoint(tmp_path: Path):
+    users = tmp_path / "users.txt"
+    users.write_text("".join(f"{u}:{p}\n" for u, p in USERS.items()))
+    endpoint = hub()
+    router_cfg = load_config(
+        zbus.config_path("router-acl.json5"),
+        {"listen/endpoints": [endpoint], "transport/auth/usrpwd/dictionary_file": str(users)},
+    )
+    got: queue.Queue = queue.Queue()
+
+    def client(user: str, password: str | None = None) -> Bus:
+        cfg = client_config([endpoint], user=user, password=password or USERS[user])
+        return Bus("v", user, cfg)
+
+    with (
+        zenoh.open(router_cfg),
+        client("recorder") as rec,
+        client("controller") as ctl,
+        client("simulator") as sim,
+    ):
+        rec.subscribe("setpoint", got.put)
+        rec.subscribe("mocap", got.put)
+        rec.declare_alive()
+        ctl.wait_alive(["recorder"], TIMEOUT)
+        sim.wait_alive(["recorder"], TIMEOUT)
+        ctl.put(Setpoint(u=[1.0, 0, 0, 0], state_seq=1, stamp=0.0))
+        # Denied at the router; it would arrive before the mocap sample (same link, higher
+        # priority), which is allowed.
+        sim.put(Setpoint(u=[9.0, 0, 0, 0], state_seq=1, stamp=0.0))
+        sim.put(
+            Mocap(position=[0.0, 0.0, 0.0], quaternion=[1.0, 0, 0, 0], capture_stamp=0, stamp=0)
+        )
+        received = [get(got, "message"), get(got, "message")]
+        by_type = {type(m): m for m in received}
+        assert set(by_type) == {Setpoint, Mocap}
+        assert by_type[Setpoint].src == ctl.src and by_type[Setpoint].thrust == 1.0
+        assert by_type[Mocap].src == sim.src
+        assert got.empty() and rec.rejects.total == 0
+        with pytest.raises(zenoh.ZError):
+            client("simulator", "wrong-password").open()
+
+
+def _openssl(*args: str, cwd: Path) -> None:
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True, timeout=60)
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory) -> Path:
+    """A CA, a router certificate for localhost and a client certificate (P-256)."""
+    d = tmp_path_factory.mktemp("certs")
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-days", "2"]
+    _openssl(
+        "req", "-x509", *ec, "-subj", "/CN=arcade-ca", "-keyout", "ca.key", "-out", "ca.pem", cwd=d
+    )
+    for name in ("router", "controller"):
+        san = ["-addext", "subjectAltName=DNS:localhost"]
+        _openssl(
+            "req",
+            *ec[:-2],
+            "-subj",
+            f"/CN={name}",
+            *san,
+            "-keyout",
+            f"{name}.key",
+            "-out",
+            f"{name}.csr",
+            cwd=d,
+        )
+        sign = ["-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-days", "2"]
+        _openssl(
+            "x509",
+            "-req",
+            "-in",
+            f"{name}.csr",
+            *sign,
+            "-copy_extensions",
+            "copy",
+            "-out",
+            f"{name}.pem",
+            cwd=d,
+        )
+    return d
+
+
+def test_mtls_router_carries_messages_and_refuses_clients_without_certificate(certs: Path):
+    port = free_port()
+    router_cfg = load_config(
+        zbus.config_path("router-tls.json5"),
+        {
+            "listen/endpoints": [f"tls/127.0.0.1:{port}"],
+            "transport/link/tls/listen_certificate": str(certs / "router.pem"),
+            "transport/link/tls/listen_private_key": str(certs / "router.key"),
+            "transport/link/tls/root_ca_certificate": str(certs / "ca.pem"),
+        },
+    )
+    endpoint = [f"tls/localhost:{port}"]
+    mtls = {
+        "root_ca": certs / "ca.pem",
+        "cert": certs / "controller.pem",
+        "key": certs / "controller.key",
+    }
+    got: queue.Queue = queue.Queue()
+    with (
+        zenoh.open(router_cfg),
+        Bus("v", "estimator", client_config(endpoint, **mtls)) as a,
+        Bus("v", "controller", client_config(endpoint, **mtls)) as b,
+    ):
+        b.subscribe("state", got.put)
+        b.declare_alive()
+        a.wait_alive(["controller"], TIMEOUT)
+        a.put(state(1.0))
+        assert get(got, "state over TLS").stamp == 1.0
+        with pytest.raises(zenoh.ZError):
+            Bus("v", "anon", client_config(endpoint, root_ca=certs / "ca.pem")).open()
+
+
+def test_bus_callbacks_may_run_concurrently_with_publishing():
+    # A callback that publishes (controller pattern) from Zenoh's thread while the main
+    # thread publishes too: seq stays strictly increasing per publisher.
+    h = hub()
+    seen: queue.Queue = queue.Queue()
+    with Bus("v", "a", peer_config(h)) as a, Bus("v", "b", peer_config(h)) as b:
+        b.subscribe("event", seen.put)
+        b.declare_alive()
+        a.wait_alive(["b"], TIMEOUT)
+
+        def burst() -> None:
+            for k in range(50):
+                a.put(Event(kind="info", text=f"t{k}", stamp=1.0))
+
+        threads = [threading.Thread(target=burst) for _ in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(TIMEOUT)
+        seqs = [get(seen, "event").seq for _ in range(100)]
+        assert seqs == list(range(1, 101))
+        assert b.rejects.total == 0
