@@ -11,6 +11,8 @@ import argparse
 import importlib
 import sys
 
+from arcade import __version__
+
 # Order is the order shown by `arcade --help`.
 COMMANDS: tuple[str, ...] = (
     "demo",
@@ -27,7 +29,16 @@ def build_parser() -> argparse.ArgumentParser:
             "ARCADE: adaptive robot control with online changepoint-aware Bayesian "
             "dynamics learning."
         ),
+        epilog=(
+            "examples:\n"
+            "  arcade demo                       run the demo, write a run folder\n"
+            "  arcade bench adapt --json         adaptation-step latency vs beam size\n"
+            "  arcade eval cartpole --quick      fast cartpole evaluation\n"
+            "run `arcade COMMAND --help` for the options of a command."
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"arcade {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMANDS:

@@ -8,7 +8,7 @@ setpoints) while tracking a smooth random cubic Hermite spline through random wa
 segment speeds 0.3-2.0 m/s, peak speed capped at 2.5 m/s, peak acceleration at 6 m/s^2,
 a slowly varying yaw). Like a human pilot it knows the payload only through the hover
 throttle it trimmed after take-off.
-Low-pass Gaussian excitation (AR(1) with a 0.5 s correlation time; 0.8 N thrust, 0.3 rad/s
+Low-pass Gaussian excitation (AR(1) with a 0.5 s correlation time; 1.2 N thrust, 0.3 rad/s
 rates) is added to the setpoints so that the data are informative about the input
 channels. It is deliberately slow, like a pilot's stick: the motors lag the thrust command
 by 25 ms, so white per-step excitation would teach the residual model that thrust acts
@@ -56,17 +56,17 @@ LOG_PER_CONTROL = round(CONTROL_DT / LOG_DT)
 TRAIN_PAYLOADS_G = (10.0, 100.0, 200.0)
 VAL_PAYLOADS_G = (75.0, 125.0, 175.0)
 #: Bump when the generator changes so that cached logs are regenerated.
-DATA_VERSION = 5
+DATA_VERSION = 9
 
 #: Flight envelope of the random trajectories (world ENU, m).
-BOX_LOW = np.array([-2.0, -2.0, 1.2])
-BOX_HIGH = np.array([2.0, 2.0, 2.6])
-START = np.array([0.0, 0.0, 1.8])
+BOX_LOW = np.array([-2.0, -2.0, 1.3])
+BOX_HIGH = np.array([2.0, 2.0, 3.3])
+START = np.array([0.0, 0.0, 2.0])
 MAX_SPEED = 2.5  # m/s
 MAX_ACCEL = 6.0  # m/s^2
-SEGMENT_SPEED = (0.3, 2.0)  # mean speed between waypoints, m/s
-EXCITATION_STD = np.array([0.8, 0.3, 0.3, 0.3])  # thrust N, rates rad/s
-EXCITATION_TAU_S = 0.5  # correlation time of the excitation
+SEGMENT_SPEED = (0.5, 3.0)  # mean speed between waypoints, m/s
+EXCITATION_STD = np.array([2.0, 0.3, 0.3, 0.3])  # thrust N, rates rad/s
+EXCITATION_TAU_S = 0.2  # correlation time of the excitation
 HOVER_LEAD_S = 3.0  # hover at the start so the pilot's trim settles
 
 
@@ -147,9 +147,9 @@ class ExpertPilot:
         self,
         mass: float,
         gravity: float = 9.81,
-        kp: float = 4.0,
-        kd: float = 3.0,
-        ki: float = 1.5,
+        kp: float = 6.0,
+        kd: float = 4.0,
+        ki: float = 2.0,
         k_att: float = 6.0,
         max_tilt: float = np.deg2rad(40.0),
         integral_limit: float = 3.0,

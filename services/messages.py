@@ -362,29 +362,39 @@ def _tname(v: Any) -> str:
 _NUMBER = (float, int, np.floating, np.integer)
 
 
-def _from_nested(name: str, v: list, ndim: int) -> np.ndarray:
-    """Strictly parse nested lists of real numbers (no bools, strings or ragged rows)."""
+def _check_leaves(name: str, v: list) -> None:
+    if all(type(x) is float for x in v):  # the wire case, fast
+        return
+    for x in v:
+        if isinstance(x, _NUMBER) and not isinstance(x, bool | np.bool_):
+            continue
+        if isinstance(x, list):
+            raise MessageError(Reason.BAD_SHAPE, "too many nesting levels", field=name)
+        raise MessageError(Reason.BAD_TYPE, f"array element is {_tname(x)}", field=name)
+
+
+def _check_nesting(name: str, v: list, ndim: int) -> None:
     if ndim == 1:
-        for x in v:
-            if isinstance(x, _NUMBER) and not isinstance(x, bool | np.bool_):
-                continue
-            if isinstance(x, list):
-                raise MessageError(Reason.BAD_SHAPE, "too many nesting levels", field=name)
-            raise MessageError(Reason.BAD_TYPE, f"array element is {_tname(x)}", field=name)
-        try:
-            return np.array(v, dtype=np.float64)
-        except OverflowError as e:
-            raise MessageError(Reason.OUT_OF_RANGE, "integer too large", field=name) from e
-    rows = []
+        _check_leaves(name, v)
+        return
     for row in v:
         if type(row) is not list:
             raise MessageError(Reason.BAD_SHAPE, f"want {ndim} nesting levels", field=name)
-        rows.append(_from_nested(name, row, ndim - 1))
-    if not rows:
-        return np.zeros((0,) * ndim)
-    if any(r.shape != rows[0].shape for r in rows):
-        raise MessageError(Reason.BAD_SHAPE, "ragged array", field=name)
-    return np.stack(rows)
+        _check_nesting(name, row, ndim - 1)
+
+
+def _from_nested(name: str, v: list, ndim: int) -> np.ndarray:
+    """Strictly parse nested lists of real numbers (no bools, strings or ragged rows)."""
+    _check_nesting(name, v, ndim)
+    try:
+        arr = np.array(v, dtype=np.float64)
+    except OverflowError as e:
+        raise MessageError(Reason.OUT_OF_RANGE, "integer too large", field=name) from e
+    except ValueError as e:  # inhomogeneous nesting
+        raise MessageError(Reason.BAD_SHAPE, "ragged array", field=name) from e
+    if arr.ndim != ndim:  # e.g. empty rows
+        raise MessageError(Reason.BAD_SHAPE, f"shape {arr.shape}", field=name)
+    return arr
 
 
 def _m(spec: Any) -> dict[str, Any]:

@@ -15,8 +15,9 @@ wrong shapes and values outside the plausible range are rejected with a ``ValueE
 that names the offending entry, so a typo never silently turns an effect off.
 
 The parameter table :data:`EFFECTS` is plain data (unit, plausible range, default,
-description) so the discrepancy library can mirror it. Physical forms, world ENU / body
-FLU, ``v_rel = v - wind`` the air-relative velocity of the airframe:
+description) taken from the discrepancy library (``arcade_core.discrepancy.library``).
+Physical forms, world ENU / body FLU, ``v_rel = v - wind`` the air-relative velocity of
+the airframe:
 
 ``rotor_drag``
     Linear rotor (blade-flapping / induced) drag, Faessler et al. form with constant
@@ -58,73 +59,17 @@ import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
+from arcade_core.discrepancy.library import QUADROTOR_EFFECTS, ParamSpec
 
-class ParamSpec(NamedTuple):
-    """One effect parameter: unit, plausible range (per element), default and meaning.
-
-    ``shape`` is ``()`` for a scalar or ``(3,)`` for a vector. ``default`` ``None`` means
-    the parameter must be given.
-    """
-
-    unit: str
-    low: float
-    high: float
-    default: float | tuple[float, ...] | None
-    shape: tuple[int, ...]
-    description: str
-
-
-#: Canonical effect names -> parameter name -> :class:`ParamSpec`.
-# fmt: off
+#: Canonical effect names -> parameter name -> :class:`ParamSpec`. Single-sourced from the
+#: discrepancy library, so the simulator and the identification share units and ranges.
 EFFECTS: dict[str, dict[str, ParamSpec]] = {
-    "rotor_drag": {
-        "d": ParamSpec("1/s", 0.0, 2.0, None, (3,),
-                       "linear drag acceleration coefficients along body x, y, z; "
-                       "F_body = -m diag(d) R^T (v - wind)"),
-    },
-    "quadratic_drag": {
-        "c": ParamSpec("kg/m", 0.0, 0.2, None, (3,),
-                       "quadratic drag coefficients along body x, y, z; "
-                       "F_body,i = -c_i |v_b,i| v_b,i"),
-    },
-    "ground_effect": {
-        "rotor_radius_m": ParamSpec("m", 0.01, 0.2, 0.0381, (),
-                                    "rotor radius R in the Cheeseman-Bennett gain "
-                                    "1 / (1 - (R / 4h)^2); default 3-inch propeller"),
-    },
-    "thrust_scale": {
-        "scale": ParamSpec("1", 0.5, 1.5, None, (),
-                           "actual / nominal rotor thrust coefficient"),
-    },
-    "motor_lag": {
-        "time_constant_s": ParamSpec("s", 0.002, 0.2, None, (),
-                                     "first-order motor thrust time constant "
-                                     "(replaces the vehicle file's value)"),
-    },
-    "rate_lag": {
-        "delay_s": ParamSpec("s", 0.0, 0.1, 0.0, (),
-                             "transport delay of the body-rate setpoints before the "
-                             "rate controller"),
-        "time_constant_s": ParamSpec("s", 0.0, 0.3, 0.0, (),
-                                     "first-order filter on the body-rate setpoints "
-                                     "before the rate controller"),
-    },
-    "com_offset": {
-        "offset_m": ParamSpec("m", -0.03, 0.03, None, (3,),
-                              "airframe centre-of-mass offset from the geometric centre, "
-                              "body FLU"),
-    },
-    "wind": {
-        "velocity_mps": ParamSpec("m/s", -15.0, 15.0, None, (3,),
-                                  "constant wind velocity, world ENU; acts through the "
-                                  "drag effects"),
-    },
+    name: dict(spec.params) for name, spec in QUADROTOR_EFFECTS.items()
 }
-# fmt: on
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,585 @@
+"""`arcade discrepancy LOG` — where do model and data disagree, and which effect is missing.
+
+The workflow of design §6 on one flight log (CSV, design §5 columns, any constant rate):
+
+1. **Align**: predictions of the current model (the vehicle or model file: nominal model,
+   motors, rate loop and the file's ``[effects]``) from every measured state with the
+   measured inputs, over one model step (``--step``, default the 0.05 s control period,
+   rounded to whole log samples) and over a short horizon; residual per state component.
+2. **Localise**: residual RMS per component, per regime (speed, height, thrust, tilt for
+   the quadrotor; speeds, pole angle, force for the cartpole) and per time segment (the
+   changepoint machinery of Algorithm 1 segments the log).
+3. **Name**: all library effects of the system are candidates at once; sparse selection
+   (BIC among subsets in which every effect explains a relevant share) with a block
+   bootstrap for confidence and parameter intervals
+   (:mod:`arcade_core.discrepancy.identify`). Only effects with confidence at least
+   ``--confidence`` are added; otherwise the answer is "no confident effect".
+4. **Add**: an updated vehicle/model file with the effects in its ``[effects]`` table,
+   loadable by ``arcade.vehicle.load_vehicle``, the simulator and the JAX model.
+5. **Show**: the log is split in time: the first part is fitted, the last ``--heldout``
+   fraction only evaluated. Before/after one-step RMSE and multi-step CRMSE per component,
+   plots and a short report in ``--out``.
+
+``heldout_rmse_before/after`` is the one-step RMSE over the state components the added
+effects act on (the library's ``acts_on``; all velocity and rate components when none is
+added), in SI units; ``gap_before/after`` give every component.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HELP = "find where a flight log and the model disagree, name the missing effect, show the fix"
+
+QUAD_COMPONENTS = (
+    "px", "py", "pz", "vx", "vy", "vz", "att_x", "att_y", "att_z", "wx", "wy", "wz",
+)  # fmt: skip
+CART_COMPONENTS = ("x", "xdot", "theta", "thetadot")
+#: Residual channels used for identification (indices into the state).
+QUAD_CHANNELS = (3, 4, 5, 10, 11, 12)
+CART_CHANNELS = (1, 3)
+_PAD_SAMPLES = 4096
+_PAD_WINDOWS = 512
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Workflow settings (module docstring); times in seconds."""
+
+    step_s: float = 0.05
+    heldout: float = 0.3
+    horizon_s: float = 1.0
+    burn_in_s: float = 3.0
+    block_s: float = 2.0
+    confidence: float = 0.9
+    min_explained: float = 0.01
+    n_boot: int = 200
+    seed: int = 0
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("log", type=Path, help="flight log (CSV, design §5 columns)")
+    p.add_argument("--system", choices=["quadrotor", "cartpole"], default="quadrotor")
+    p.add_argument(
+        "--vehicle", type=Path, default=None,
+        help="vehicle file (quadrotor) or cartpole model file; default the shipped one",
+    )  # fmt: skip
+    p.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default runs/...)")
+    s = Settings()
+    p.add_argument("--step", type=float, default=s.step_s, help="model step [s]")
+    p.add_argument("--heldout", type=float, default=s.heldout, help="held-out fraction")
+    p.add_argument("--horizon", type=float, default=s.horizon_s, help="CRMSE horizon [s]")
+    p.add_argument("--confidence", type=float, default=s.confidence)
+    p.add_argument("--bootstrap", type=int, default=s.n_boot, help="bootstrap resamples")
+    p.add_argument("--seed", type=int, default=s.seed)
+
+
+# --------------------------------------------------------------------------- models
+
+
+def quad_model_from_vehicle(vehicle: dict[str, Any]):
+    """:class:`~arcade_core.discrepancy.quadrotor.QuadModel` of a vehicle file."""
+    import jax.numpy as jnp
+
+    from arcade.vehicle import quadrotor_params
+    from arcade_core.discrepancy.quadrotor import QuadModel
+
+    rotors, rl = vehicle["rotors"], vehicle["rate_loop"]
+    if rotors.get("layout", "x") != "x":
+        raise ValueError("only quad-x vehicles are supported")
+    b = float(vehicle["body"]["arm_length_m"]) / math.sqrt(2.0)
+    h = float(rotors.get("rotor_height_m", 0.015))
+    tmax = float(rotors["max_thrust_n"])
+    pos = jnp.array([[b, -b, h], [-b, b, h], [b, b, h], [-b, -b, h]])
+    # Largest torque per axis (what normalised torque 1 means), as the mixer defines it.
+    torque_max = jnp.array(
+        [2.0 * b * tmax, 2.0 * b * tmax, 2.0 * float(rotors["yaw_moment_coeff_m"]) * tmax]
+    )
+
+    def vec(key: str, default: float):
+        return jnp.asarray(rl.get(key, [default] * 3), dtype=float).reshape(3)
+
+    return QuadModel(
+        params=quadrotor_params(vehicle),
+        motor_tau=float(rotors["motor_time_constant_s"]),
+        rotors=pos,
+        rate_p=vec("p", 0.0),
+        rate_i=vec("i", 0.0),
+        rate_d=vec("d", 0.0),
+        rate_ff=vec("ff", 0.0),
+        torque_max=torque_max,
+        d_cutoff_rad_s=2.0 * math.pi * float(rl.get("d_cutoff_hz", 30.0)),
+    )
+
+
+def load_cartpole_file(path: str | Path | None) -> dict[str, Any]:
+    """A cartpole model file (TOML ``[cartpole] M, m, L, g`` + ``[effects]``); ``None``:
+    the Appendix D nominal model."""
+    from arcade_core.dynamics.params import CARTPOLE_NOMINAL as N
+
+    data: dict[str, Any] = {"cartpole": {"M": N.M, "m": N.m, "L": N.L, "g": N.g}}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"model file not found: {path}")
+        with path.open("rb") as f:
+            loaded = tomllib.load(f)
+        if "cartpole" not in loaded:
+            raise ValueError(f"{path}: missing [cartpole] table (M, m, L)")
+        data = {**loaded, "cartpole": {**data["cartpole"], **loaded["cartpole"]}}
+    return data
+
+
+class _System:
+    """One system's model, parameter layout and jitted predictions."""
+
+    def __init__(self, system: str, vehicle: dict[str, Any]):
+        import jax
+
+        from arcade.commands.simulate import validate_tables
+
+        self.name = system
+        self.vehicle = vehicle
+        self.effect_tables = validate_tables(system, dict(vehicle.get("effects", {})))
+        if system == "quadrotor":
+            from arcade_core.discrepancy import quadrotor as mod
+
+            self.model = quad_model_from_vehicle(vehicle)
+            self.components = QUAD_COMPONENTS
+            self.channels = QUAD_CHANNELS
+        else:
+            from arcade_core.discrepancy import cartpole as mod
+
+            c = vehicle["cartpole"]
+            self.model = mod.CartpoleModel(float(c["M"]), float(c["m"]), float(c["L"]),
+                                           float(c.get("g", 9.81)))
+            self.components = CART_COMPONENTS
+            self.channels = CART_CHANNELS
+        self.mod = mod
+        self.groups = mod.GROUPS
+        self.low = np.asarray(mod.THETA_LOW, float)
+        self.high = np.asarray(mod.THETA_HIGH, float)
+        self.theta_base = np.asarray(mod.theta_from_effects(self.model, self.effect_tables))
+        self._predict = _jitted_predict(system)
+        del jax
+
+    def predict(self, theta, X, U, starts, steps: int, dt: float) -> np.ndarray:
+        """Predictions ``(len(starts), steps, nx)`` (padded to shared shapes for jit reuse)."""
+        import jax.numpy as jnp
+
+        n, m = X.shape[0], len(starts)
+        n_pad = -(-n // _PAD_SAMPLES) * _PAD_SAMPLES
+        m_pad = -(-m // _PAD_WINDOWS) * _PAD_WINDOWS
+        Xp = np.concatenate([X, np.repeat(X[-1:], n_pad - n, axis=0)])
+        Up = np.concatenate([U, np.repeat(U[-1:], n_pad - n, axis=0)])
+        sp = np.concatenate([starts, np.full(m_pad - m, starts[0])]).astype(np.int32)
+        out = self._predict(self.model, jnp.asarray(theta), jnp.asarray(Xp), jnp.asarray(Up),
+                            jnp.asarray(sp), steps=steps, dt=dt)
+        return np.asarray(out)[:m]
+
+    def errors(self, X, pred, starts, steps) -> np.ndarray:
+        """Measured minus predicted per reporting component, ``(m, steps, n_comp)``."""
+        idx = np.asarray(starts)[:, None] + np.arange(1, steps + 1)[None, :]
+        meas = X[idx]
+        if self.name == "cartpole":
+            return meas - pred
+        att = _attitude_error(meas[..., 6:10], pred[..., 6:10])
+        return np.concatenate(
+            [meas[..., 0:6] - pred[..., 0:6], att, meas[..., 10:13] - pred[..., 10:13]],
+            axis=-1,
+        )
+
+    def effect_params(self, theta, name: str):
+        return self.mod.effect_params(theta, name)
+
+
+def _jitted_predict(system: str):
+    import jax
+
+    from arcade_core.discrepancy import cartpole, quadrotor
+
+    fn = quadrotor.predict_windows if system == "quadrotor" else cartpole.predict_windows
+    return _JIT.setdefault(system, jax.jit(fn, static_argnames=("steps", "dt")))
+
+
+_JIT: dict[str, Any] = {}
+
+
+def _attitude_error(q_meas: np.ndarray, q_pred: np.ndarray) -> np.ndarray:
+    """Rotation vector (body frame) from the predicted to the measured attitude [rad]."""
+    w1, v1 = q_pred[..., :1], q_pred[..., 1:]
+    w2, v2 = q_meas[..., :1], q_meas[..., 1:]
+    # q_pred^* (x) q_meas
+    w = w1 * w2 + np.sum(v1 * v2, axis=-1, keepdims=True)
+    v = w1 * v2 - w2 * v1 - np.cross(v1, v2)
+    return 2.0 * np.sign(np.where(w == 0, 1.0, w)) * v
+
+
+# --------------------------------------------------------------------------- workflow
+
+
+@dataclass
+class Outcome:
+    """Everything the workflow found (``result`` is the JSON printed by the command)."""
+
+    result: dict[str, Any]
+    details: dict[str, Any] = field(default_factory=dict)
+
+
+def _windows(start: int, stop: int, steps: int, stride: int) -> np.ndarray:
+    return np.arange(start, max(stop - steps, start), stride, dtype=np.int64)
+
+
+def _rms(a: np.ndarray, axis=0) -> np.ndarray:
+    return np.sqrt(np.mean(np.square(a), axis=axis))
+
+
+def run_workflow(
+    log,
+    system: str,
+    vehicle: str | Path | dict[str, Any] | None = None,
+    out: str | Path | None = None,
+    settings: Settings = Settings(),
+    progress=None,
+) -> Outcome:
+    """The discrepancy workflow on a :class:`~arcade.flightlog.FlightLog` (module docstring).
+
+    Writes the model file, plots and report into ``out`` when it is given.
+    """
+    from arcade_core.discrepancy.identify import SelectionConfig, identify
+    from arcade_core.discrepancy.library import effects_for
+
+    say = progress or (lambda _msg: None)
+    if system != log.system:
+        raise ValueError(f"log is a {log.system} log, not {system}")
+    if system == "quadrotor":
+        from arcade.vehicle import load_vehicle
+
+        veh = vehicle if isinstance(vehicle, dict) else load_vehicle(vehicle)
+        vehicle_path = None if isinstance(vehicle, dict) else vehicle
+    else:
+        veh = vehicle if isinstance(vehicle, dict) else load_cartpole_file(vehicle)
+        vehicle_path = None if isinstance(vehicle, dict) else vehicle
+    sysm = _System(system, veh)
+    X, U, dt = log.X, log.U, log.dt
+    n = len(log)
+    H = max(1, round(settings.step_s / dt))
+    if not 0.05 <= settings.heldout <= 0.5:
+        raise ValueError("heldout must be between 0.05 and 0.5")
+    n_fit = int(round(n * (1.0 - settings.heldout)))
+    burn = round(settings.burn_in_s / dt) if system == "quadrotor" else 0
+    fit_starts = _windows(burn, n_fit, H, H)
+    if len(fit_starts) < 50:
+        raise ValueError(
+            f"log too short: {len(fit_starts)} fitting windows of {H * dt:.3g} s "
+            "(at least 50 are needed)"
+        )
+    ch = np.asarray(sysm.channels)
+
+    def residual_fn(theta):
+        pred = sysm.predict(theta, X, U, fit_starts, H, dt)[:, -1]
+        return X[fit_starts + H][:, ch] - pred[:, ch]
+
+    say(f"{n} samples at {1.0 / dt:.4g} Hz; fitting {len(fit_starts)} windows of {H} steps")
+    cfg = SelectionConfig(
+        min_explained=settings.min_explained,
+        confidence=settings.confidence,
+        n_boot=settings.n_boot,
+        block=max(1, round(settings.block_s / (H * dt))),
+        seed=settings.seed,
+    )
+    ident = identify(residual_fn, sysm.theta_base, [g for _, g in sysm.groups], sysm.low,
+                     sysm.high, cfg)
+    say(f"selected {[sysm.groups[j][0] for j in ident.selected]} in {ident.rounds} round(s)")
+
+    # ---- effects, parameters, intervals
+    specs = effects_for(system)
+    effects_out = []
+    listed = sorted(set(ident.selected) | {j for j, c in enumerate(ident.confidence) if c >= 0.5},
+                    key=lambda j: (-(j in ident.confident), -ident.contribution[j],
+                                   -ident.confidence[j]))
+    for j in listed:
+        name = sysm.groups[j][0]
+        theta_j = ident.theta if j in ident.confident else ident.theta_selected
+        params = sysm.effect_params(theta_j, name)
+        lo = sysm.effect_params(np.percentile(ident.samples, 5, axis=0), name)
+        hi = sysm.effect_params(np.percentile(ident.samples, 95, axis=0), name)
+        interval = {k: _interval(lo[k], hi[k]) for k in params} if j in ident.confident else {}
+        effects_out.append({
+            "name": name,
+            "params": params,
+            "interval": interval,
+            "confidence": float(ident.confidence[j]),
+            "explained": float(ident.contribution[j]),
+            "added": j in ident.confident,
+            "acts_on": list(specs[name].acts_on),
+        })  # fmt: skip
+    confident_names = [sysm.groups[j][0] for j in ident.confident]
+
+    # ---- held-out before/after
+    ho = _windows(n_fit, n, H, 1)
+    theta_b, theta_a = sysm.theta_base, ident.theta
+    err_b = sysm.errors(X, sysm.predict(theta_b, X, U, ho, H, dt), ho, H)[:, -1]
+    err_a = sysm.errors(X, sysm.predict(theta_a, X, U, ho, H, dt), ho, H)[:, -1]
+    comps = list(sysm.components)
+    gap_before = {c: float(v) for c, v in zip(comps, _rms(err_b))}
+    gap_after = {c: float(v) for c, v in zip(comps, _rms(err_a))}
+    if confident_names:
+        act = sorted({c for nme in confident_names for c in specs[nme].acts_on},
+                     key=comps.index)
+    else:
+        act = [comps[i] for i in (3, 4, 5, 9, 10, 11)] if system == "quadrotor" else [
+            "xdot", "thetadot"]
+    sel = [comps.index(c) for c in act]
+    rmse_b = float(_rms(err_b[:, sel].reshape(-1)))
+    rmse_a = float(_rms(err_a[:, sel].reshape(-1)))
+    M = max(2, round(settings.horizon_s / dt))
+    stride = max(1, round(0.5 / dt))
+    cr_starts = _windows(n_fit, n, M, stride)
+    crmse_b: dict[str, float] = {}
+    crmse_a: dict[str, float] = {}
+    if len(cr_starts):
+        eb = sysm.errors(X, sysm.predict(theta_b, X, U, cr_starts, M, dt), cr_starts, M)
+        ea = sysm.errors(X, sysm.predict(theta_a, X, U, cr_starts, M, dt), cr_starts, M)
+        # CRMSE (Sec. V-A) of one component is the sum of absolute errors over the horizon.
+        crmse_b = {c: float(v) for c, v in zip(comps, np.mean(np.abs(eb).sum(1), axis=0))}
+        crmse_a = {c: float(v) for c, v in zip(comps, np.mean(np.abs(ea).sum(1), axis=0))}
+
+    # ---- localisation of the gap (fit part, current model)
+    loc = _localise(sysm, X, U, dt, fit_starts, H, theta_b, ident.weights)
+
+    summary = (
+        "named: " + ", ".join(
+            f"{e['name']} (confidence {e['confidence']:.2f})" for e in effects_out if e["added"])
+        if confident_names else "no confident effect"
+    )
+    result: dict[str, Any] = {
+        "system": system,
+        "summary": summary,
+        "no_confident_effect": not confident_names,
+        "effects": effects_out,
+        "gap_before": gap_before,
+        "gap_after": gap_after,
+        "heldout_rmse_before": rmse_b,
+        "heldout_rmse_after": rmse_a,
+        "heldout_components": act,
+        "crmse_before": crmse_b,
+        "crmse_after": crmse_a,
+        "step_s": H * dt,
+        "horizon_s": M * dt,
+        "samples": n,
+        "fit_samples": n_fit,
+        "outlier_windows": int(ident.outliers.sum()),
+        "localisation": loc["summary"],
+        "model_file": None,
+    }
+    details = {
+        "t": log.t, "ho": ho, "err_before": err_b, "err_after": err_a,
+        "components": comps, "localisation": loc, "theta_before": theta_b,
+        "theta_after": theta_a, "identification": ident,
+    }  # fmt: skip
+    if out is not None:
+        from arcade.discrepancy_report import write_outputs
+
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        model_file = write_model_file(out, system, veh, vehicle_path, sysm, ident)
+        result["model_file"] = str(model_file)
+        result.update(write_outputs(out, result, details))
+        (out / "result.json").write_text(json.dumps(result, indent=2))
+    return Outcome(result, details)
+
+
+def _interval(lo, hi):
+    if isinstance(lo, list):
+        return [[min(a, b), max(a, b)] for a, b in zip(lo, hi)]
+    return [min(lo, hi), max(lo, hi)]
+
+
+def _localise(sysm, X, U, dt, starts, H, theta, W) -> dict[str, Any]:
+    """Step 2: residual of the current model by component, regime and time segment."""
+    from arcade_core.discrepancy.localize import binned_rms, changepoints, segment_rms
+
+    err = sysm.errors(X, sysm.predict(theta, X, U, starts, H, dt), starts, H)[:, -1]
+    comps = list(sysm.components)
+    dyn = [comps.index(c) for c in
+           (("vx", "vy", "vz", "wx", "wy", "wz") if sysm.name == "quadrotor"
+            else ("xdot", "thetadot"))]
+    x0 = X[starts]
+    if sysm.name == "quadrotor":
+        qx, qy = x0[:, 7], x0[:, 8]
+        tilt = np.degrees(np.arccos(np.clip(1 - 2 * (qx * qx + qy * qy), -1.0, 1.0)))
+        regimes = {
+            "speed_mps": np.linalg.norm(x0[:, 3:6], axis=1),
+            "height_m": x0[:, 2],
+            "thrust_n": U[starts, 0],
+            "tilt_deg": tilt,
+        }
+    else:
+        regimes = {
+            "cart_speed_mps": np.abs(x0[:, 1]),
+            "pole_rate_rad_s": np.abs(x0[:, 3]),
+            "pole_cos": np.cos(x0[:, 2]),
+            "force_n": np.abs(U[starts, 0]),
+        }
+    overall = _rms(err)
+    by_regime = {}
+    findings = []
+    for name, var in regimes.items():
+        b = binned_rms(err[:, dyn], var, bins=4)
+        by_regime[name] = {
+            "edges": b.edges.tolist(),
+            "rms": {comps[d]: b.rms[:, i].tolist() for i, d in enumerate(dyn)},
+        }
+        for i, d in enumerate(dyn):
+            k = int(np.argmax(b.rms[:, i]))
+            ratio = float(b.rms[k, i] / max(overall[d], 1e-12))
+            findings.append((ratio, name, k, comps[d], b.edges[k], b.edges[k + 1]))
+    findings.sort(reverse=True)
+    # Time segments of the whitened identification residual (Algorithm 1 changepoints).
+    resid_ch = err[:, dyn]
+    white = resid_ch @ np.asarray(W).T
+    cps = changepoints(white, min_gap=max(1, round(1.0 / (H * dt))))
+    segs = segment_rms(resid_ch, cps)
+    t0 = starts * dt
+    segments = [
+        {"t_start": float(t0[a]), "t_end": float(t0[b - 1] + H * dt),
+         "rms": {comps[d]: float(r[i]) for i, d in enumerate(dyn)}}
+        for a, b, r in segs
+    ]  # fmt: skip
+    top = [
+        {"regime": f, "bin": [float(lo), float(hi)], "component": c, "ratio": r}
+        for r, f, _, c, lo, hi in findings[:3]
+    ]
+    summary = {
+        "rmse": {comps[i]: float(overall[i]) for i in range(len(comps))},
+        "largest": max((comps[d] for d in dyn), key=lambda c: overall[comps.index(c)]),
+        "regimes": top,
+        "segments": segments,
+    }
+    return {"summary": summary, "by_regime": by_regime, "err": err, "t": t0}
+
+
+# --------------------------------------------------------------------------- model file
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(float(v))
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {v!r} to TOML")
+
+
+def _effects_toml(effects: dict[str, dict[str, Any]]) -> str:
+    lines = []
+    for name, params in effects.items():
+        lines.append(f"\n[effects.{name}]")
+        for k, v in params.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+    return "\n".join(lines) + "\n"
+
+
+def _strip_effects(text: str) -> str:
+    """Remove ``[effects]`` / ``[effects.*]`` tables from TOML text (other tables kept)."""
+    out, skip = [], False
+    for line in text.splitlines():
+        s = line.strip()
+        if s.startswith("[") and not s.startswith("[["):
+            skip = s == "[effects]" or s.startswith("[effects.")
+        if not skip:
+            out.append(line)
+    return "\n".join(out).rstrip() + "\n"
+
+
+def _clip_to_spec(system: str, name: str, params: dict[str, Any]) -> dict[str, Any]:
+    from arcade_core.discrepancy.library import effects_for
+
+    specs = effects_for(system)[name].params
+    out = {}
+    for k, v in params.items():
+        lo, hi = specs[k].low, specs[k].high
+        out[k] = ([min(max(x, lo), hi) for x in v] if isinstance(v, list)
+                  else min(max(v, lo), hi))
+    return out
+
+
+def write_model_file(out: Path, system: str, veh: dict[str, Any], vehicle_path, sysm,
+                     ident) -> Path:
+    """The updated vehicle/model file: the original plus the confident effects."""
+    effects = {k: dict(v) for k, v in sysm.effect_tables.items()}
+    for j in ident.confident:
+        name = sysm.groups[j][0]
+        effects[name] = _clip_to_spec(system, name, sysm.effect_params(ident.theta, name))
+    if system == "quadrotor":
+        from arcade.vehicle import DEFAULT_VEHICLE
+
+        src = Path(vehicle_path) if vehicle_path is not None else DEFAULT_VEHICLE
+        base = _strip_effects(src.read_text()) if src.is_file() else ""
+        path = out / "vehicle.toml"
+        header = "# Vehicle file updated by `arcade discrepancy`: identified effects below.\n"
+    else:
+        c = veh["cartpole"]
+        base = "[cartpole]\n" + "".join(
+            f"{k} = {_toml_value(float(c[k]))}\n" for k in ("M", "m", "L", "g") if k in c)
+        path = out / "cartpole_model.toml"
+        header = "# Cartpole model file updated by `arcade discrepancy`.\n"
+    path.write_text(header + base + _effects_toml(effects))
+    return path
+
+
+# --------------------------------------------------------------------------- command
+
+
+def run(args: argparse.Namespace) -> int:
+    from arcade import jaxsetup
+
+    jaxsetup.configure(x64=True)
+    from arcade.flightlog import LogError, read_log
+    from arcade.runs import new_run_dir
+
+    settings = Settings(
+        step_s=args.step, heldout=args.heldout, horizon_s=args.horizon,
+        confidence=args.confidence, n_boot=args.bootstrap, seed=args.seed,
+    )  # fmt: skip
+    try:
+        log = read_log(args.log, args.system)
+    except (LogError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = args.out or new_run_dir(f"discrepancy-{args.system}")
+
+    def progress(msg: str) -> None:
+        print(f"[discrepancy] {msg}", file=sys.stderr, flush=True)
+
+    try:
+        outcome = run_workflow(log, args.system, args.vehicle, out, settings, progress)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    result = outcome.result
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(result["summary"])
+        for e in result["effects"]:
+            print(f"  {e['name']}: {e['params']} confidence {e['confidence']:.2f}"
+                  f"{'' if e['added'] else ' (not added)'}")
+        print(f"held-out one-step RMSE on {', '.join(result['heldout_components'])}: "
+              f"{result['heldout_rmse_before']:.4g} -> {result['heldout_rmse_after']:.4g}")
+        print(f"model file: {result['model_file']}; report in {out}")
+    return 0

@@ -1,0 +1,376 @@
+"""`arcade simulate` — fly a standard exciting trajectory with effects injected, write a log.
+
+Quadrotor: the MuJoCo simulator (``simulator.QuadrotorSim``) with the effects of an effects
+file (TOML, one table per effect by canonical name, e.g. ``[rotor_drag]`` /
+``d = [0.4, 0.4, 0.05]``) on top of the vehicle file's own ``[effects]``. The pilot is the
+expert pilot of the offline datasets (``benchmarks.quadrotor_data.ExpertPilot``: cascaded
+position/attitude control emitting thrust + body rates, unaware of the effects) with its
+low-pass setpoint excitation, following the datasets' random spline
+(``RandomPath``) with one addition: **ground passes**. Every :data:`GROUND_PERIOD_S` the
+reference height blends smoothly down to :data:`APPROACH_HEIGHT_M`, then slowly on to
+:data:`GROUND_HEIGHT_M`, holds there for :data:`GROUND_HOLD_S` and climbs back (with the
+horizontal motion going on), so that effects that live near
+the floor are observable in every part of the log; the excitation is turned down to
+:data:`GROUND_EXCITATION` of its size from one ramp before the descent to one ramp after the
+climb, so that it cannot push the vehicle into the floor.
+
+Sensor noise (``noise_scale`` 1, the default; 0 logs the ground truth). What a motion-capture
+based state estimate looks like: position white ``N(0, 0.3 mm)`` and attitude white
+``0.2 deg`` per body axis (the simulator's motion-capture defaults), velocity an estimator's
+correlated error (AR(1), 0.01 m/s, correlation time 0.1 s), body rates the gyro's white noise
+(0.005 rad/s) plus a constant bias drawn once (0.002 rad/s std). The inputs are logged
+exactly (they are the commands that were sent).
+
+Cartpole: the Appendix D system with the effects (relative to the nominal model) simulated
+by :func:`arcade_core.discrepancy.cartpole.true_step` at 20 Hz, driven by a soft cart-position
+PD plus a low-pass random force (the pole swings freely: rich excitation), sensor noise
+1 mm / 1 mrad / 0.01 m/s / 0.01 rad/s white.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HELP = "fly a standard exciting trajectory in the simulator with effects injected; write a log"
+
+#: Ground passes of the quadrotor trajectory (module docstring).
+#: Hover before the log starts [s].
+WARMUP_S = 5.0
+GROUND_PERIOD_S = 24.0
+GROUND_FIRST_S = 6.0
+GROUND_RAMP_S = 3.0
+GROUND_HOLD_S = 4.0
+APPROACH_HEIGHT_M = 0.6
+GROUND_HEIGHT_M = 0.2
+GROUND_EXCITATION = 0.15
+#: Quadrotor sensor noise at noise_scale 1 (module docstring).
+VEL_NOISE_MPS = 0.005
+VEL_NOISE_TAU_S = 0.1
+#: Cartpole excitation and sensor noise.
+CARTPOLE_KP, CARTPOLE_KD = 2.0, 2.0
+CARTPOLE_EXCITATION_N, CARTPOLE_EXCITATION_TAU_S = 4.0, 0.3
+CARTPOLE_NOISE = np.array([1e-3, 0.01, 1e-3, 0.01])
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--system", choices=["quadrotor", "cartpole"], default="quadrotor")
+    p.add_argument("--effects", type=Path, default=None, help="effects file (TOML)")
+    p.add_argument("--vehicle", type=Path, default=None, help="vehicle file (quadrotor)")
+    p.add_argument("--duration", type=float, default=60.0, help="seconds of flight")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--noise-scale", type=float, default=1.0, help="sensor-noise multiplier (0: ground truth)"
+    )
+    p.add_argument("--out", type=Path, required=True, help="CSV flight log to write")
+
+
+# --------------------------------------------------------------------------- quadrotor
+
+
+def _raised_cosine(s: float, r: float) -> tuple[float, float, float]:
+    """0 -> 1 over ``[0, r]`` (raised cosine) and its first two derivatives."""
+    if s <= 0.0:
+        return 0.0, 0.0, 0.0
+    if s >= r:
+        return 1.0, 0.0, 0.0
+    w = np.pi / r
+    return 0.5 - 0.5 * np.cos(w * s), 0.5 * w * np.sin(w * s), 0.5 * w * w * np.cos(w * s)
+
+
+def _plateau(t: float, start: float, ramp: float, hold: float) -> tuple[float, float, float]:
+    """Up over ``ramp`` from ``start``, ``hold``, down over ``ramp``; value and derivatives."""
+    up = _raised_cosine(t - start, ramp)
+    down = _raised_cosine(t - start - ramp - hold, ramp)
+    return up[0] - down[0], up[1] - down[1], up[2] - down[2]
+
+
+class GroundPassPath:
+    """``RandomPath`` whose height dips to the floor periodically (module docstring).
+
+    Each pass descends to :data:`APPROACH_HEIGHT_M` over :data:`GROUND_RAMP_S`, then
+    slowly to :data:`GROUND_HEIGHT_M` over the same time, holds :data:`GROUND_HOLD_S`
+    and climbs back the same way; the horizontal path goes on throughout.
+    """
+
+    def __init__(self, rng: np.random.Generator, duration: float):
+        from benchmarks.quadrotor_data import RandomPath
+
+        self.path = RandomPath(rng, duration)
+
+    @staticmethod
+    def _weights(t: float, widen: float = 0.0):
+        if t < GROUND_FIRST_S - widen:
+            z = (0.0, 0.0, 0.0)
+            return z, z
+        r, h = GROUND_RAMP_S, GROUND_HOLD_S
+        s = (t - GROUND_FIRST_S) % GROUND_PERIOD_S
+        s = s - GROUND_PERIOD_S if s > GROUND_PERIOD_S - widen else s
+        outer = _plateau(s, -widen, r, 2 * r + h + 2 * widen)
+        inner = _plateau(s, r, r, h)
+        return outer, inner
+
+    def excitation_scale(self, t: float) -> float:
+        """Excitation multiplier: 1 in free flight, ``GROUND_EXCITATION`` near the floor."""
+        outer, _ = self._weights(t, GROUND_RAMP_S)
+        return 1.0 - (1.0 - GROUND_EXCITATION) * outer[0]
+
+    def __call__(self, t: float):
+        p, v, a, yaw = self.path(t)
+        (b, db, ddb), (c, dc, ddc) = self._weights(t)
+        p, v, a = p.copy(), v.copy(), a.copy()
+        z, vz, az = p[2], v[2], a[2]
+        gap, step = APPROACH_HEIGHT_M - z, GROUND_HEIGHT_M - APPROACH_HEIGHT_M
+        p[2] = z + b * gap + c * step
+        v[2] = vz + db * gap - b * vz + dc * step
+        a[2] = az + ddb * gap - 2.0 * db * vz - b * az + ddc * step
+        return p, v, a, yaw
+
+
+def fly_quadrotor(
+    effects: dict[str, Any] | None = None,
+    duration: float = 60.0,
+    seed: int = 0,
+    *,
+    vehicle: dict[str, Any] | str | Path | None = None,
+    noise_scale: float = 1.0,
+):
+    """Fly the standard exciting trajectory with ``effects`` injected; the noisy 100 Hz log.
+
+    ``effects`` are tables by canonical name (merged over the vehicle file's ``[effects]``).
+    Returns a :class:`arcade.flightlog.FlightLog`.
+    """
+    from arcade.flightlog import from_arrays
+    from arcade.vehicle import load_vehicle, quadrotor_params
+    from benchmarks.quadrotor_data import (
+        CONTROL_DT,
+        EXCITATION_STD,
+        EXCITATION_TAU_S,
+        LOG_DT,
+        LOG_PER_CONTROL,
+        START,
+        ExpertPilot,
+    )
+    from simulator import QuadrotorSim
+
+    veh = vehicle if isinstance(vehicle, dict) else load_vehicle(vehicle)
+    merged = {**veh.get("effects", {}), **(effects or {})}
+    params = quadrotor_params(veh)
+    ss = np.random.SeedSequence(seed)
+    path_ss, exc_ss, sim_ss, noise_ss = ss.spawn(4)
+    sim = QuadrotorSim(veh, effects=merged, seed=int(sim_ss.generate_state(1)[0]))
+    path = GroundPassPath(np.random.default_rng(path_ss), duration)
+    rng_exc = np.random.default_rng(exc_ss)
+    pilot = ExpertPilot(float(params.mass), float(params.gravity))
+    x = sim.reset(START)
+    pilot.trim(sim.hover_thrust())
+    a = np.exp(-CONTROL_DT / EXCITATION_TAU_S)
+    exc = np.zeros(4)
+
+    def control(x, t):
+        nonlocal exc
+        u = pilot(x, path(max(t, 0.0)), CONTROL_DT)
+        w = np.clip(rng_exc.standard_normal(4), -2.0, 2.0)
+        exc = a * exc + np.sqrt(1.0 - a * a) * w
+        return sim.set_setpoint(u + path.excitation_scale(t) * exc * EXCITATION_STD)
+
+    # Hover before the log starts (rate-loop integrator and pilot trim settle), like a log
+    # that starts in flight.
+    for k in range(round(WARMUP_S / CONTROL_DT)):
+        control(x, -WARMUP_S + k * CONTROL_DT)
+        x = sim.step(CONTROL_DT)
+    steps = round(duration / CONTROL_DT)
+    n = steps * LOG_PER_CONTROL + 1
+    X = np.empty((n, 13))
+    U = np.empty((n, 4))
+    X[0] = x
+    for k in range(steps):
+        u = control(x, k * CONTROL_DT)
+        for j in range(LOG_PER_CONTROL):
+            U[k * LOG_PER_CONTROL + j] = u
+            x = sim.step(LOG_DT)
+            X[k * LOG_PER_CONTROL + j + 1] = x
+    U[-1] = U[-2]
+    if not np.isfinite(X).all():
+        raise RuntimeError("the simulated flight diverged (non-finite state)")
+    X = add_quadrotor_noise(X, np.random.default_rng(noise_ss), noise_scale, LOG_DT)
+    return from_arrays("quadrotor", np.arange(n) * LOG_DT, X, U)
+
+
+def add_quadrotor_noise(
+    X: np.ndarray, rng: np.random.Generator, scale: float, dt: float
+) -> np.ndarray:
+    """Sensor noise of the module docstring on ground-truth states ``X (n, 13)``."""
+    from simulator.mocap import GyroConfig, MocapConfig, quat_exp, quat_mul
+
+    X = np.array(X, dtype=float)
+    if scale <= 0.0:
+        return X
+    n = X.shape[0]
+    mc, gc = MocapConfig(), GyroConfig()
+    X[:, 0:3] += scale * mc.position_noise_m * rng.standard_normal((n, 3))
+    a = np.exp(-dt / VEL_NOISE_TAU_S)
+    w = rng.standard_normal((n, 3)) * np.sqrt(1.0 - a * a)
+    e = np.empty((n, 3))
+    e[0] = rng.standard_normal(3)
+    for k in range(1, n):
+        e[k] = a * e[k - 1] + w[k]
+    X[:, 3:6] += scale * VEL_NOISE_MPS * e
+    dq = scale * mc.attitude_noise_rad * rng.standard_normal((n, 3))
+    for k in range(n):
+        q = quat_mul(X[k, 6:10], quat_exp(dq[k]))
+        X[k, 6:10] = q / np.linalg.norm(q)
+    bias = gc.bias_std_rad_s * rng.standard_normal(3)
+    X[:, 10:13] += scale * (bias + gc.noise_rad_s * rng.standard_normal((n, 3)))
+    return X
+
+
+# --------------------------------------------------------------------------- cartpole
+
+
+def paper_true_effects() -> dict[str, dict[str, float]]:
+    """The paper's "true" cartpole (Appendix D) as effects on its nominal model."""
+    from arcade_core.dynamics.params import CARTPOLE_TRUE as T
+
+    return {
+        "cart_viscous_friction": {"mu_c": float(T.mu_c)},
+        "pole_viscous_friction": {"mu_p": float(T.mu_p)},
+        "force_bias": {"mean_n": float(T.dist_mean), "std_n": float(T.dist_std)},
+        "mass_mismatch": {"cart_mass_kg": float(T.M), "pole_mass_kg": float(T.m)},
+        "length_mismatch": {"pole_length_m": float(T.L)},
+    }
+
+
+def fly_cartpole(
+    effects: dict[str, Any] | None = None,
+    duration: float = 60.0,
+    seed: int = 0,
+    *,
+    noise_scale: float = 1.0,
+):
+    """The cartpole with ``effects`` under the exciting controller; a noisy 20 Hz log."""
+    import jax
+    import jax.numpy as jnp
+
+    from arcade.flightlog import from_arrays
+    from arcade_core.discrepancy import cartpole as cp
+    from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_NOMINAL
+
+    tables = validate_tables("cartpole", effects or {})
+    model = cp.CartpoleModel.from_params(CARTPOLE_NOMINAL)
+    theta = cp.theta_from_effects(model, tables)
+    std = float(tables.get("force_bias", {}).get("std_n", 0.0))
+    n = round(duration / CARTPOLE_DT) + 1
+    rng = np.random.default_rng(seed)
+    a = np.exp(-CARTPOLE_DT / CARTPOLE_EXCITATION_TAU_S)
+    w = rng.standard_normal(n) * np.sqrt(1.0 - a * a)
+    exc = np.empty(n)
+    exc[0] = rng.standard_normal()
+    for k in range(1, n):
+        exc[k] = a * exc[k - 1] + w[k]
+    dist = std * rng.standard_normal(n)
+    x0 = np.array([0.0, 0.0, 0.3 * rng.standard_normal(), 0.0])
+
+    def body(x, inp):
+        e, d = inp
+        u = -CARTPOLE_KP * x[0] - CARTPOLE_KD * x[1] + CARTPOLE_EXCITATION_N * e
+        xn = cp.true_step(model, theta, x, u, CARTPOLE_DT, d)
+        return xn, (x, u)
+
+    _, (X, U) = jax.jit(lambda x, e, d: jax.lax.scan(body, x, (e, d)))(
+        jnp.asarray(x0), jnp.asarray(exc), jnp.asarray(dist)
+    )
+    X, U = np.asarray(X), np.asarray(U)
+    if not np.isfinite(X).all():
+        raise RuntimeError("the simulated cartpole diverged (non-finite state)")
+    X = X + noise_scale * CARTPOLE_NOISE * rng.standard_normal(X.shape)
+    return from_arrays("cartpole", np.arange(n) * CARTPOLE_DT, X, U[:, None])
+
+
+# --------------------------------------------------------------------------- effects files
+
+
+def validate_tables(system: str, tables: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Check effect tables of ``system`` against the library; fill defaults.
+
+    Quadrotor tables go through ``simulator.effects.validate_effects`` (the simulator's own
+    checks); cartpole tables through the same rules here.
+    """
+    if system == "quadrotor":
+        from simulator.effects import validate_effects
+
+        return validate_effects(tables).to_dict()
+    from arcade_core.discrepancy.library import CARTPOLE_EFFECTS
+
+    out: dict[str, dict[str, Any]] = {}
+    for name, table in tables.items():
+        if name not in CARTPOLE_EFFECTS:
+            known = ", ".join(sorted(CARTPOLE_EFFECTS))
+            raise ValueError(f"unknown cartpole effect {name!r}; known effects: {known}")
+        specs = CARTPOLE_EFFECTS[name].params
+        unknown = set(table) - set(specs)
+        if unknown:
+            raise ValueError(f"effect [{name}]: unknown parameter(s) {sorted(unknown)}")
+        vals: dict[str, Any] = {}
+        for pname, spec in specs.items():
+            if pname not in table and spec.default is None:
+                raise ValueError(f"effect [{name}]: missing required parameter {pname!r}")
+            v = float(table.get(pname, spec.default))
+            if not (np.isfinite(v) and spec.low <= v <= spec.high):
+                raise ValueError(
+                    f"effect [{name}] parameter {pname!r}: {v!r} outside the plausible range "
+                    f"[{spec.low}, {spec.high}] {spec.unit}"
+                )
+            vals[pname] = v
+        out[name] = vals
+    return out
+
+
+def read_effects_file(path: str | Path) -> dict[str, Any]:
+    """Effect tables of an effects file (or of a model file's ``[effects]`` table)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"effects file not found: {path}")
+    with path.open("rb") as f:
+        tables = tomllib.load(f)
+    return dict(tables.get("effects", tables))
+
+
+def run(args: argparse.Namespace) -> int:
+    from arcade import jaxsetup
+
+    jaxsetup.configure(x64=True)
+    from arcade.flightlog import write_log
+
+    if args.duration <= 1.0:
+        print("--duration must be more than 1 s", file=sys.stderr)
+        return 2
+    try:
+        tables = read_effects_file(args.effects) if args.effects else {}
+        if args.system == "quadrotor":
+            log = fly_quadrotor(
+                tables,
+                args.duration,
+                args.seed,
+                vehicle=args.vehicle,
+                noise_scale=args.noise_scale,
+            )
+        else:
+            log = fly_cartpole(tables, args.duration, args.seed, noise_scale=args.noise_scale)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    path = write_log(args.out, log)
+    print(
+        json.dumps(
+            {"log": str(path), "system": args.system, "rows": len(log), "dt": log.dt,
+             "effects": sorted(tables)}
+        )
+    )
+    return 0

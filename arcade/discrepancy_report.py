@@ -1,0 +1,146 @@
+"""Plots and the human-readable report of the discrepancy workflow (design §6, step 5)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def write_outputs(out: Path, result: dict[str, Any], details: dict[str, Any]) -> dict[str, Any]:
+    """Write plots and ``report.md`` into ``out``; returns their paths for the JSON."""
+    plots = write_plots(out, result, details)
+    report = out / "report.md"
+    report.write_text(render_report(result, plots))
+    return {"report": str(report), "plots": [str(p) for p in plots]}
+
+
+def write_plots(out: Path, result: dict[str, Any], details: dict[str, Any]) -> list[Path]:
+    """Before/after bars per component, held-out residual traces, localisation by regime."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    comps = details["components"]
+    before = np.array([result["gap_before"][c] for c in comps])
+    after = np.array([result["gap_after"][c] for c in comps])
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    x = np.arange(len(comps))
+    ax.bar(x - 0.2, before, 0.4, label="current model")
+    ax.bar(x + 0.2, after, 0.4, label="with named effects")
+    ax.set_xticks(x, comps, rotation=45)
+    ax.set_yscale("log")
+    ax.set_ylabel(f"held-out one-step RMSE ({result['step_s']:.3g} s)")
+    ax.set_title(result["summary"], fontsize=9)
+    ax.legend()
+    fig.tight_layout()
+    paths.append(out / "gap_per_component.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    act = result["heldout_components"]
+    t = details["t"][details["ho"]]
+    fig, axes = plt.subplots(len(act), 1, figsize=(9, 1.6 * len(act) + 0.6), sharex=True,
+                             squeeze=False)
+    for ax, c in zip(axes[:, 0], act):
+        i = comps.index(c)
+        ax.plot(t, details["err_before"][:, i], lw=0.6, label="current model")
+        ax.plot(t, details["err_after"][:, i], lw=0.6, label="with named effects")
+        ax.set_ylabel(c)
+    axes[0, 0].legend(loc="upper right", fontsize=7)
+    axes[-1, 0].set_xlabel("time [s] (held-out part)")
+    fig.tight_layout()
+    paths.append(out / "heldout_residuals.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    loc = details["localisation"]
+    regimes = list(loc["by_regime"])
+    fig, axes = plt.subplots(1, len(regimes), figsize=(3.2 * len(regimes), 3), squeeze=False)
+    for ax, name in zip(axes[0], regimes):
+        r = loc["by_regime"][name]
+        edges = np.asarray(r["edges"])
+        mids = 0.5 * (edges[:-1] + edges[1:])
+        for c, v in r["rms"].items():
+            ax.plot(mids, v, "o-", ms=3, label=c)
+        ax.set_xlabel(name)
+        ax.set_yscale("log")
+    axes[0, 0].set_ylabel("one-step residual RMS")
+    axes[0, -1].legend(fontsize=6)
+    fig.tight_layout()
+    paths.append(out / "gap_by_regime.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    return paths
+
+
+def _fmt(v) -> str:
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return f"{v:.4g}"
+
+
+def render_report(result: dict[str, Any], plots: list[Path]) -> str:
+    """Markdown report: verdict, effects, gap before/after, where the gap was."""
+    lines = [
+        f"# Model discrepancy report ({result['system']})",
+        "",
+        f"**{result['summary']}**",
+        "",
+        f"Log: {result['samples']} samples; the first {result['fit_samples']} were fitted, "
+        f"the rest held out. Model step {result['step_s']:.3g} s; "
+        f"{result['outlier_windows']} outlier windows left out.",
+        "",
+    ]
+    if result["effects"]:
+        lines += [
+            "## Effects",
+            "",
+            "| effect | parameters | 90 % interval | confidence | share explained | added |",
+            "|---|---|---|---|---|---|",
+        ]
+        for e in result["effects"]:
+            params = "; ".join(f"{k} = {_fmt(v)}" for k, v in e["params"].items())
+            interval = "; ".join(f"{k} in {_fmt(v)}" for k, v in e["interval"].items()) or "-"
+            lines.append(
+                f"| {e['name']} | {params} | {interval} | {e['confidence']:.2f} | "
+                f"{e['explained']:.2f} | {'yes' if e['added'] else 'no'} |"
+            )
+        lines.append("")
+    else:
+        lines += ["No library effect explains the residual better than noise.", ""]
+    lines += [
+        "## Gap before / after (held-out)",
+        "",
+        f"One-step RMSE over {', '.join(result['heldout_components'])}: "
+        f"{result['heldout_rmse_before']:.4g} -> {result['heldout_rmse_after']:.4g}.",
+        "",
+        f"| component | one-step RMSE before | after | CRMSE ({result['horizon_s']:.3g} s) "
+        "before | after |",
+        "|---|---|---|---|---|",
+    ]
+    for c, b in result["gap_before"].items():
+        cb = result["crmse_before"].get(c, float("nan"))
+        ca = result["crmse_after"].get(c, float("nan"))
+        lines.append(f"| {c} | {b:.4g} | {result['gap_after'][c]:.4g} | {cb:.4g} | {ca:.4g} |")
+    loc = result["localisation"]
+    lines += ["", "## Where the gap is (current model, fitted part)", ""]
+    lines.append(f"Largest one-step residual: {loc['largest']}.")
+    for r in loc["regimes"]:
+        lines.append(
+            f"- {r['component']} residual is {r['ratio']:.2f}x its overall RMS for "
+            f"{r['regime']} in [{r['bin'][0]:.3g}, {r['bin'][1]:.3g}]"
+        )
+    lines.append(f"- {len(loc['segments'])} time segment(s) (changepoints of Algorithm 1):")
+    for s in loc["segments"][:12]:
+        worst = max(s["rms"], key=s["rms"].get)
+        lines.append(
+            f"  - {s['t_start']:.1f}-{s['t_end']:.1f} s: largest {worst} "
+            f"({s['rms'][worst]:.3g})"
+        )
+    lines += ["", f"Model file: `{result['model_file']}`", ""]
+    lines += [f"![{p.stem}]({p.name})" for p in plots]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,102 @@
+"""Localising a model gap: by state component, by regime, by time segment (design §6,
+step 2).
+
+Regimes: residuals binned by quantiles of a regime variable (speed, height, thrust, tilt,
+...), RMS per bin and component. Time segments come for free from the changepoint machinery
+of Algorithm 1 (:mod:`arcade_core.adaptation`): the whitened residual is modelled as a mean
+``theta * 1`` that may jump (one constant feature, ``d`` = channels), and the changepoints
+on the MAP path of the beam split the log into segments of homogeneous model error.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from arcade_core import adaptation
+
+
+class Segmenter(NamedTuple):
+    """Algorithm 1 hyperparameters for segmenting whitened residuals (unit noise)."""
+
+    K: int = 5
+    pi: float = 0.005
+    beta: float = 0.3
+    tau2: float = 1.0
+    sigma2: float = 1.0
+
+
+@jax.jit
+def _map_last_changepoints(resid: Array, pi, beta, tau2, sigma2, theta0: Array) -> Array:
+    config = adaptation.AdaptationConfig(K=theta0.shape[0], pi=pi, beta=beta, tau2=tau2,
+                                         sigma2=sigma2)
+    state = adaptation.init(theta0[0], config)
+    one = jnp.ones((1,), resid.dtype)
+
+    def body(state, delta):
+        state, _, info = adaptation.step(state, one, delta, config)
+        return state, info.map_last_changepoint
+
+    return jax.lax.scan(body, state, resid)[1]
+
+
+def changepoints(resid: Array, seg: Segmenter = Segmenter(), min_gap: int = 1) -> np.ndarray:
+    """Changepoint indices (ascending) of whitened residuals ``resid (n, c)`` (Algorithm 1).
+
+    The MAP path's changepoints are recovered by backtracking the per-step latest
+    changepoint of the MAP hypothesis; changepoints closer than ``min_gap`` are merged.
+    """
+    resid = jnp.asarray(resid)
+    theta0 = jnp.zeros((seg.K, resid.shape[1], 1), resid.dtype)
+    last = np.asarray(
+        _map_last_changepoints(resid, seg.pi, seg.beta, seg.tau2, seg.sigma2, theta0)
+    )
+    # map_last_changepoint counts processed observations: a changepoint at step k means
+    # observation k-1 (0-based) starts a new segment.
+    cps: list[int] = []
+    c = int(last[-1])
+    while c > 0:
+        cps.append(c - 1)
+        c = int(last[c - 2]) if c >= 2 else -1
+    cps = sorted(set(cps))
+    merged: list[int] = []
+    for c in cps:
+        if c > 0 and (not merged or c - merged[-1] >= min_gap):
+            merged.append(c)
+    return np.asarray(merged, dtype=int)
+
+
+class Binned(NamedTuple):
+    """Residual RMS per quantile bin of one regime variable."""
+
+    edges: np.ndarray  # (bins + 1,)
+    rms: np.ndarray  # (bins, c)
+    count: np.ndarray  # (bins,)
+
+
+def binned_rms(resid: Array, variable: Array, bins: int = 4) -> Binned:
+    """RMS of ``resid (n, c)`` in ``bins`` quantile bins of ``variable (n,)``."""
+    resid = np.asarray(resid)
+    var = np.asarray(variable)
+    edges = np.quantile(var, np.linspace(0.0, 1.0, bins + 1))
+    idx = np.clip(np.searchsorted(edges, var, side="right") - 1, 0, bins - 1)
+    count = np.bincount(idx, minlength=bins)
+    ss = np.zeros((bins, resid.shape[1]))
+    np.add.at(ss, idx, resid**2)
+    rms = np.sqrt(ss / np.maximum(count, 1)[:, None])
+    return Binned(edges, rms, count)
+
+
+def segment_rms(resid: Array, cps: np.ndarray) -> list[tuple[int, int, np.ndarray]]:
+    """``(start, stop, rms per component)`` of the segments between changepoints."""
+    resid = np.asarray(resid)
+    bounds = [0, *[int(c) for c in cps], resid.shape[0]]
+    return [
+        (a, b, np.sqrt(np.mean(resid[a:b] ** 2, axis=0)))
+        for a, b in zip(bounds[:-1], bounds[1:])
+        if b > a
+    ]

@@ -1,0 +1,57 @@
+"""Fast variant of the cartpole evaluation (paper Sec. V-A): a regression guard.
+
+Runs the whole pipeline — data under nominal MPC, offline training of every model, online
+adaptation through the interventions with per-method tuning — at reduced size, and checks
+the ordering the paper's Table I shows: Ours < Ours w/o CP < offline only, with the
+changepoint detector firing at the interventions.
+"""
+
+import math
+
+import pytest
+
+from benchmarks import cartpole_eval as ce
+
+
+@pytest.fixture(scope="module")
+def result():
+    return ce.evaluate(ce.EvalSettings.quick())
+
+
+def test_online_ordering_matches_table_1(result):
+    o = {k: v["mean"] for k, v in result["online"].items()}
+    assert o["ours"] < o["ours_no_cp"] < o["offline_only"], o
+    # No learner may beat the oracle that knows the true dynamics (noise floor).
+    for name in ("ours", "ours_no_cp", "gp", "mlp_last_layer", "offline_only"):
+        assert o[name] > o["oracle_true_model"], name
+
+
+def test_changepoints_found_at_interventions(result):
+    cp = result["changepoints"]
+    assert cp["hit_rate"] >= 0.75, cp
+    assert 0.0 <= cp["mean_delay_steps"] <= ce.HIT_WINDOW
+
+
+def test_result_has_the_documented_shape(result):
+    for method in ("ours", "ours_no_cp", "gp", "mlp_last_layer", "offline_only"):
+        stats = result["online"][method]
+        assert set(stats) >= {"mean", "std"} and math.isfinite(stats["mean"])
+    for method in ("ours", "deterministic", "mlp", "gp", "sysid"):
+        assert math.isfinite(result["offline"][method]["mean"])
+    assert set(result["changepoints"]) == {
+        "hit_rate",
+        "false_alarms_per_100_steps",
+        "mean_delay_steps",
+    }
+
+
+def test_changepoint_quality_counts_hits_and_false_alarms():
+    import numpy as np
+
+    flags = np.zeros((2, 120), bool)
+    flags[0, [1, 41, 82]] = True  # three hits, delays 1, 1, 2
+    flags[1, [10, 60]] = True  # two false alarms, no hit
+    q = ce.changepoint_quality(flags)
+    assert q["hit_rate"] == 3 / 6
+    assert q["false_alarms_per_100_steps"] == 100 * 2 / 240
+    assert q["mean_delay_steps"] == (1 + 1 + 2) / 3

@@ -1,0 +1,50 @@
+"""The `arcade` command line: help, argument errors, and the benchmark JSON contracts."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from arcade.cli import COMMANDS, build_parser, main
+
+
+def test_help_lists_every_subcommand(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for name in COMMANDS:
+        assert name in out
+
+
+def test_every_subcommand_has_help():
+    parser = build_parser()
+    for name in COMMANDS:
+        with pytest.raises(SystemExit) as exc:
+            parser.parse_args([name, "--help"])
+        assert exc.value.code == 0
+
+
+def test_unknown_choice_is_rejected(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "nonsense"])
+    assert exc.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+def test_bench_adapt_json_contract():
+    """`arcade bench adapt --json` prints the documented object (issue contract)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "arcade", "bench", "adapt", "--json", "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=True,
+    )
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert set(result) == {"machine", "d", "l", "results"}
+    assert (result["d"], result["l"]) == (13, 8)
+    assert [r["K"] for r in result["results"]] == [5, 10, 15, 20, 30]
+    for r in result["results"]:
+        assert 0 < r["median_us"] <= r["p99_us"]
