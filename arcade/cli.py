@@ -16,6 +16,7 @@ from arcade import __version__
 # Order is the order shown by `arcade --help`.
 COMMANDS: tuple[str, ...] = (
     "demo",
+    "up",
     "train",
     "eval",
     "bench",

@@ -54,6 +54,9 @@ class FilterConfig(NamedTuple):
         position_std: mocap position noise [m].
         attitude_gain: complementary-filter gain towards each mocap quaternion, in (0, 1].
         gate_chi2: squared Mahalanobis gate of the 3-D position innovation (99.9 %: 16.3).
+        gate_floor_m: innovations shorter than this always pass the gate [m]: unmodelled
+            manoeuvres must not look like outliers (mocap outliers, e.g. swapped markers,
+            are centimetres to metres off).
         gate_angle_rad: attitude innovation gate [rad].
         max_rejects: consecutive rejects after which the filter re-initialises.
         dropout_s: newest fused frame older than this -> ``predicted_through_dropout``.
@@ -61,11 +64,12 @@ class FilterConfig(NamedTuple):
         gyro_std: gyro noise [rad/s] (reported variance of ``omega``).
     """
 
-    jerk_psd: float = 10.0
+    jerk_psd: float = 100.0
     accel_std: float = 5.0
     position_std: float = 3e-4
     attitude_gain: float = 0.5
     gate_chi2: float = 16.27
+    gate_floor_m: float = 0.02
     gate_angle_rad: float = 0.35
     max_rejects: int = 10
     dropout_s: float = 0.03
@@ -194,7 +198,8 @@ def update(
     S = pred.cov[0, 0] + r
     d2 = jnp.sum(nu * nu) / S
     q_meas = jnp.where(jnp.dot(quaternion, q_pred) < 0.0, -quaternion, quaternion)
-    in_gate = (d2 <= config.gate_chi2) & (_angle_between(q_pred, q_meas) <= config.gate_angle_rad)
+    close = (d2 <= config.gate_chi2) | (jnp.sum(nu * nu) <= config.gate_floor_m**2)
+    in_gate = close & (_angle_between(q_pred, q_meas) <= config.gate_angle_rad)
     in_order = stamp >= state.t
     reinit = ~state.initialised | (state.rejects + 1 >= config.max_rejects)
     accept = in_order & (in_gate | reinit)

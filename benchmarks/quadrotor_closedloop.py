@@ -1,9 +1,9 @@
 """Closed-loop quadrotor evaluation, in process (Sec. V-B, Table III, Fig. 5, Table V).
 
 Scenario (every trial): the MuJoCo quadrotor (:class:`simulator.QuadrotorSim`) carries a
-*swinging* payload on a 0.5 m cable; it climbs from 0.6 m to the centre of the
-figure-eight at 1.2 m (2.5 s), hovers (1.5 s), then flies two laps of the figure-eight
-(:class:`arcade_core.trajectories.FigureEight`, 3 m x 1.5 m) at the mean speed of the cell.
+*swinging* payload on a 0.5 m cable; it climbs from 1.5 m to the centre of the
+figure-eight at 2.0 m (2.5 s), hovers (1.5 s), then flies two laps of the figure-eight
+(:class:`arcade_core.trajectories.FigureEight`, 4 m x 2 m) at the mean speed of the cell.
 The first 2 s of the figure-eight ramp the speed up smoothly (:class:`RampedPath`) so the
 reference starts at rest. The payload is released just before the second lap (at 95 % of
 the first lap, jittered by up to two control periods per trial). Trials differ in the
@@ -20,7 +20,7 @@ Methods:
 
 - ``nominal``: MPC on ``f_nom``;
 - ``l1``: nominal MPC + L1-adaptive thrust augmentation (:mod:`arcade_core.baselines.l1`,
-  default bandwidths);
+  filter bandwidth tuned);
 - ``gp``: GP-MPC, GP mean (FIFO 50, re-conditioned every step) inside the rollout, no
   variance in the cost;
 - ``mlp``: MLP-MPC, last-layer SGD (FIFO 50; learning rate tuned open-loop, see
@@ -36,6 +36,17 @@ learns in: for ours the normalised residual of the VLD (``delta / delta_scale``,
 the observation noise is ``sigma_j^2 = 0.1``), for the MLP its standardised output
 (``delta / std(delta)``). The UT input distribution of the MLP is the state-estimation
 noise of the motion-capture/gyro emulation (:data:`MLP_INPUT_STD`).
+
+Two safeguards apply to every learned-model method alike (GP, MLP, ours): the thrust
+reference is made consistent with the learned model (:func:`thrust_reference`), and the
+learned residual is confined to its training range inside the rollout (:class:`Guard`).
+
+Tuning (:func:`tune`): each adaptive method gets a small grid over its adaptation-rate
+knob on a tuning cell that is not evaluated (150 g, 2.0 m/s, its own seed): ours the
+temperature ``beta`` (the Appendix D value 0.997 is in the grid), the MLP its SGD rate,
+L1 its filter bandwidth. With ``beta = 0.997`` a changepoint tempers the precision by
+only 0.6 %, so ours then behaves like ours without changepoints. All other
+hyperparameters are the Appendix D values.
 
 Metrics (``arcade_core.metrics``) on the control-rate samples of the figure-eight part
 (from its start to the end of the second lap): 3-D position RMSE, z RMSE; the shift
@@ -58,6 +69,7 @@ from arcade_core import adaptation, encoder, metrics, mpc
 from arcade_core.baselines import gp, l1, mlp
 from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff, flat_state
 from benchmarks import quadrotor_data as qd
+from benchmarks.common import machine
 from benchmarks.quadrotor_data import f_nom
 
 METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
@@ -70,6 +82,19 @@ FIFO = 50
 MLP_INPUT_STD = np.array([3e-4] * 3 + [1e-2] * 3 + [2e-3] * 4 + [5e-3] * 3 + [0.0] * 4)
 #: A flight whose position error exceeds this is stopped and counted as a crash [m].
 CRASH_ERROR_M = 2.0
+
+#: Tuning cell and seed (not one of the evaluation cells or seeds), and the grids: the
+#: adaptation-rate knob of each adaptive method (module docstring, "Tuning").
+TUNING_CELL = (150.0, 2.0)
+TUNING_SEED = 999
+TUNING_GRIDS = {
+    "ours_beta": (0.997, 0.98, 0.95, 0.9, 0.8),
+    "mlp_lr": (1e-4, 1e-3, 1e-2, 1e-1, 1.0),
+    "l1_cutoff": (2.0, 5.0, 10.0, 20.0, 40.0),
+}
+#: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
+#: the choice under "tuning"); used when the tuning is skipped (``quick``).
+TUNED_DEFAULTS = {"ours_beta": 0.9, "mlp_lr": 0.1, "l1_cutoff": 40.0}
 
 
 # --------------------------------------------------------------------------- scenario
@@ -107,13 +132,16 @@ class Scenario:
     takeoff_s: float = 2.5
     hover_s: float = 1.5
     ramp_s: float = 2.0
+    half_length_m: float = 2.0
+    half_width_m: float = 1.0
     laps: float = 2.0
-    release_fraction: float = 0.95  # of the first lap; None-like values < 0 disable it
+    release_fraction: float = 0.95  # of the first lap; a negative value: no release
     cable_length_m: float | None = None
 
     @property
     def figure_eight(self) -> FigureEight:
-        return FigureEight(center=self.center, speed=self.speed_mps)
+        return FigureEight(center=self.center, half_length=self.half_length_m,
+                           half_width=self.half_width_m, speed=self.speed_mps)
 
     @property
     def lap_s(self) -> float:
@@ -139,8 +167,8 @@ class Scenario:
     def path(self):
         """The reference as one pytree path (all numbers as arrays: no recompilation)."""
         f = jnp.asarray
-        fig = FigureEight(center=f(self.center), half_length=f(1.5), half_width=f(0.75),
-                          speed=f(self.speed_mps))
+        fig = FigureEight(center=f(self.center), half_length=f(self.half_length_m),
+                          half_width=f(self.half_width_m), speed=f(self.speed_mps))
         hover_then_fig = Chain(Hover(f(self.center)), RampedPath(fig, f(self.ramp_s)),
                                f(self.hover_s))
         return Chain(Takeoff(f(self.start), f(self.center), f(self.takeoff_s)),
@@ -208,63 +236,109 @@ def l1_method() -> Method:
                   l1.correction, _zero_info)
 
 
+class Guard(NamedTuple):
+    """Trust region of a learned residual inside the MPC rollout (design decision).
+
+    A learned model is only trusted on the data it was trained on: the predicted residual
+    is clipped to the largest magnitude seen per state component in the training flights
+    (``residual_max``, physical units), and the VLD's latent features to their training
+    range ``mean +- 4 std`` (``feature_lo``/``feature_hi``). Without this, the optimiser
+    finds inputs where a network extrapolates, and an adapted decoder can make the 20-step
+    rollout diverge (the feature map grows linearly, the residual feeds back into the
+    state) until it overflows. Applied to every learned-model method (GP, MLP, ours).
+    """
+
+    residual_max: Array  # (13,)
+    feature_lo: Array  # (l,)
+    feature_hi: Array  # (l,)
+
+
+def make_guard(models, dtype) -> Guard:
+    """:class:`Guard` from the training flights (cached on ``models``)."""
+    g = getattr(models, "guard", None)
+    if g is None:
+        data = qd.make_dataset()
+        x, u = jnp.asarray(data["x"]), jnp.asarray(data["u"])
+        z = jax.vmap(models.vld.features)(x, u)
+        mu, sd = jnp.mean(z, axis=0), jnp.std(z, axis=0)
+        g = Guard(jnp.max(jnp.abs(jnp.asarray(data["delta"])), axis=0), mu - 4 * sd, mu + 4 * sd)
+        models.guard = g
+    return _cast(g, dtype)
+
+
+def _clip_residual(delta: Array, guard: Guard) -> Array:
+    return jnp.clip(delta, -guard.residual_max, guard.residual_max)
+
+
 def gp_method() -> Method:
-    def step_fn(x, u, state):
-        return f_nom(x, u) + gp.predict(state, x, u)[0]
+    def step_fn(x, u, model):
+        state, guard = model
+        return f_nom(x, u) + _clip_residual(gp.predict(state, x, u)[0], guard)
 
     def learn(a, xp, up, x):
-        return gp.update(a, xp, up, x - f_nom(xp, up))
+        state, guard = a
+        return gp.update(state, xp, up, x - f_nom(xp, up)), guard
 
     return Method("gp", step_fn, learn, lambda a: a, lambda a, x, u: None, _no_correction,
                   _zero_info, learned=True)
 
 
 def mlp_method() -> Method:
-    def step_fn(x, u, state):
-        return f_nom(x, u) + mlp.predict_mean(state, x, u)
+    def step_fn(x, u, model):
+        state, guard = model
+        return f_nom(x, u) + _clip_residual(mlp.predict_mean(state, x, u), guard)
 
     def learn(a, xp, up, x):
-        return mlp.update(a, xp, up, x - f_nom(xp, up))
+        state, guard = a
+        return mlp.update(state, xp, up, x - f_nom(xp, up)), guard
 
     def sigma(a, x, u):
         # UT variance in the network's standardised output units (module docstring).
-        return mlp.predict(a, x, u)[1] / a.model.standardizer.out_scale**2
+        state, _ = a
+        return mlp.predict(state, x, u)[1] / state.model.standardizer.out_scale**2
 
     return Method("mlp", step_fn, learn, lambda a: a, sigma, _no_correction, _zero_info,
                   learned=True)
 
 
-class BeamAgent(NamedTuple):
+class BeamLearner(NamedTuple):
     """Adaptive state of ours: frozen VLD, beam, hyperparameters, last update's info."""
 
     vld: encoder.VLD
     beam: adaptation.BeamState
     config: adaptation.AdaptationConfig
+    guard: Guard
     changepoint: Array
     cp_prob: Array
 
 
+def _features(vld: encoder.VLD, guard: Guard, x: Array, u: Array) -> Array:
+    """``mu_phi(x, u)`` clipped to the training range (:class:`Guard`)."""
+    return jnp.clip(vld.features(x, u), guard.feature_lo, guard.feature_hi)
+
+
 def beam_method(name: str = "ours") -> Method:
     def step_fn(x, u, model):
-        vld, theta = model
-        return f_nom(x, u) + vld.predict_residual(x, u, theta)
+        vld, theta, guard = model
+        delta = vld.denormalise_residual(theta @ _features(vld, guard, x, u))
+        return f_nom(x, u) + _clip_residual(delta, guard)
 
-    def learn(a: BeamAgent, xp, up, x):
-        z = a.vld.features(xp, up)
+    def learn(a: BeamLearner, xp, up, x):
+        z = _features(a.vld, a.guard, xp, up)
         dn = a.vld.normalise_residual(x - f_nom(xp, up))
         beam, info = adaptation.update(a.beam, z, dn, a.config)
         return a._replace(beam=beam, changepoint=info.changepoint.astype(z.dtype),
                           cp_prob=info.cp_prob)
 
-    def model(a: BeamAgent):
+    def model(a: BeamLearner):
         # Moment-matched beam marginal of the decoder (Eq. 9): its mean drives the rollout.
-        return a.vld, adaptation.marginal_decoder(a.beam)[0]
+        return a.vld, adaptation.marginal_decoder(a.beam)[0], a.guard
 
-    def sigma(a: BeamAgent, x, u):
-        z = a.vld.features(x, u)
+    def sigma(a: BeamLearner, x, u):
+        z = _features(a.vld, a.guard, x, u)
         return adaptation.sigma_tot2(a.beam, z, a.vld.latent_variance(x, u))
 
-    def info(a: BeamAgent):
+    def info(a: BeamLearner):
         return jnp.stack([a.changepoint, a.cp_prob])
 
     return Method(name, step_fn, learn, model, sigma, _no_correction, info, learned=True)
@@ -284,7 +358,7 @@ def make_method(name: str) -> Method:
     raise ValueError(f"unknown method {name!r} (one of {', '.join(METHODS)})")
 
 
-def initial_agent(name: str, models, dtype) -> Any:
+def initial_learner(name: str, models, dtype) -> Any:
     """The method's adaptive state at take-off (arrays in ``dtype``)."""
     from benchmarks.quadrotor_openloop import no_cp_config
 
@@ -294,15 +368,19 @@ def initial_agent(name: str, models, dtype) -> Any:
     p = qd.nominal_params()
     if name == "nominal":
         return jnp.zeros((), dtype)
+    tuned = {**TUNED_DEFAULTS, **getattr(models, "closedloop", {})}
     if name == "l1":
-        return l1.init(l1.L1Params(mass=p.mass, gravity=p.gravity, rate_tau=p.rate_tau), dtype)
+        c = tuned["l1_cutoff"]
+        return l1.init(l1.L1Params(mass=p.mass, gravity=p.gravity, rate_tau=p.rate_tau,
+                                   cutoff_thrust=c, cutoff_rates=c), dtype)
+    guard = make_guard(models, dtype)
     if name == "gp":
-        return cast(gp.init(models.gp, FIFO))
+        return cast(gp.init(models.gp, FIFO)), guard
     if name == "mlp":
         std = jnp.asarray(MLP_INPUT_STD, dtype)
         return cast(mlp.init(cast(models.mlp), std[:13], std[13:], capacity=FIFO,
-                             learning_rate=models.mlp_lr))
-    cfg = adaptation.quadrotor_config()
+                             learning_rate=tuned["mlp_lr"])), guard
+    cfg = adaptation.quadrotor_config()._replace(beta=tuned["ours_beta"])
     if name == "ours_no_cp":
         cfg = no_cp_config(cfg)
     elif name.startswith("ours_K"):
@@ -313,7 +391,7 @@ def initial_agent(name: str, models, dtype) -> Any:
         K=jnp.asarray(cfg.K), pi=jnp.asarray(cfg.pi, dtype), beta=jnp.asarray(cfg.beta, dtype),
         tau2=jnp.asarray(cfg.tau2, dtype), sigma2=jnp.asarray(cfg.sigma2, dtype))
     zero = jnp.zeros((), dtype)
-    return BeamAgent(vld, beam, traced_cfg, zero, zero)
+    return BeamLearner(vld, beam, traced_cfg, guard, zero, zero)
 
 
 # --------------------------------------------------------------------------- controller
@@ -322,7 +400,7 @@ def initial_agent(name: str, models, dtype) -> Any:
 class Carry(NamedTuple):
     """What the per-step update carries from one control period to the next."""
 
-    agent: Any
+    learner: Any
     u_warm: Array  # (N, 4) shifted previous MPC solution
     u_mpc: Array  # (4,) previous MPC output (smoothness reference)
     x_prev: Array  # (13,) state at the previous control instant
@@ -375,22 +453,22 @@ def make_controller_step(method: Method, cfg: mpc.MPCConfig):
     N = cfg.N
 
     def step(carry: Carry, x, u_applied, k, x_ref_all, u_ref_all):
-        learned = method.learn(carry.agent, carry.x_prev, u_applied, x)
-        agent = jax.tree.map(lambda a, b: jnp.where(carry.started, a, b), learned, carry.agent)
+        learned = method.learn(carry.learner, carry.x_prev, u_applied, x)
+        learner = jax.tree.map(lambda a, b: jnp.where(carry.started, a, b), learned, carry.learner)
         x_ref = jax.lax.dynamic_slice_in_dim(x_ref_all, k, N + 1)
         u_ref = jax.lax.dynamic_slice_in_dim(u_ref_all, k, N)
-        sigma = method.sigma(agent, x, carry.u_warm[0])
-        model = method.model(agent)
+        sigma = method.sigma(learner, x, carry.u_warm[0])
+        model = method.model(learner)
         if method.learned:
             u_ref = jnp.clip(thrust_reference(method.step_fn, model, x_ref, u_ref),
                              cfg.u_min, cfg.u_max)
         sol = controller.solve(x, x_ref, u_ref, carry.u_warm, carry.u_mpc, model, sigma)
         u_b = sol.u[0]
-        u = jnp.clip(u_b + method.correction(agent, x), cfg.u_min, cfg.u_max)
+        u = jnp.clip(u_b + method.correction(learner, x), cfg.u_min, cfg.u_max)
         sig = jnp.zeros(13, x.dtype) if sigma is None else sigma
-        diag = jnp.concatenate([sig, method.info(agent).astype(x.dtype),
+        diag = jnp.concatenate([sig, method.info(learner).astype(x.dtype),
                                 jnp.stack([sol.iterations, sol.converged]).astype(x.dtype)])
-        new = Carry(agent, mpc.shift_warm_start(sol.u), u_b, x, jnp.ones((), bool))
+        new = Carry(learner, mpc.shift_warm_start(sol.u), u_b, x, jnp.ones((), bool))
         return new, u, diag
 
     return jax.jit(step)
@@ -431,10 +509,9 @@ class Runner:
         self._steps: dict[str, Callable] = {}
 
     def step_fn(self, name: str) -> Callable:
-        key = name
-        if key not in self._steps:
-            self._steps[key] = make_controller_step(make_method(name), self.cfg)
-        return self._steps[key]
+        if name not in self._steps:
+            self._steps[name] = make_controller_step(make_method(name), self.cfg)
+        return self._steps[name]
 
     def fly(self, name: str, scenario: Scenario, seed: int = 0) -> Flight:
         """Fly one trial; returns the log with its metrics."""
@@ -446,6 +523,8 @@ class Runner:
         jitter = int(rng.integers(-2, 3))
         n = int(np.ceil(scenario.t_end / DT - 1e-9)) + 1
         k_release = round(scenario.t_release / DT) + jitter
+        if scenario.release_fraction < 0:
+            k_release = -1
         N = self.cfg.N
         x_ref_all, u_ref_all = reference(scenario, n, N)
         sim = QuadrotorSim(payload_mass=scenario.payload_g / 1000.0,
@@ -453,11 +532,11 @@ class Runner:
         x = sim.reset(np.asarray(scenario.start) + offset)
         step = self.step_fn(name)
         dt = self.dtype
-        agent = initial_agent(name, self.models, dt)
+        learner = initial_learner(name, self.models, dt)
         # Warm start and smoothness reference: the nominal hover input (Appendix D U_0).
         p = qd.nominal_params()
         u0 = jnp.asarray([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0], dt)
-        carry = Carry(agent, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x, dt),
+        carry = Carry(learner, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x, dt),
                       jnp.zeros((), bool))
         u_applied = np.asarray(u0)
         X, U, D, T_ms = (np.zeros((n, 13)), np.zeros((n, 4)), np.zeros((n, 17)), np.zeros(n))
@@ -483,7 +562,8 @@ class Runner:
             x = sim.step(DT)
         t = np.arange(n_done) * DT
         flight = Flight(name, scenario, seed, t, X[:n_done], x_ref_np[:n_done], U[:n_done],
-                        D[:n_done], k_release * DT, crashed, T_ms[:n_done])
+                        D[:n_done], k_release * DT if k_release >= 0 else float("nan"), crashed,
+                        T_ms[:n_done])
         flight.metrics = flight_metrics(flight)
         return flight
 
@@ -498,14 +578,17 @@ def flight_metrics(f: Flight) -> dict[str, float]:
     p, pr = jnp.asarray(f.x[sel, :3]), jnp.asarray(f.x_ref[sel, :3])
     e_z = jnp.asarray(f.error[:, 2])
     t = jnp.asarray(f.t)
-    settle = metrics.settling_time(t, e_z, f.t_release, band=0.05)
-    return {
+    out = {
         "rmse_m": float(metrics.position_rmse(p, pr)),
         "rmse_z_m": float(metrics.z_rmse(p, pr)),
-        "shift_m": float(metrics.shift_magnitude(t, e_z, f.t_release)),
-        "settling_s": float(settle.time),
+        "shift_m": float("nan"),
+        "settling_s": float("nan"),
         "crashed": 0.0,
     }
+    if np.isfinite(f.t_release):
+        out["shift_m"] = float(metrics.shift_magnitude(t, e_z, f.t_release))
+        out["settling_s"] = float(metrics.settling_time(t, e_z, f.t_release, band=0.05).time)
+    return out
 
 
 # --------------------------------------------------------------------------- tables
@@ -518,6 +601,43 @@ def _mean(values: Sequence[float]) -> float:
     return float(np.mean(np.asarray(values, float)))
 
 
+def _finite_mean(values: Sequence[float]) -> float:
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("inf")
+
+
+def tune(
+    models,
+    progress: Callable[[str], None] = lambda msg: None,
+    runner: Runner | None = None,
+) -> dict[str, Any]:
+    """Pick each adaptive method's adaptation-rate knob on the tuning cell (one flight per
+    grid value, lowest tracking RMSE wins; crashes are infinite) and store the choice on
+    ``models.closedloop``. Ours: the temperature ``beta`` (Appendix D: 0.997, also in the
+    grid); MLP-MPC: the SGD learning rate; L1: the low-pass bandwidth. The GP has no such
+    knob (FIFO 50 and marginal-likelihood hyperparameters, as in the paper) and the
+    nominal MPC nothing to tune.
+    """
+    runner = runner or Runner(models)
+    scen = Scenario(payload_g=TUNING_CELL[0], speed_mps=TUNING_CELL[1])
+    method_of = {"ours_beta": "ours", "mlp_lr": "mlp", "l1_cutoff": "l1"}
+    chosen, table = {}, {}
+    models.closedloop = dict(TUNED_DEFAULTS)
+    for knob, grid in TUNING_GRIDS.items():
+        scores = {}
+        for value in grid:
+            models.closedloop = {**models.closedloop, knob: value}
+            progress(f"tuning {method_of[knob]}: {knob} = {value:g}")
+            f = runner.fly(method_of[knob], scen, seed=TUNING_SEED)
+            scores[value] = f.metrics["rmse_m"]
+        best = min(scores, key=scores.get)
+        chosen[knob] = best
+        models.closedloop = {**models.closedloop, knob: best}
+        table[knob] = {f"{k:g}": v for k, v in scores.items()}
+    return {"chosen": chosen, "rmse_m": table, "cell": list(TUNING_CELL), "seed": TUNING_SEED}
+
+
 def run_closedloop(
     quick: bool = False,
     trials: int = 10,
@@ -527,6 +647,7 @@ def run_closedloop(
     progress: Callable[[str], None] = lambda msg: None,
     models=None,
     seed: int = 0,
+    tuning: bool | None = None,
 ) -> dict[str, Any]:
     """Table III analogue: every (payload, speed) cell x method, ``trials`` seeded flights.
 
@@ -535,7 +656,8 @@ def run_closedloop(
     pairs. Returns ``{"cells": [{payload_g, speed_mps, method, rmse_m, rmse_z_m, shift_m,
     settling_s, settled_fraction, crashed}, ...] (means over trials), "trials": [...]
     (per-trial values), "improvement_over_nominal": ..., "settings": ...}``. ``out``: a
-    folder for figures and the Fig. 5 time series.
+    folder for figures and the Fig. 5 time series. ``tuning`` (default: not ``quick``)
+    runs :func:`tune` first; otherwise :data:`TUNED_DEFAULTS` (or what ``models`` holds).
     """
     from benchmarks.quadrotor_openloop import prepare_models
 
@@ -549,6 +671,8 @@ def run_closedloop(
     if models is None:
         models = prepare_models(quick=quick, seed=seed, progress=progress)
     runner = Runner(models)
+    tuning = (not quick) if tuning is None else tuning
+    tuning_result = tune(models, progress, runner) if tuning else None
     rows, per_trial, fig5 = [], [], {}
     for pay, speed in cells:
         scen = Scenario(payload_g=float(pay), speed_mps=float(speed))
@@ -569,6 +693,7 @@ def run_closedloop(
             rows.append({
                 "payload_g": pay, "speed_mps": speed, "method": name,
                 **{k: _mean(vals[k]) for k in KEYS},
+                "rmse_m_finite_mean": _finite_mean(vals["rmse_m"]),
                 "settled_fraction": float(np.mean(settled)),
                 "crashed": float(np.mean(vals["crashed"])),
                 "step_ms_median": float(np.median(step_ms)),
@@ -578,8 +703,10 @@ def run_closedloop(
         "trials": per_trial,
         "improvement_over_nominal": improvement(rows),
         "settings": {"quick": quick, "trials": trials, "control_dt": DT, "horizon": 20,
-                     "dtype": str(jnp.dtype(runner.dtype)), "mlp_lr": models.mlp_lr,
+                     "dtype": str(jnp.dtype(runner.dtype)),
+                     "tuned": {**TUNED_DEFAULTS, **models.closedloop},
                      "methods": list(methods), "cells": [list(c) for c in cells]},
+        "tuning": tuning_result,
     }
     if out is not None:
         from pathlib import Path
@@ -593,7 +720,7 @@ def run_closedloop(
             np.savez_compressed(out / "quadrotor_flights_175g_2.5mps.npz", **{
                 f"{m}_{k}": getattr(f, k) for m, f in fig5.items()
                 for k in ("t", "x", "x_ref", "u", "diag")})
-        figs.metric_bars_figure(out / "quadrotor_metrics.png", rows)
+        figs.metric_bars_figure(out / "quadrotor_metrics.png", per_trial)
     result["wall_time_s"] = time.perf_counter() - t_start
     return result
 
@@ -636,6 +763,7 @@ def run_beam_ablation(
     if quick:
         trials = 1
     runner = Runner(models)
+    tuned = {**TUNED_DEFAULTS, **getattr(models, "closedloop", {})}
     scen = Scenario(payload_g=payload_g, speed_mps=speed_mps)
     rows = []
     for K in beam_sizes:
@@ -644,14 +772,15 @@ def run_beam_ablation(
         flights = [runner.fly(name, scen, seed=seed * 1000 + i) for i in range(trials)]
         rmse = [f.metrics["rmse_m"] for f in flights]
         rows.append({"K": int(K), "rmse_m": _mean(rmse),
-                     "adapt_ms_per_step": adaptation_time_ms(models.vld, int(K), flights[0],
-                                                             runner.dtype)})
-    return {"rows": rows, "payload_g": payload_g, "speed_mps": speed_mps, "trials": trials}
+                     "adapt_ms_per_step": adaptation_time_ms(
+                         models.vld, int(K), tuned["ours_beta"], flights[0], runner.dtype)})
+    return {"rows": rows, "payload_g": payload_g, "speed_mps": speed_mps, "trials": trials,
+            "beta": tuned["ours_beta"], "machine": machine()}
 
 
-def adaptation_time_ms(vld: encoder.VLD, K: int, flight: Flight, dtype) -> float:
+def adaptation_time_ms(vld: encoder.VLD, K: int, beta: float, flight: Flight, dtype) -> float:
     """Median wall time [ms] of one jitted adaptation step (update + predict), replayed."""
-    cfg = adaptation.quadrotor_config()._replace(K=K)
+    cfg = adaptation.quadrotor_config()._replace(K=K, beta=beta)
     vld = _cast(vld, dtype)
     state = adaptation.init(vld.theta0, cfg)
 
@@ -693,7 +822,8 @@ def format_table(result: dict[str, Any]) -> str:
             f"  {r['payload_g']:5.0f} g {r['speed_mps']:.1f} m/s  {r['method']:11s} "
             f"{r['rmse_m']:.3f} / {r['rmse_z_m']:.3f}  shift {r['shift_m']:.3f}  "
             f"settle {r['settling_s']:.2f} ({100 * r['settled_fraction']:.0f} % settled)"
-            + ("  CRASHED" if r["crashed"] > 0 else "")
+            + (f"  CRASHED in {100 * r['crashed']:.0f} % of trials (mean RMSE of the others "
+               f"{r['rmse_m_finite_mean']:.3f})" if r["crashed"] > 0 else "")
         )
     for imp in result["improvement_over_nominal"]:
         lines.append(f"  improvement over nominal at {imp['payload_g']:g} g, "

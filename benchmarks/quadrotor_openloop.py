@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import jax
@@ -58,6 +58,10 @@ class Models:
     gp: gp.GPModel
     sysid: sysid.SysIDModel
     train_stats: dict[str, Any]
+    #: Closed-loop settings (``ours_beta``, ``mlp_lr``, ``l1_cutoff``) chosen by
+    #: :func:`benchmarks.quadrotor_closedloop.tune`; empty: that module's defaults.
+    closedloop: dict[str, float] = field(default_factory=dict)
+    guard: Any = None
 
 
 def prepare_models(
@@ -153,7 +157,7 @@ def predictors(m: Models) -> dict[str, Callable]:
     """``name -> fn(X, U, Xn) -> Xhat`` one-step predictions over a flight."""
     cfg = adaptation.quadrotor_config()
     vld = m.vld
-    return {
+    out = {
         "ours": lambda X, U, Xn: run_beam(vld, cfg, X, U, Xn)[0],
         "ours_no_cp": lambda X, U, Xn: run_beam(vld, no_cp_config(cfg), X, U, Xn)[0],
         "ours_offline": lambda X, U, Xn: jax.vmap(
@@ -165,6 +169,11 @@ def predictors(m: Models) -> dict[str, Callable]:
             lambda x, u: f_nom(x, u) + sysid.predict(m.sysid, x, u))(X, U),
         "nominal": lambda X, U, Xn: jax.vmap(f_nom)(X, U),
     }
+    beta = m.closedloop.get("ours_beta")
+    if beta is not None and beta != cfg.beta:
+        tuned = cfg._replace(beta=beta)
+        out["ours_closedloop_beta"] = lambda X, U, Xn: run_beam(vld, tuned, X, U, Xn)[0]
+    return out
 
 
 def _to_json_curve(a: np.ndarray) -> list[float | None]:

@@ -15,6 +15,7 @@ HELP = (
 BENCHES = {
     "adapt": "benchmarks.adapt",
     "mpc": "benchmarks.mpc",
+    "loop": "benchmarks.loop",
 }
 
 

@@ -13,9 +13,14 @@ HELP = (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("system", choices=["cartpole"], help="which evaluation")
+    p.add_argument("system", choices=["cartpole", "quadrotor"], help="which evaluation")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
-    p.add_argument("--trials", type=int, default=None, help="online trajectories (default 10)")
+    p.add_argument(
+        "--trials",
+        type=int,
+        default=None,
+        help="cartpole: online trajectories; quadrotor: trials per cell (default 10)",
+    )
     p.add_argument("--quick", action="store_true", help="small, fast variant (smoke test)")
     p.add_argument(
         "--out",
@@ -31,23 +36,51 @@ def run(args: argparse.Namespace) -> int:
     from arcade.runs import new_run_dir
 
     jaxsetup.configure()
+    if args.trials is not None and args.trials < 1:
+        print("--trials must be at least 1", file=sys.stderr)
+        return 2
+    out = args.out or new_run_dir(f"eval-{args.system}")
+    out.mkdir(parents=True, exist_ok=True)
+    progress = lambda m: print(f"[eval] {m}", file=sys.stderr, flush=True)  # noqa: E731
+    if args.system == "quadrotor":
+        result, table = _quadrotor(args, out, progress)
+    else:
+        result, table = _cartpole(args, out, progress)
+    (out / "results.json").write_text(json.dumps(result, indent=2))
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(table)
+        print(f"figures and results.json in {out}")
+    return 0
+
+
+def _cartpole(args, out, progress):
     from benchmarks import cartpole_eval as ce
 
     s = ce.EvalSettings.quick() if args.quick else ce.EvalSettings()
     overrides = {"seed": args.seed}
     if args.trials is not None:
-        if args.trials < 1:
-            print("--trials must be at least 1", file=sys.stderr)
-            return 2
         overrides["trials"] = args.trials
     s = type(s)(**{**s.__dict__, **overrides})
-    out = args.out or new_run_dir(f"eval-{args.system}")
-    result = ce.evaluate(s, out, progress=lambda m: print(f"[eval] {m}", file=sys.stderr))
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(result, indent=2))
-    if args.json:
-        print(json.dumps(result))
-    else:
-        print(ce.format_table(result))
-        print(f"figures and results.json in {out}")
-    return 0
+    result = ce.evaluate(s, out, progress=progress)
+    return result, ce.format_table(result)
+
+
+def _quadrotor(args, out, progress):
+    from benchmarks import quadrotor_closedloop as qc
+    from benchmarks import quadrotor_openloop as qo
+
+    models = qo.prepare_models(args.quick, args.seed, progress, None)
+    trials = args.trials if args.trials is not None else (1 if args.quick else 10)
+    result = qc.run_closedloop(
+        quick=args.quick, trials=trials, out=out, progress=progress, models=models, seed=args.seed
+    )
+    progress("open-loop prediction (Table II) and Gramian diagnostics (Fig. 4)")
+    result["openloop"] = qo.run_openloop(
+        quick=args.quick, seed=args.seed, progress=progress, models=models, out=out
+    )
+    if not args.quick:
+        progress("beam ablation (Table V)")
+        result["beam_ablation"] = qc.run_beam_ablation(models=models, progress=progress)
+    return result, qc.format_table(result)

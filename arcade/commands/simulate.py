@@ -43,13 +43,13 @@ HELP = "fly a standard exciting trajectory in the simulator with effects injecte
 #: Ground passes of the quadrotor trajectory (module docstring).
 #: Hover before the log starts [s].
 WARMUP_S = 5.0
-GROUND_PERIOD_S = 24.0
+GROUND_PERIOD_S = 20.0
 GROUND_FIRST_S = 6.0
-GROUND_RAMP_S = 3.0
+GROUND_RAMP_S = 2.5
 GROUND_HOLD_S = 4.0
 APPROACH_HEIGHT_M = 0.6
-GROUND_HEIGHT_M = 0.2
-GROUND_EXCITATION = 0.15
+GROUND_HEIGHT_M = 0.15
+GROUND_EXCITATION = 0.0
 #: Quadrotor sensor noise at noise_scale 1 (module docstring).
 VEL_NOISE_MPS = 0.005
 VEL_NOISE_TAU_S = 0.1

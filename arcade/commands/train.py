@@ -11,7 +11,10 @@ HELP = "offline training of the VLD encoder and decoder prior; writes a weights 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--system", required=True, choices=["cartpole"], help="which system's model to train"
+        "--system",
+        required=True,
+        choices=["cartpole", "quadrotor"],
+        help="which system's model to train",
     )
     p.add_argument(
         "--out",
@@ -37,8 +40,16 @@ def run(args: argparse.Namespace) -> int:
     if args.epochs is not None and args.epochs < 1:
         print("--epochs must be at least 1", file=sys.stderr)
         return 2
-    path = training.train_cartpole(
-        out=args.out, epochs=args.epochs, variational=not args.deterministic, seed=args.seed
-    )
+    if args.system == "quadrotor":
+        if args.deterministic:
+            print("--deterministic is only available for the cartpole", file=sys.stderr)
+            return 2
+        from arcade.training_quadrotor import train_quadrotor
+
+        path = train_quadrotor(out=args.out, epochs=args.epochs, seed=args.seed)
+    else:
+        path = training.train_cartpole(
+            out=args.out, epochs=args.epochs, variational=not args.deterministic, seed=args.seed
+        )
     print(f"wrote {path}")
     return 0

@@ -17,9 +17,11 @@ predicted). Identification:
 3. **Select** the subset of effects (all ``2^G`` subsets, from per-block sufficient
    statistics) with the smallest BIC ``N log(RSS/N) + k log N`` among the *admissible*
    subsets: each effect in the subset must explain at least ``min_explained`` of the
-   residual sum of squares that is left without it. BIC alone would, on long logs, name
-   any effect that explains a sliver of systematic model error; the second test asks for a
-   physically relevant size.
+   residual sum of squares that is left without it, with its parameters held in their
+   plausible ranges. BIC alone would, on long logs, name any effect that explains a sliver
+   of systematic model error; the relevance test asks for a physically relevant size, the
+   ranges for a physical explanation (the linearised model would otherwise happily
+   "explain" a slightly fast rate loop with a negative delay).
 4. **Fit** the selected effects' parameters on the full nonlinear model (projected
    Levenberg-Marquardt within the plausible ranges), linearise again there and repeat
    selection: an effect that only shows once another is in (wind through drag) is found in
@@ -48,6 +50,8 @@ from jax import Array
 #: Squared whitened residual norm above which a window counts as a gross outlier (about
 #: 6 sigma for 6 channels).
 OUTLIER_CHI2 = 60.0
+#: Largest share of windows that the outlier trimming may leave out.
+MAX_OUTLIER_SHARE = 0.02
 
 
 class SelectionConfig(NamedTuple):
@@ -58,7 +62,7 @@ class SelectionConfig(NamedTuple):
     to add an effect. ``block``: windows per bootstrap block.
     """
 
-    min_explained: float = 0.01
+    min_explained: float = 0.05
     confidence: float = 0.9
     n_boot: int = 200
     block: int = 40
@@ -116,13 +120,37 @@ def group_masks(groups: Sequence[Sequence[int]], n_params: int) -> np.ndarray:
     return masks
 
 
+def _cholesky_solve(A: Array, b: Array) -> Array:
+    """``A^{-1} b`` for a small symmetric positive definite ``A`` (unrolled Cholesky).
+
+    Written with elementwise operations only: these solves run batched inside the
+    bootstrap (resamples x subsets), where plain arithmetic compiles to one fused loop.
+    """
+    n = A.shape[0]
+    L = jnp.zeros_like(A)
+    for j in range(n):
+        d = A[j, j] - jnp.sum(L[j, :j] ** 2)
+        ljj = jnp.sqrt(jnp.maximum(d, 1e-300))
+        L = L.at[j, j].set(ljj)
+        if j + 1 < n:
+            col = (A[j + 1 :, j] - L[j + 1 :, :j] @ L[j, :j]) / ljj
+            L = L.at[j + 1 :, j].set(col)
+    y = jnp.zeros_like(b)
+    for j in range(n):
+        y = y.at[j].set((b[j] - L[j, :j] @ y[:j]) / L[j, j])
+    x = jnp.zeros_like(b)
+    for j in reversed(range(n)):
+        x = x.at[j].set((y[j] - L[j + 1 :, j] @ x[j + 1 :]) / L[j, j])
+    return x
+
+
 def _solve_masked(G: Array, g: Array, mask: Array, ridge: float = 1e-10) -> Array:
     """Least squares on the columns in ``mask`` (normalised Gram), zeros elsewhere."""
     d = jnp.sqrt(jnp.where(jnp.diag(G) > 0, jnp.diag(G), 1.0))
     Gn = G / d[:, None] / d[None, :]
     m = mask.astype(G.dtype)
     Gm = Gn * m[:, None] * m[None, :] + jnp.diag(1.0 - m) + ridge * jnp.eye(G.shape[0])
-    beta = jnp.linalg.solve(Gm, (g / d) * m)
+    beta = _cholesky_solve(Gm, (g / d) * m)
     return beta / d
 
 
@@ -130,10 +158,33 @@ def _rss(G: Array, g: Array, s: Array, delta: Array) -> Array:
     return jnp.maximum(s - 2.0 * delta @ g + delta @ G @ delta, 0.0)
 
 
+class Bounds(NamedTuple):
+    """Allowed steps from the base, ``lo <= delta <= hi`` (P,): the plausible ranges."""
+
+    lo: Array
+    hi: Array
+
+
+def _solve_bounded(G: Array, g: Array, mask: Array, bounds: Bounds) -> Array:
+    """Masked least squares within the bounds: one active-set pass, then clipping.
+
+    Parameters whose unconstrained estimate leaves ``[lo, hi]`` are held at the bound and
+    the others re-solved (a filter time constant that would go negative stays at 0 and the
+    delay of the same effect takes the lag); whatever still leaves the range is clipped.
+    A parameter held at its base value explains nothing, so an effect that the data would
+    only "explain" with an unphysical value fails the relevance test.
+    """
+    delta = _solve_masked(G, g, mask)
+    viol = mask & ((delta < bounds.lo) | (delta > bounds.hi))
+    held = jnp.where(viol, jnp.clip(delta, bounds.lo, bounds.hi), 0.0)
+    rest = _solve_masked(G, g - G @ held, mask & ~viol)
+    return jnp.clip(jnp.where(viol, held, rest), bounds.lo, bounds.hi) * mask
+
+
 @jax.jit
-def subset_rss(G: Array, g: Array, s: Array, masks: Array) -> tuple[Array, Array]:
+def subset_rss(G: Array, g: Array, s: Array, masks: Array, bounds: Bounds) -> tuple[Array, Array]:
     """RSS and coefficients of every subset: ``(M,)`` and ``(M, P)``."""
-    deltas = jax.vmap(lambda m: _solve_masked(G, g, m))(masks)
+    deltas = jax.vmap(lambda m: _solve_bounded(G, g, m, bounds))(masks)
     return jax.vmap(lambda d: _rss(G, g, s, d))(deltas), deltas
 
 
@@ -156,13 +207,14 @@ def choose_subset(
     return jnp.argmin(jnp.where(ok, bic, jnp.inf))
 
 
-def _select(lin: Linearisation, weights: Array, masks: Array, group_bits, min_explained):
+def _select(lin: Linearisation, weights: Array, masks: Array, group_bits, min_explained,
+            bounds: Bounds):
     G = jnp.einsum("b,bij->ij", weights, lin.G)
     g = jnp.einsum("b,bi->i", weights, lin.g)
     s = weights @ lin.s
     n = weights @ lin.n
     live = masks & lin.alive[None, :]
-    rss, deltas = subset_rss(G, g, s, live)
+    rss, deltas = subset_rss(G, g, s, live, bounds)
     k = jnp.sum(live, axis=1)
     best = choose_subset(rss, k, n, group_bits, min_explained)
     return best, rss, deltas
@@ -170,9 +222,9 @@ def _select(lin: Linearisation, weights: Array, masks: Array, group_bits, min_ex
 
 @jax.jit
 def _bootstrap(lin: Linearisation, counts: Array, masks: Array, group_bits, min_explained,
-               fixed_mask: Array):
+               bounds: Bounds, fixed_mask: Array):
     def one(w):
-        best, _, _ = _select(lin, w, masks, group_bits, min_explained)
+        best, _, _ = _select(lin, w, masks, group_bits, min_explained, bounds)
         G = jnp.einsum("b,bij->ij", w, lin.G)
         g = jnp.einsum("b,bi->i", w, lin.g)
         return best, _solve_masked(G, g, fixed_mask & lin.alive)
@@ -199,13 +251,20 @@ def fd_jacobian(
 
 
 def _whitening(e: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Whitening matrix from residuals ``e (n, c)`` and the windows kept (outlier trim)."""
+    """Whitening matrix from residuals ``e (n, c)`` and the windows kept.
+
+    Gross outliers (squared whitened norm above :data:`OUTLIER_CHI2`) are trimmed, but never
+    more than :data:`MAX_OUTLIER_SHARE` of the windows: a model error that affects many
+    windows is a gap to explain, not an outlier.
+    """
+    base = keep.copy()
     keep = keep.copy()
     for _ in range(3):
         cov = np.cov(e[keep].T) + 1e-12 * np.eye(e.shape[1])
         W = np.linalg.inv(np.linalg.cholesky(cov))
         d2 = np.sum((e @ W.T) ** 2, axis=1)
-        keep = keep & (d2 <= OUTLIER_CHI2)
+        limit = max(OUTLIER_CHI2, float(np.quantile(d2[base], 1.0 - MAX_OUTLIER_SHARE)))
+        keep = base & (d2 <= limit)
     return W, keep
 
 
@@ -308,11 +367,12 @@ def identify(
     low, high = np.asarray(low, float), np.asarray(high, float)
     P = theta_base.shape[0]
     span = high - low
-    steps = 1e-6 * span
+    steps = 1e-4 * span
     all_idx = list(range(P))
     masks = jnp.asarray(group_masks(groups, P))
     bits = jnp.asarray([1 << j for j in range(len(groups))])
     rho = jnp.asarray(config.min_explained)
+    bounds = Bounds(jnp.asarray(low - theta_base), jnp.asarray(high - theta_base))
 
     r_base = np.asarray(residual_fn(jnp.asarray(theta_base)))
     n_win = r_base.shape[0]
@@ -330,7 +390,35 @@ def identify(
     W, keep = _whitening(np.nan_to_num(e_all), keep)
 
     ones = jnp.ones(n_blocks)
+
+    def cost(th: np.ndarray) -> float:
+        r_th = np.nan_to_num(np.asarray(residual_fn(jnp.asarray(th))), nan=1e6)
+        return float(np.sum((r_th @ W.T)[keep] ** 2))
+
+    def fit(sel: tuple[int, ...], start: np.ndarray) -> np.ndarray:
+        free = [i for j in sel for i in groups[j] if alive_any[i]]
+        th0 = theta_base.copy()
+        th0[free] = start[free]
+        # Start from the linear estimate or from the previous fit, whichever is better.
+        prev = theta_base.copy()
+        prev[free] = theta[free]
+        th0 = th0 if cost(np.clip(th0, low, high)) <= cost(prev) else prev
+        return fit_nonlinear(residual_fn, th0, free, low, high, W, keep, steps,
+                             config.lm_iterations)
+
+    def drop_gains(th: np.ndarray, sel: tuple[int, ...]) -> dict[int, float]:
+        """Share of the residual each effect explains on the nonlinear model."""
+        c_full = cost(th)
+        gains = {}
+        for j in sel:
+            off = th.copy()
+            off[list(groups[j])] = theta_base[list(groups[j])]
+            c_off = cost(off)
+            gains[j] = (c_off - c_full) / max(c_off, 1e-300)
+        return gains
+
     theta = theta_base.copy()
+    alive_any = np.asarray(lin0.alive).copy()
     selected: tuple[int, ...] = ()
     r, J = r_base, jac
     rounds = 0
@@ -338,15 +426,19 @@ def identify(
         # Linearise at the current fit; target as if the fitted effects were switched off.
         y_base = r - np.einsum("ncp,p->nc", J, theta - theta_base)
         lin, _, _ = linearise(y_base, J, W, keep, blocks, n_blocks, span)
-        best, _, deltas = _select(lin, ones, masks, bits, rho)
+        alive_any |= np.asarray(lin.alive)
+        best, _, deltas = _select(lin, ones, masks, bits, rho, bounds)
         new = tuple(j for j in range(len(groups)) if int(best) >> j & 1)
-        if new == selected and rounds > 1:
+        if set(new) <= set(selected) and rounds > 1:
             break
-        selected = new
-        free = [i for j in selected for i in groups[j] if bool(lin.alive[i])]
-        start = theta_base + np.asarray(deltas[int(best)])
-        theta = fit_nonlinear(residual_fn, start, free, low, high, W, keep, steps,
-                              config.lm_iterations)
+        new = tuple(sorted(set(new) | set(selected)))
+        theta = fit(new, theta_base + np.asarray(deltas[int(best)]))
+        # Keep only effects that are relevant on the nonlinear model, refit without the rest.
+        gains = drop_gains(theta, new)
+        kept = tuple(j for j in new if gains[j] >= config.min_explained)
+        if kept != new:
+            theta = theta_base.copy() if not kept else fit(kept, theta)
+        selected = kept
         r = np.asarray(residual_fn(jnp.asarray(theta)))
         J = fd_jacobian(residual_fn, theta, all_idx, steps, r)
     theta_selected = theta
@@ -354,20 +446,16 @@ def identify(
     # Confidence by block bootstrap at the final linearisation (step 5).
     y_base = r - np.einsum("ncp,p->nc", J, theta - theta_base)
     lin, _, _ = linearise(y_base, J, W, keep, blocks, n_blocks, span)
-    _, rss, _ = _select(lin, ones, masks, bits, rho)
     rng = np.random.default_rng(config.seed)
     counts = jnp.asarray(rng.multinomial(n_blocks, np.full(n_blocks, 1.0 / n_blocks),
                                          size=config.n_boot).astype(float))
     sel_mask = jnp.asarray(group_masks(groups, P)[sum(1 << j for j in selected)])
-    best_b, _ = _bootstrap(lin, counts, masks, bits, rho, sel_mask)
+    best_b, _ = _bootstrap(lin, counts, masks, bits, rho, bounds, sel_mask)
     best_b = np.asarray(best_b)
     confidence = np.array([np.mean((best_b >> j) & 1) for j in range(len(groups))])
-    full_mask = sum(1 << j for j in selected)
-    rss = np.asarray(rss)
     contribution = np.zeros(len(groups))
-    for j in selected:
-        contribution[j] = (rss[full_mask & ~(1 << j)] - rss[full_mask]) / max(
-            rss[full_mask & ~(1 << j)], 1e-300)
+    for j, gain in drop_gains(theta_selected, selected).items():
+        contribution[j] = gain
     confident = tuple(sorted((j for j in selected if confidence[j] >= config.confidence),
                              key=lambda j: -contribution[j]))
 
@@ -385,7 +473,7 @@ def identify(
             y_base = r - np.einsum("ncp,p->nc", J, theta_conf - theta_base)
             lin, _, _ = linearise(y_base, J, W, keep, blocks, n_blocks, span)
     conf_mask = jnp.asarray(group_masks(groups, P)[sum(1 << j for j in confident)])
-    _, deltas_b = _bootstrap(lin, counts, masks, bits, rho, conf_mask)
+    _, deltas_b = _bootstrap(lin, counts, masks, bits, rho, bounds, conf_mask)
     # Bootstrap estimates around the nonlinear fit: the linear solution's spread.
     G_all = lin.G.sum(0)
     d_full = np.asarray(_solve_masked(G_all, lin.g.sum(0), conf_mask & lin.alive))

@@ -1,0 +1,31 @@
+"""``python -m services <name> [options]``: run one service process.
+
+Services: ``sim``, ``estimator``, ``adapter``, ``controller``, ``recorder``. Each takes
+``--help``. The launcher (``arcade up``) starts them all.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+SERVICES = {
+    "sim": "services.sim_node",
+    "estimator": "services.estimator",
+    "adapter": "services.adapter",
+    "controller": "services.controller",
+    "recorder": "services.recorder",
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] not in SERVICES:
+        print(f"usage: python -m services {{{','.join(SERVICES)}}} [--help]", file=sys.stderr)
+        return 2
+    module = importlib.import_module(SERVICES[argv[0]])
+    return int(module.main(argv[1:]) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,318 @@
+"""Adapter service: residuals -> ARCADE update (Algorithm 1) -> decoder posterior.
+
+Subscribes ``state`` and ``setpoint``; publishes ``residual`` and ``model`` for every state,
+and an ``event`` (kind ``changepoint``) whenever the MAP history gains a changepoint.
+
+Per state ``k`` (after the first): the transition ``(x_{k-1}, u_{k-1}, x_k)`` with
+``u_{k-1}`` the setpoint answering state ``k-1`` (lockstep: waited for; realtime: the
+latest setpoint, which is what the vehicle held) gives the residual
+``delta = x_k - f_nom(x_{k-1}, u_{k-1})``. At the default 20 Hz this is exactly the
+in-process evaluation's learning step (``benchmarks.quadrotor_closedloop``, method
+``ours``: paper quadrotor preset, the VLD of the weights file, features clipped to their
+training range); at other rates the same update uses the nominal RK4 step over the
+elapsed time (the VLD was trained at the 0.05 s control period, so other rates adapt an
+approximate residual). The beam-marginal prediction of ``delta`` before the update
+(Eq. 10) is published as ``residual`` (normalised units, the variance split of Sec. IV,
+the Eq. 9 changepoint probability). The ``model`` message carries the moment-matched
+beam-marginal decoder posterior (mean and per-row covariance) and ``sigma_tot^2`` at the
+newest state, in normalised units.
+Transitions that end in a state predicted through a mocap dropout are not learned from.
+Estimation noise: the residual of two estimated states contains their errors; to first
+order (errors in variables) their variances (``State.cov_diag``, propagated through the
+Jacobian of ``f_nom``) add to the observation noise ``sigma_j^2`` of each output, in
+normalised units. With exact states (``cov_diag`` absent) the update is the paper's.
+
+Without a weights file the adapter cannot adapt: it says so in a ``degraded`` event and
+publishes an empty (zero) model per state so that the controller runs the nominal MPC.
+
+Checkpoints: the beam is written atomically to ``--checkpoint`` every
+``--checkpoint-every`` steps and at shutdown, and restored at start when it matches the
+weights (``restart`` event).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services import runtime
+from services.messages import Model, Residual, Setpoint, State
+
+#: The shipped quadrotor VLD (``arcade train --system quadrotor`` writes it).
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "deploy" / "weights" / "quadrotor_vld.eqx"
+
+
+def save_checkpoint(path: Path, beam: Any, meta: dict[str, Any]) -> None:
+    """Atomically write a beam (``BeamState`` fields) and ``meta`` strings to ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {f: np.asarray(getattr(beam, f)) for f in beam._fields}
+    arrays.update({f"meta_{k}": np.asarray(str(v)) for k, v in meta.items()})
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_checkpoint(path: Path, template: Any, meta: dict[str, Any]) -> Any | None:
+    """The beam stored at ``path`` if it matches ``template``'s shapes and ``meta``."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    with np.load(path) as data:
+        for k, v in meta.items():
+            if f"meta_{k}" not in data or str(data[f"meta_{k}"]) != str(v):
+                return None
+        fields = {}
+        for f in template._fields:
+            ref = np.asarray(getattr(template, f))
+            a = data[f]
+            if a.shape != ref.shape:
+                return None
+            fields[f] = a.astype(ref.dtype)
+    import jax.numpy as jnp
+
+    return type(template)(**{k: jnp.asarray(v) for k, v in fields.items()})
+
+
+def load_agent(weights: Path, dtype: Any) -> tuple[Any, Any]:
+    """ARCADE's adaptive state at take-off and its method, as the in-process evaluation
+    builds them (``benchmarks.quadrotor_closedloop``: paper preset, feature/residual guard
+    of the training data, beam at the prior)."""
+    from types import SimpleNamespace
+
+    from arcade.weights import load_model
+    from benchmarks import quadrotor_closedloop as cl
+
+    vld, _, _ = load_model(weights)
+    initial = getattr(cl, "initial_learner", None) or cl.initial_agent
+    return initial("ours", SimpleNamespace(vld=vld), dtype), cl.make_method("ours")
+
+
+def adapter_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
+    """:func:`load_agent` with one noise variance per output (the state estimate's
+    variance differs per component, see :class:`Adapter`): one covariance per output row,
+    at the prior (Algorithm 1 line 1). Mathematically the same beam while all variances
+    are equal."""
+    import jax.numpy as jnp
+
+    from arcade_core import adaptation
+
+    agent, method = load_agent(weights, dtype)
+    cfg, d = agent.config, agent.vld.theta0.shape[0]
+    vec = cfg._replace(sigma2=jnp.broadcast_to(jnp.asarray(cfg.sigma2, dtype), (d,)))
+    beam = adaptation.init(agent.vld.theta0, vec._replace(K=int(agent.beam.means.shape[0])))
+    return agent._replace(config=vec, beam=beam), method
+
+
+def agent_features(agent: Any, x: Any, u: Any) -> Any:
+    """Latent features ``z = mu_phi(x, u)`` as the in-process method computes them
+    (clipped to the training range when the agent carries a guard)."""
+    from benchmarks import quadrotor_closedloop as cl
+
+    guard = getattr(agent, "guard", None)
+    if guard is not None and hasattr(cl, "_features"):
+        return cl._features(agent.vld, guard, x, u)
+    return agent.vld.features(x, u)
+
+
+class Adapter(runtime.Service):
+    """Adapter: ARCADE online adaptation (Algorithm 1) of the residual model."""
+
+    name = "adapter"
+
+    def setup(self, bus) -> None:
+        import jax
+        import jax.numpy as jnp
+
+        from arcade.vehicle import load_vehicle, quadrotor_params
+        from arcade_core import adaptation
+        from arcade_core.dynamics import quadrotor_step
+
+        a = self.args
+        self.jnp = jnp
+        self.dtype = jnp.result_type(float)
+        weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
+        self.weights = weights
+        self.agent = None
+        self.meta: dict[str, Any] = {}
+        if weights.is_file():
+            self.agent, self.method = adapter_learner(weights, self.dtype)
+            self.meta = {"weights_sha256": hashlib.sha256(weights.read_bytes()).hexdigest()}
+        params = quadrotor_params(load_vehicle())
+        self.model_dt = 0.05
+
+        def features(agent, x, u):
+            return agent_features(agent, x, u)
+
+        def marginal(agent, x, u):
+            theta, cov = adaptation.marginal_decoder(agent.beam)
+            return theta, cov, self.method.sigma(agent, x, u)
+
+        # At the model's step (the default 20 Hz) the in-process method's own ``learn``
+        # runs; at other rates the same update with the nominal step over the elapsed time.
+        exact = abs(1.0 / a.rate - self.model_dt) < 1e-9
+
+        base_sigma2 = None if self.agent is None else self.agent.config.sigma2
+
+        def adapt(agent, xp, up, x, h, learn, var_p, var_x):
+            vld = agent.vld
+            z = features(agent, xp, up)
+            dn = vld.normalise_residual(x - quadrotor_step(xp, up, params, h))
+            # Estimation noise of the two states enters the residual (errors in variables,
+            # first order): its normalised variance adds to the observation noise sigma_j^2.
+            J = jax.jacfwd(lambda xx: quadrotor_step(xx, up, params, h))(xp)
+            var_res = var_x + jnp.einsum("ij,j,ij->i", J, var_p, J)
+            agent = agent._replace(config=agent.config._replace(
+                sigma2=base_sigma2 + var_res / vld.delta_scale**2))
+            pred = adaptation.predict(agent.beam, z, vld.latent_variance(xp, up))
+            if exact:
+                new = self.method.learn(agent, xp, up, x)
+            else:
+                beam, info = adaptation.update(agent.beam, z, dn, agent.config)
+                new = agent._replace(beam=beam, changepoint=info.changepoint.astype(z.dtype),
+                                     cp_prob=info.cp_prob)
+            new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, agent)
+            cp = (new.changepoint > 0) & learn
+            theta, cov, sig = marginal(new, x, up)
+            return new, dn, pred, new.cp_prob, cp, theta, cov, sig
+
+        if self.agent is not None:
+            self._adapt = jax.jit(adapt)
+            self._marginal = jax.jit(marginal)
+            self._prior = self.agent
+            if a.checkpoint is not None:
+                restored = load_checkpoint(a.checkpoint, self.agent.beam, self.meta)
+                if restored is not None:
+                    self.agent = self.agent._replace(beam=restored)
+                    self._restored = int(restored.step)
+        self._cond = threading.Condition()
+        self._setpoints: dict[float, Setpoint] = {}
+        self._latest_sp: Setpoint | None = None
+        self._prev: State | None = None
+        self._lat: list[float] = []
+        self.stats.update(steps=0, learned=0, changepoints=0, skipped=0)
+        bus.subscribe("setpoint", self.on_setpoint)
+        bus.subscribe("state", self.on_state)
+        self.pub_model = bus.publisher("model")
+        self.pub_res = bus.publisher("residual")
+
+    _restored: int | None = None
+
+    def warmup(self) -> None:
+        if self.agent is None:
+            return
+        x = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
+        u = np.array([5.6, 0.0, 0.0, 0.0])
+        for _ in range(3):
+            self._adapt(self.agent, x, u, x, self.model_dt, False, np.zeros(13), np.zeros(13))
+            self._marginal(self.agent, x, u)
+
+    def ready(self) -> None:
+        if self.agent is None:
+            self.event("degraded", f"no weights file at {self.weights}: no adaptation, the "
+                       "controller runs the nominal model", "warning")
+        elif self._restored is not None:
+            self.event("restart", f"restored the posterior from {self.args.checkpoint} "
+                       f"(step {self._restored})", steps=self._restored)
+
+    def on_setpoint(self, sp: Setpoint) -> None:
+        with self._cond:
+            self._setpoints[sp.stamp] = sp
+            if self._latest_sp is None or sp.stamp >= self._latest_sp.stamp:
+                self._latest_sp = sp
+            if len(self._setpoints) > 64:
+                for s in sorted(self._setpoints)[:-32]:
+                    del self._setpoints[s]
+            self._cond.notify_all()
+
+    def _input_for(self, prev: State) -> Setpoint | None:
+        with self._cond:
+            if self.args.lockstep:
+                self._cond.wait_for(lambda: prev.stamp in self._setpoints or self.stop.is_set(),
+                                    self.args.step_timeout)
+                return self._setpoints.get(prev.stamp)
+            return self._setpoints.get(prev.stamp, self._latest_sp)
+
+    def on_state(self, s: State) -> None:
+        t0 = self.now()
+        prev, self._prev = self._prev, s
+        if self.agent is None:
+            self.pub_model.put(Model(theta=np.zeros((13, 1)), sigma_tot2=np.zeros(13),
+                                     state_seq=s.seq, stamp=s.stamp))
+            return
+        sp = self._input_for(prev) if prev is not None else None
+        if sp is None:
+            theta, cov, sig = self._marginal(self.agent, s.x, self._u_hover())
+            self.stats["skipped"] += prev is not None
+        else:
+            learn = not s.predicted_through_dropout
+            h = s.stamp - prev.stamp
+            if abs(h - self.model_dt) < 1e-6:
+                h = self.model_dt  # bit-identical to the fixed-step nominal model
+            zeros = np.zeros(13)
+            var_p = prev.cov_diag if prev.cov_diag is not None else zeros
+            var_x = s.cov_diag if s.cov_diag is not None else zeros
+            out = self._adapt(self.agent, prev.x, sp.u, s.x, h, learn, var_p, var_x)
+            self.agent, dn, pred, cp_prob, cp, theta, cov, sig = out
+            self.stats["learned"] += learn
+            pred_np = type(pred)(*(np.asarray(p, dtype=float) for p in pred))
+            if np.all(np.isfinite(np.asarray(dn))) and all(
+                    np.all(np.isfinite(p)) for p in pred_np):
+                self.pub_res.put(Residual.from_prediction(
+                    np.clip(np.asarray(dn, float), -1e6, 1e6), pred_np,
+                    cp_prob=float(np.clip(cp_prob, 0.0, 1.0)), changepoint=bool(cp),
+                    state_seq=s.seq, stamp=s.stamp))
+            if bool(cp):
+                self.stats["changepoints"] += 1
+                self.event("changepoint", "changepoint detected", stamp=s.stamp,
+                           cp_prob=float(cp_prob), step=int(self.agent.beam.step),
+                           state_seq=s.seq)
+        theta, cov, sig = (np.asarray(v, dtype=float) for v in (theta, cov, sig))
+        if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(cov))
+                and np.all(np.isfinite(sig))):
+            self.log.error("non-finite posterior: resetting the beam to the prior")
+            self.agent = self._prior
+            return
+        self.pub_model.put(Model.from_marginal(
+            theta, cov, np.maximum(sig, 0.0), step=int(self.agent.beam.step),
+            changepoints=self.stats["changepoints"], state_seq=s.seq, stamp=s.stamp))
+        self.stats["steps"] += 1
+        self._lat.append(self.now() - t0)
+        every = self.args.checkpoint_every
+        if self.args.checkpoint is not None and every > 0 and self.stats["steps"] % every == 0:
+            save_checkpoint(self.args.checkpoint, self.agent.beam, self.meta)
+
+    def _u_hover(self) -> np.ndarray:
+        return np.array([0.57 * 9.81, 0.0, 0.0, 0.0])
+
+    def teardown(self) -> None:
+        self.stats["update"] = runtime.percentiles_ms(self._lat)
+        if self.agent is not None and self.args.checkpoint is not None:
+            save_checkpoint(self.args.checkpoint, self.agent.beam, self.meta)
+            self.stats["checkpoint_step"] = int(self.agent.beam.step)
+
+
+def _extra(p) -> None:
+    p.add_argument("--weights", type=Path, default=None,
+                   help="VLD weights (default deploy/weights/quadrotor_vld.eqx)")
+    p.add_argument("--checkpoint", type=Path, default=None,
+                   help="posterior checkpoint file (restored at start if it matches)")
+    p.add_argument("--checkpoint-every", type=int, default=20,
+                   help="steps between checkpoints (0: only at shutdown)")
+    p.add_argument("--step-timeout", type=float, default=5.0,
+                   help="lockstep: longest wait for the setpoint of the previous state [s]")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return runtime.main_for(Adapter, argv, _extra)

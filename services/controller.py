@@ -1,0 +1,332 @@
+"""Controller service: uncertainty-modulated MPC (Sec. IV) on the latest state and model.
+
+Subscribes ``state`` and ``model``; publishes ``setpoint`` (tagged with the ``seq`` and
+``stamp`` of the state it answers) and ``event``.
+
+Per state: one step of the in-process closed loop's controller
+(``benchmarks.quadrotor_closedloop.make_controller_step`` with the learning left to the
+adapter): the flat reference of the flight plan over the horizon (index = mission time
+/ 0.05 s; mission time = state stamp minus the first state's stamp in lockstep, minus the
+``t0`` of the ``start`` command in realtime, 0 before it), input reference
+corrected for the learned thrust, one warm-started MPC solve (``arcade_core.mpc``,
+Appendix D weights, N = 20 over 1 s) on ``f_nom + theta phi`` with the beam-marginal
+decoder mean of the newest ``model``, ``Q`` modulated by ``sigma_tot^2`` (Sec. IV). The
+method sees a one-hypothesis beam that holds the moment-matched posterior of the
+``model`` message, so ``sigma_tot^2`` at ``(x, u_warm[0])`` has the parameter and
+between-hypothesis parts of the beam mixture exactly (``z^T Sigma_j z`` of the
+moment-matched covariance) and the encoder part from the marginal mean (the mixture's
+encoder part also counts the spread of the hypotheses' means: slightly less caution).
+
+Lockstep: the solve waits for the model that answers the same state (``--model-timeout``).
+Realtime: the newest model is used.
+
+Safety: a setpoint is always finite and within the MPC input bounds. Degraded modes, each
+announced by an event when entered:
+
+- no model (no weights, model late or older than ``--max-model-age``): nominal MPC
+  (mode ``nominal_model``);
+- stale state (realtime: older than ``--max-state-age`` on arrival; any mode: newest
+  fused mocap older than ``--max-meas-age``): level hover at the nominal hover thrust
+  (mode ``hover``), tracking resumes with the next fresh state;
+- a non-finite or failed solve: hover for that step.
+
+A solve that ends after the next control instant (``1 / rate``) is a deadline miss.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from services import runtime
+from services.messages import Model, Setpoint, State
+
+
+def one_hypothesis_beam(beam, theta, cov):
+    """A one-hypothesis beam holding a moment-matched posterior ``theta`` (d, l), ``cov``
+    (d, l, l) (``arcade_core.adaptation.marginal_decoder``), the form of the ``model``
+    message. With it the method's ``model()`` returns ``theta`` and its ``sigma()`` gives
+    ``z^T Sigma_j z`` -- exactly the parameter + between-hypothesis parts of the beam
+    mixture (Sec. IV) -- plus the encoder term at the marginal mean."""
+    import jax.numpy as jnp
+
+    l = theta.shape[1]
+    scale = jnp.max(jnp.diagonal(cov, 0, 1, 2))
+    jitter = 10 * jnp.finfo(theta.dtype).eps * scale  # keeps the Cholesky factor finite
+    sqrt = jnp.linalg.cholesky(cov + jitter * jnp.eye(l, dtype=theta.dtype))
+    return beam._replace(
+        means=theta[None], sqrt_covariances=sqrt[None], log_scores=jnp.zeros(1, theta.dtype),
+        num_changepoints=beam.num_changepoints[:1], last_changepoint=beam.last_changepoint[:1],
+        is_changepoint=beam.is_changepoint[:1])
+
+
+def moment_matched(method):
+    """``method`` with ``sigma`` evaluated on the moment-matched beam marginal, i.e. on
+    what the ``model`` message carries (used to run the in-process loop on the same
+    information as the service stack)."""
+    from arcade_core import adaptation
+
+    def sigma(learner, x, u):
+        beam = one_hypothesis_beam(learner.beam, *adaptation.marginal_decoder(learner.beam))
+        return method.sigma(learner._replace(beam=beam), x, u)
+
+    return method._replace(sigma=sigma)
+
+
+def with_agent(carry, agent):
+    """``carry`` of the in-process loop with its adaptive state (first field) replaced."""
+    return carry._replace(**{carry._fields[0]: agent})
+
+
+class Controller(runtime.Service):
+    """Controller: uncertainty-modulated MPC on the latest state and model."""
+
+    name = "controller"
+
+    def setup(self, bus) -> None:
+        import jax
+        import jax.numpy as jnp
+
+        from arcade_core import adaptation
+        from benchmarks import quadrotor_closedloop as cl
+        from services.adapter import DEFAULT_WEIGHTS, load_agent
+
+        a = self.args
+        self.jnp = jnp
+        dtype = self.dtype = jnp.result_type(float)
+        self.cfg = cfg = cl.mpc_config(dtype)
+        self.u_min = np.asarray(cfg.u_min, float)
+        self.u_max = np.asarray(cfg.u_max, float)
+        p = cl.qd.nominal_params()
+        self.u_hover = np.array([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0])
+        scen = runtime.scenario(a)
+        N = cfg.N
+        self.ref_dt = cl.DT
+        t_end = a.duration if a.duration is not None else scen.t_end
+        self.n_ref = math.ceil(t_end / cl.DT - 1e-9) + 1
+        self.x_ref_all, self.u_ref_all = cl.reference(scen, self.n_ref, N)
+        weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
+        self.weights = weights
+        self.agent0 = None
+        # The in-process per-step update, with learning left to the adapter.
+        no_learn = {"learn": lambda agent, x_prev, u_prev, x: agent}
+        self._step_nominal = cl.make_controller_step(
+            cl.make_method("nominal")._replace(**no_learn), cfg)
+        self._agent_nominal = jnp.zeros((), dtype)
+        if weights.is_file():
+            self.agent0, method = load_agent(weights, dtype)
+            step = cl.make_controller_step(method._replace(**no_learn), cfg)
+
+            def learned(carry, x, k, theta, cov, x_ref_all, u_ref_all):
+                agent = carry[0]
+                beam = one_hypothesis_beam(agent.beam, theta, cov)
+                carry = with_agent(carry, agent._replace(beam=beam))
+                return step(carry, x, carry.u_mpc, k, x_ref_all, u_ref_all)
+
+            self._step_learned = jax.jit(learned)
+            d, l = self.agent0.vld.theta0.shape
+            self._theta0 = np.asarray(adaptation.marginal_decoder(self.agent0.beam)[0])
+            self._cov0 = np.broadcast_to(np.asarray(self.agent0.beam.covariances[0]),
+                                         (d, l, l)).copy()
+        u0 = jnp.asarray(self.u_hover, dtype)
+        self.carry = cl.Carry(self.agent0 if self.agent0 is not None else self._agent_nominal,
+                              jnp.broadcast_to(u0, (N, 4)), u0, jnp.zeros(13, dtype),
+                              jnp.zeros((), bool))
+        self.t0: float | None = None
+        self._model: Model | None = None
+        self._cond = threading.Condition()
+        self._queue: queue.Queue[State] = queue.Queue()
+        self._mode = "track"
+        self._solve_s: list[float] = []
+        self.stats.update(setpoints=0, deadline_misses=0, hover=0, nominal_model=0,
+                          solver_failures=0)
+        bus.subscribe("model", self.on_model)
+        bus.subscribe("state", self.on_state)
+        self.pub = bus.publisher("setpoint")
+
+    def warmup(self) -> None:
+        x = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
+        for k in range(3):  # the first calls after compiling are still slow
+            self._solve(x, k, None)
+            if self.agent0 is not None:
+                self._solve(x, k, (self._theta0, self._cov0))
+
+    def ready(self) -> None:
+        if self.agent0 is None:
+            self.event("degraded", f"no weights file at {self.weights}: nominal MPC", "warning")
+
+    def _solve(self, x: np.ndarray, k: int, posterior: tuple | None) -> np.ndarray:
+        """One step of the in-process controller; returns the input to apply (4,)."""
+        jnp = self.jnp
+        x = jnp.asarray(x, self.dtype)
+        carry = self.carry
+        if posterior is None:
+            carry = with_agent(carry, self._agent_nominal)
+            new, u, _ = self._step_nominal(carry, x, carry.u_mpc, k, self.x_ref_all,
+                                           self.u_ref_all)
+        else:
+            carry = with_agent(carry, self.agent0)
+            theta, cov = (jnp.asarray(v, self.dtype) for v in posterior)
+            new, u, _ = self._step_learned(carry, x, k, theta, cov, self.x_ref_all,
+                                           self.u_ref_all)
+        self._new_carry = new
+        return np.asarray(u, dtype=float)
+
+    # -- inputs
+    def on_command(self, cmd) -> None:
+        if cmd.name == "start" and cmd.target in ("", self.name):
+            t0 = cmd.args.get("t0", cmd.stamp)
+            self.t0 = float(t0) if isinstance(t0, int | float) else cmd.stamp
+            self.log.info("mission clock started at %.3f", self.t0)
+
+    def on_model(self, m: Model) -> None:
+        with self._cond:
+            if self._model is None or (m.state_seq or 0) >= (self._model.state_seq or 0):
+                self._model = m
+            self._cond.notify_all()
+
+    def on_state(self, s: State) -> None:
+        self._queue.put(s)
+
+    # -- loop
+    def main(self) -> None:
+        while not self.stop.is_set():
+            try:
+                s = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if not self.args.lockstep:  # only the newest state matters in real time
+                while True:
+                    try:
+                        s = self._queue.get_nowait()
+                    except queue.Empty:
+                        break
+            try:
+                self.handle(s)
+            except Exception:
+                self.log.exception("control step failed: hover setpoint")
+                self.publish(s, self.hover(s), "hover", 0.0)
+
+    def _set_mode(self, mode: str, why: str, stamp: float) -> None:
+        if mode != self._mode:
+            if mode == "track":
+                self.event("info", f"tracking resumed ({why})", stamp=stamp)
+            else:
+                self.event("degraded", f"{mode}: {why}", "warning", stamp=stamp, mode=mode)
+            self._mode = mode
+
+    def model_for(self, s: State) -> Model | None:
+        a = self.args
+        with self._cond:
+            if a.lockstep and self.agent0 is not None:
+                self._cond.wait_for(
+                    lambda: (self._model is not None and (self._model.state_seq or 0) >= s.seq)
+                    or self.stop.is_set(), a.model_timeout)
+            m = self._model
+        if m is None or self.agent0 is None or m.theta.shape != self._theta0.shape:
+            return None
+        if a.lockstep and (m.state_seq or 0) < s.seq:
+            return None
+        if s.stamp - m.stamp > a.max_model_age:
+            return None
+        return m
+
+    def hover(self, s: State) -> np.ndarray:
+        """Level hover: nominal hover thrust, body rates that level the vehicle."""
+        q = s.q
+        # World z axis in body coordinates (third row of R).
+        g_b = np.array([2 * (q[1] * q[3] - q[0] * q[2]), 2 * (q[2] * q[3] + q[0] * q[1]),
+                        1 - 2 * (q[1] ** 2 + q[2] ** 2)])
+        rates = 2.0 * np.array([g_b[1], -g_b[0], 0.0])
+        thrust = self.u_hover[0] / max(g_b[2], 0.5)
+        return np.clip(np.r_[thrust, rates], self.u_min, self.u_max)
+
+    def handle(self, s: State) -> None:
+        a = self.args
+        t_recv = self.now()
+        if self.t0 is None and a.lockstep:
+            self.t0 = s.stamp  # simulated time: the mission starts with the first state
+        age = t_recv - s.stamp if not a.lockstep else 0.0
+        meas_age = s.stamp - s.meas_stamp if s.meas_stamp is not None else 0.0
+        if age > a.max_state_age or meas_age > a.max_meas_age:
+            self.stats["hover"] += 1
+            why = (f"state {age * 1e3:.0f} ms old" if age > a.max_state_age
+                   else f"newest mocap {meas_age:.2f} s old")
+            self._set_mode("hover", why, s.stamp)
+            self.publish(s, self.hover(s), "hover", 0.0)
+            return
+        m = self.model_for(s)
+        # Realtime: the start reference until the mission clock starts (``start`` command).
+        t = 0.0 if self.t0 is None else s.stamp - self.t0
+        k = min(max(round(t / self.ref_dt), 0), self.n_ref - 1)
+        t0 = time.perf_counter()
+        if m is None:
+            if self.agent0 is not None:
+                self.stats["nominal_model"] += 1
+            mode = "nominal_model"
+            u = self._solve(s.x, k, None)
+        else:
+            mode = "track"
+            cov = m.theta_cov if m.theta_cov is not None else np.zeros(
+                (*m.theta.shape, m.theta.shape[1]))
+            u = self._solve(s.x, k, (m.theta, cov))
+        solve_s = time.perf_counter() - t0
+        self._solve_s.append(solve_s)
+        if not np.all(np.isfinite(u)) or not np.all(np.isfinite(
+                np.asarray(self._new_carry.u_warm))):
+            self.stats["solver_failures"] += 1
+            self._set_mode("hover", "non-finite MPC solution", s.stamp)
+            self.publish(s, self.hover(s), "hover", solve_s)
+            return
+        self.carry = self._new_carry
+        self._set_mode(mode, "model available" if m is not None else "no current model",
+                       s.stamp)
+        self.publish(s, u, mode, solve_s)
+        if not a.lockstep and self.now() - t_recv > 1.0 / a.rate:
+            self.stats["deadline_misses"] += 1
+
+    def publish(self, s: State, u: np.ndarray, mode: str, solve_s: float) -> None:
+        u = np.asarray(u, dtype=float)
+        if not np.all(np.isfinite(u)):
+            u = self.u_hover.copy()
+            mode = "hover"
+        u = np.clip(u, self.u_min, self.u_max)
+        # The stamp of the answered state; never older than the previous setpoint's, so
+        # that an answer to a late state is not rejected as out of order downstream.
+        stamp = max(s.stamp, self._last_stamp)
+        self._last_stamp = stamp
+        self.pub.put(Setpoint(u=u, state_seq=s.seq, stamp=stamp, mode=mode,
+                              solve_ms=min(solve_s * 1e3, 1e6)))
+        self.stats["setpoints"] += 1
+
+    _last_stamp = 0.0
+
+    def teardown(self) -> None:
+        self.stats["solve"] = runtime.percentiles_ms(self._solve_s[1:])
+        self.stats["solve_samples_ms"] = [1e3 * v for v in self._solve_s[1:]]
+
+
+def _extra(p) -> None:
+    runtime.add_plan_arguments(p)
+    p.add_argument("--weights", type=Path, default=None,
+                   help="VLD weights (default deploy/weights/quadrotor_vld.eqx)")
+    p.add_argument("--model-timeout", type=float, default=5.0,
+                   help="lockstep: longest wait for the model of the current state [s]")
+    p.add_argument("--max-model-age", type=float, default=0.5,
+                   help="older models are not used (nominal MPC instead) [s]")
+    p.add_argument("--max-state-age", type=float, default=0.1,
+                   help="realtime: older states on arrival give a hover setpoint [s]")
+    p.add_argument("--max-meas-age", type=float, default=0.5,
+                   help="states whose newest mocap frame is older give a hover setpoint [s]")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return runtime.main_for(Controller, argv, _extra)
+
+
+__all__ = ["Controller", "main"]

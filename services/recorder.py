@@ -1,0 +1,125 @@
+"""Recorder service: every bus message to a replayable MCAP log, plus the CSV flight log.
+
+``<out>/bus.mcap``: one channel per topic (``arcade/<vehicle>/<topic>``), messages as JSON
+(the wire map of :mod:`services.messages`: schema name, version, ``seq``, ``stamp``, fields)
+with a JSON Schema per record type, so Foxglove Studio opens it directly. ``log_time`` is
+the receive time (``time.time_ns()``), ``publish_time`` the message ``stamp`` in ns.
+
+``<out>/flight_log.csv``: the design §5 flight log, one row per setpoint: the estimated
+state it answers and the setpoint (``t, px, ..., wz, u0..u3``; ``t`` relative to the first
+state), plus the setpoint's ``mode``.
+
+Messages are recorded as received (no order check: a recorder wants everything, including
+what a consumer would reject as stale); invalid payloads are still rejected and counted.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from services import runtime
+from services.messages import MESSAGE_TYPES, Message, Setpoint, State
+
+_JSON_TYPES = {"float": "number", "int": "integer", "bool": "boolean", "str": "string"}
+
+
+def json_schema(cls: type[Message]) -> dict[str, Any]:
+    """A JSON Schema of the wire map of ``cls`` (arrays as nested number arrays)."""
+    props: dict[str, Any] = {"schema": {"type": "string"}, "version": {"type": "integer"}}
+    for f in dataclasses.fields(cls):
+        spec = f.metadata["spec"]
+        kind = type(spec).__name__.lstrip("_")
+        if kind == "Array":
+            item: dict[str, Any] = {"type": "number"}
+            for _ in spec.shape:
+                item = {"type": "array", "items": item}
+            props[f.name] = item
+        elif kind == "Scalars":
+            props[f.name] = {"type": "object"}
+        else:
+            props[f.name] = {"type": _JSON_TYPES.get(kind.lower(), "string")}
+    return {"title": cls.SCHEMA, "type": "object", "properties": props}
+
+
+class Recorder(runtime.Service):
+    """Recorder: MCAP log of the bus and the CSV flight log."""
+
+    name = "recorder"
+
+    def setup(self, bus) -> None:
+        from mcap.writer import Writer
+
+        out = Path(self.args.out or ".")
+        out.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+        self._file = (out / "bus.mcap").open("wb")
+        self.writer = Writer(self._file)
+        self.writer.start(profile="", library="arcade")
+        self._channels: dict[str, int] = {}
+        for topic, cls in MESSAGE_TYPES.items():
+            schema = self.writer.register_schema(
+                name=cls.SCHEMA, encoding="jsonschema",
+                data=json.dumps(json_schema(cls)).encode())
+            self._channels[topic] = self.writer.register_channel(
+                topic=bus.key(topic), message_encoding="json", schema_id=schema)
+        self._csv_file = (out / "flight_log.csv").open("w", newline="")
+        self.csv = csv.writer(self._csv_file)
+        self.csv.writerow(["t", "px", "py", "pz", "vx", "vy", "vz", "qw", "qx", "qy", "qz",
+                           "wx", "wy", "wz", "u0", "u1", "u2", "u3", "mode"])
+        self._states: dict[int, State] = {}
+        self._unpaired: dict[int, Setpoint] = {}
+        self._rows: list[list[Any]] = []
+        self._t0: float | None = None
+        self.stats["messages"] = dict.fromkeys(MESSAGE_TYPES, 0)
+        for topic in MESSAGE_TYPES:
+            bus.subscribe(topic, lambda m, topic=topic: self.record(topic, m),
+                          check_order=False)
+
+    def record(self, topic: str, m: Message) -> None:
+        data = json.dumps(m.to_wire()).encode()
+        with self._lock:
+            if self.writer is None:
+                return
+            self.writer.add_message(self._channels[topic], log_time=time.time_ns(), data=data,
+                                    publish_time=int(m.stamp * 1e9), sequence=m.seq % 2**32)
+            self.stats["messages"][topic] += 1
+            # State and setpoint come from different publishers: pair whichever is second.
+            if isinstance(m, State):
+                if self._t0 is None:
+                    self._t0 = m.stamp
+                self._states[m.seq] = m
+                sp = self._unpaired.pop(m.seq, None)
+                if sp is not None:
+                    self._row(m, sp)
+                if len(self._states) > 256:
+                    for k in sorted(self._states)[:-128]:
+                        del self._states[k]
+            elif isinstance(m, Setpoint):
+                s = self._states.get(m.state_seq)
+                if s is not None:
+                    self._row(s, m)
+                elif len(self._unpaired) < 256:
+                    self._unpaired[m.state_seq] = m
+
+    def _row(self, s: State, sp: Setpoint) -> None:
+        self._rows.append([s.stamp, *s.x, *sp.u, sp.mode])
+
+    def teardown(self) -> None:
+        with self._lock:
+            self.writer.finish()
+            self.writer = None
+            self._file.close()
+            t0 = self._t0 or 0.0
+            for row in sorted(self._rows, key=lambda r: r[0]):
+                self.csv.writerow([row[0] - t0, *row[1:]])
+            self._csv_file.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return runtime.main_for(Recorder, argv)

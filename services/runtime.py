@@ -1,0 +1,279 @@
+"""Shared scaffolding of the service processes (``python -m services <name> ...``).
+
+Every service is a :class:`Service`: common command-line options (:func:`common_parser`),
+a log file per service (``<out>/logs/<name>.log``), JAX set-up (persistent compilation
+cache, optional float64, synchronous dispatch for small low-latency calls), a warm-up
+(compile everything) *before* the liveliness token is declared, and a clean shutdown on
+SIGINT/SIGTERM (or a ``shutdown`` command on the bus). Statistics a service wants to
+report (latencies, counters) go to ``<out>/stats/<name>.json`` at exit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from services.bus import DEFAULT_HUB, Bus, peer_config
+
+log = logging.getLogger("arcade.service")
+
+
+def common_parser(name: str, description: str) -> argparse.ArgumentParser:
+    """Options every service takes."""
+    p = argparse.ArgumentParser(prog=f"python -m services {name}", description=description)
+    p.add_argument("--vehicle", default="default", help="vehicle name on the bus (key prefix)")
+    p.add_argument("--hub", default=DEFAULT_HUB, help="Zenoh hub endpoint (peer mode)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="run folder: logs/<service>.log and stats/<service>.json go here")
+    p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ...")
+    p.add_argument("--x64", action="store_true", help="compute in float64 (default float32)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="lockstep clock (simulated time, deterministic); default realtime")
+    p.add_argument("--rate", type=float, default=20.0, help="control rate [Hz]")
+    p.add_argument("--nice", type=int, default=0,
+                   help="scheduling priority change (negative: higher; needs privileges, "
+                        "ignored with a warning otherwise)")
+    return p
+
+
+def setup_logging(name: str, out: Path | None, level: str = "INFO") -> Path | None:
+    """Log to ``<out>/logs/<name>.log`` (and stderr); returns the file path."""
+    root = logging.getLogger()
+    root.setLevel(level.upper())
+    fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
+    err = logging.StreamHandler(sys.stderr)
+    err.setFormatter(fmt)
+    err.setLevel(logging.WARNING)
+    root.addHandler(err)
+    path = None
+    if out is not None:
+        path = Path(out) / "logs" / f"{name}.log"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fh = logging.FileHandler(path)
+        fh.setFormatter(fmt)
+        root.addHandler(fh)
+    return path
+
+
+def setup_jax(x64: bool) -> None:
+    """Persistent cache, precision and synchronous dispatch (faster for small calls)."""
+    from arcade import jaxsetup
+
+    jaxsetup.configure(x64=x64)
+    import jax
+
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
+
+
+def percentiles_ms(samples_s: list[float]) -> dict[str, float]:
+    """p50/p99/max of latencies given in seconds, in ms (empty -> NaN-free zeros)."""
+    if not samples_s:
+        return {"n": 0, "p50_ms": 0.0, "p99_ms": 0.0, "max_ms": 0.0}
+    a = np.asarray(samples_s) * 1e3
+    return {"n": int(a.size), "p50_ms": float(np.median(a)),
+            "p99_ms": float(np.percentile(a, 99)), "max_ms": float(a.max())}
+
+
+def subscribe_ordered(bus: Bus, topics: dict[str, Any]) -> list[Any]:
+    """Subscribe ``{topic: callback}`` with callbacks run on Zenoh's receiving thread.
+
+    :meth:`Bus.subscribe` runs each subscription's callback on its own thread, so two
+    topics from one publisher (mocap frames, then the control-instant imu sample) may be
+    handled out of order. Here the callbacks run in arrival order (Zenoh keeps order per
+    priority on a link); they must be quick (enqueue, or a few hundred microseconds of work).
+    Validation and reject counting are those of :meth:`Bus.subscribe`.
+    """
+    import zenoh
+
+    from services.messages import Receiver, safe_handler
+
+    subs = []
+    for topic, callback in topics.items():
+        receiver = Receiver(topic)
+        handler = safe_handler(
+            lambda sample, r=receiver: r(sample.payload.to_bytes()), callback, bus.rejects,
+            topic=topic,
+        )
+        subs.append(bus.session.declare_subscriber(
+            bus.key(topic), zenoh.handlers.Callback(handler, indirect=False)))
+    return subs
+
+
+class Service:
+    """Base of a service process: subclasses implement :meth:`setup` and may override
+    :meth:`warmup`, :meth:`main` (default: wait for the stop signal) and :meth:`teardown`.
+    """
+
+    name = "service"
+
+    def __init__(self, args: argparse.Namespace):
+        self.args = args
+        self.stop = threading.Event()
+        self.out: Path | None = args.out
+        self.stats: dict[str, Any] = {}
+        self.log = logging.getLogger(f"arcade.{self.name}")
+        self.bus: Bus | None = None
+
+    # -- hooks
+    def setup(self, bus: Bus) -> None:
+        """Declare publishers/subscriptions (before the liveliness token)."""
+
+    def warmup(self) -> None:
+        """Compile everything so that the first real message is served on time."""
+
+    def ready(self) -> None:
+        """Called right after the liveliness token is declared (announcements go here)."""
+
+    def main(self) -> None:
+        """The service's own loop; the default just waits for the stop signal."""
+        self.stop.wait()
+
+    def teardown(self) -> None:
+        """Release resources (after the loop ended, bus still open)."""
+
+    # -- helpers
+    def now(self) -> float:
+        return time.monotonic()
+
+    def event(self, kind: str, text: str, severity: str = "info", stamp: float | None = None,
+              **data: Any) -> None:
+        """Publish an :class:`~services.messages.Event` and log it."""
+        from services.messages import Event
+
+        level = {"debug": 10, "info": 20, "warning": 30, "error": 40, "critical": 50}[severity]
+        self.log.log(level, "event %s: %s %s", kind, text, data or "")
+        if self.bus is None:
+            return
+        if stamp is None:  # lockstep stamps are simulated time, which starts at 0
+            stamp = 0.0 if getattr(self.args, "lockstep", False) else self.now()
+        # Never older than the previous event: receivers reject out-of-order stamps.
+        stamp = self._event_stamp = max(stamp, self._event_stamp)
+        try:
+            self.bus.put(Event(kind=kind, severity=severity, text=text[:1024], data=data,
+                               stamp=stamp))
+        except Exception:
+            self.log.exception("could not publish event %s", kind)
+
+    _event_stamp = 0.0
+
+    def _on_command(self, cmd: Any) -> None:
+        if cmd.name == "shutdown" and cmd.target in ("", self.name):
+            self.log.info("shutdown command received")
+            self.stop.set()
+        else:
+            self.on_command(cmd)
+
+    def on_command(self, cmd: Any) -> None:
+        """Commands other than ``shutdown`` (default: ignored)."""
+
+    def write_stats(self) -> None:
+        if self.out is None:
+            return
+        path = Path(self.out) / "stats" / f"{self.name}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        stats = dict(self.stats)
+        if self.bus is not None:
+            stats["rejects"] = self.bus.rejects.counts
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(stats, indent=1, default=float))
+        os.replace(tmp, path)
+
+    # -- lifecycle
+    def run(self) -> int:
+        """Set up, warm up, announce liveliness, run, shut down cleanly. Returns an exit code."""
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stop.set())
+        t0 = time.perf_counter()
+        code = 0
+        try:
+            with Bus(self.args.vehicle, self.name, peer_config(self.args.hub)) as bus:
+                self.bus = bus
+                bus.subscribe("command", self._on_command)
+                bus.publisher("event")  # declared now, not on the first (timed) event
+                self.setup(bus)
+                self.warmup()
+                bus.declare_alive()
+                self.log.info("ready after %.1f s", time.perf_counter() - t0)
+                self.ready()
+                try:
+                    self.main()
+                finally:
+                    self.stop.set()
+                    self.teardown()
+                    self.write_stats()
+                    self.log.info("stopped; rejects %s", bus.rejects.counts)
+        except Exception:
+            self.log.exception("%s failed", self.name)
+            code = 1
+        finally:
+            logging.shutdown()
+        return code
+
+
+def main_for(cls: type[Service], argv: list[str] | None = None,
+             extra: Any = None, *, x64: bool = False) -> int:
+    """Parse the options of ``cls`` (``extra(parser)`` adds its own) and run it.
+
+    ``x64`` forces float64 whatever ``--x64`` says (for numerics that need it).
+    """
+    parser = common_parser(cls.name, (cls.__doc__ or "").strip().splitlines()[0])
+    if extra is not None:
+        extra(parser)
+    args = parser.parse_args(argv)
+    setup_logging(cls.name, args.out, args.log_level)
+    if args.nice:
+        try:
+            os.nice(args.nice)
+        except OSError as err:
+            log.warning("could not change the priority by %d: %s", args.nice, err)
+    setup_jax(args.x64 or x64)
+    return cls(args).run()
+
+
+# ----------------------------------------------------------------------- flight plan
+
+
+def add_plan_arguments(p: argparse.ArgumentParser) -> None:
+    """The flight plan shared by the simulator and the controller (same values on both)."""
+    p.add_argument("--payload-g", type=float, default=175.0, help="swinging payload [g]")
+    p.add_argument("--speed", type=float, default=2.5, help="figure-eight mean speed [m/s]")
+    p.add_argument("--seed", type=int, default=0, help="trial seed (noise, start, release)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="flight duration [s] (default: take-off, hover, two laps)")
+    p.add_argument("--release", type=float, default=0.95,
+                   help="release the payload at this fraction of the first lap "
+                        "(negative: only on a release_payload command)")
+
+
+def scenario(args: argparse.Namespace) -> Any:
+    """The closed-loop scenario (take-off, hover, figure-eight) of the plan options."""
+    from benchmarks.quadrotor_closedloop import Scenario
+
+    return Scenario(payload_g=float(args.payload_g), speed_mps=float(args.speed),
+                    release_fraction=float(args.release))
+
+
+class Trial(NamedTuple):
+    """Per-trial randomness, derived from the seed exactly as the in-process evaluation
+    (``benchmarks.quadrotor_closedloop.Runner.fly``) derives it."""
+
+    sim_seed: int
+    start_offset: np.ndarray
+    release_jitter: int
+
+
+def trial(seed: int) -> Trial:
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x51]))
+    sim_seed = int(rng.integers(2**31))
+    offset = np.array([*rng.normal(0.0, 0.02, 2), 0.0])
+    return Trial(sim_seed, offset, int(rng.integers(-2, 3)))
