@@ -8,7 +8,8 @@ import sys
 from pathlib import Path
 
 HELP = (
-    "reproduce the paper's evaluations (cartpole: Table I, Fig. 3, App. E), all methods in one run"
+    "reproduce the paper's evaluations, all methods in one run (cartpole: Table I, Fig. 3, "
+    "App. E; quadrotor: Tables II, III, V, Figs. 4-5)"
 )
 
 
