@@ -36,6 +36,7 @@ def train_quadrotor(
     """
     from arcade_core import adaptation, encoder
     from benchmarks import quadrotor_data as qd
+    from benchmarks.quadrotor_closedloop import compute_guard, guard_to_metadata
 
     def say(msg: str) -> None:
         if progress:
@@ -75,6 +76,9 @@ def train_quadrotor(
             "residual": "x(t + control_dt) - f_nom(x(t), u(t)), nominal RK4 over control_dt",
             "final_train_loss": float(history.train_loss[-1]),
             "command": QUADROTOR_COMMAND,
+            # Trust region of the model inside the MPC rollout, from the training data,
+            # so services need not fly the training flights again to rebuild it.
+            "guard": guard_to_metadata(compute_guard(model, x, u, delta)),
         },
     )
     say(f"wrote {path}")

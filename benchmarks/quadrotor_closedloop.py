@@ -253,15 +253,34 @@ class Guard(NamedTuple):
     feature_hi: Array  # (l,)
 
 
+def compute_guard(vld: encoder.VLD, x, u, delta) -> Guard:
+    """:class:`Guard` of a VLD from its training transitions (``x``, ``u``, ``delta``)."""
+    x, u = jnp.asarray(x), jnp.asarray(u)
+    z = jax.vmap(vld.features)(x, u)
+    mu, sd = jnp.mean(z, axis=0), jnp.std(z, axis=0)
+    return Guard(jnp.max(jnp.abs(jnp.asarray(delta)), axis=0), mu - 4 * sd, mu + 4 * sd)
+
+
+def guard_to_metadata(g: Guard) -> dict[str, list[float]]:
+    """JSON-ready form stored in the weights file header (``extra["guard"]``)."""
+    return {k: [float(v) for v in np.asarray(a)] for k, a in g._asdict().items()}
+
+
+def guard_from_metadata(extra: dict[str, Any] | None) -> Guard | None:
+    """The guard a weights file carries, or ``None`` for files written without one."""
+    meta = (extra or {}).get("guard")
+    if meta is None:
+        return None
+    return Guard(*(jnp.asarray(meta[k]) for k in Guard._fields))
+
+
 def make_guard(models, dtype) -> Guard:
-    """:class:`Guard` from the training flights (cached on ``models``)."""
+    """:class:`Guard` of ``models.vld``: the one its weights file carries (``models.guard``),
+    else computed from the training flights (slow the first time: the flights are flown)."""
     g = getattr(models, "guard", None)
     if g is None:
         data = qd.make_dataset()
-        x, u = jnp.asarray(data["x"]), jnp.asarray(data["u"])
-        z = jax.vmap(models.vld.features)(x, u)
-        mu, sd = jnp.mean(z, axis=0), jnp.std(z, axis=0)
-        g = Guard(jnp.max(jnp.abs(jnp.asarray(data["delta"])), axis=0), mu - 4 * sd, mu + 4 * sd)
+        g = compute_guard(models.vld, data["x"], data["u"], data["delta"])
         models.guard = g
     return _cast(g, dtype)
 

@@ -85,7 +85,7 @@ def load_checkpoint(path: Path, template: Any, meta: dict[str, Any]) -> Any | No
     return type(template)(**{k: jnp.asarray(v) for k, v in fields.items()})
 
 
-def load_agent(weights: Path, dtype: Any) -> tuple[Any, Any]:
+def load_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
     """ARCADE's adaptive state at take-off and its method, as the in-process evaluation
     builds them (``benchmarks.quadrotor_closedloop``: paper preset, feature/residual guard
     of the training data, beam at the prior)."""
@@ -94,13 +94,14 @@ def load_agent(weights: Path, dtype: Any) -> tuple[Any, Any]:
     from arcade.weights import load_model
     from benchmarks import quadrotor_closedloop as cl
 
-    vld, _, _ = load_model(weights)
-    initial = getattr(cl, "initial_learner", None) or cl.initial_agent
-    return initial("ours", SimpleNamespace(vld=vld), dtype), cl.make_method("ours")
+    vld, _, extra = load_model(weights)
+    models = SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra))
+    learner = cl.initial_learner("ours", models, dtype)
+    return learner, cl.make_method("ours")
 
 
 def adapter_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
-    """:func:`load_agent` with one noise variance per output (the state estimate's
+    """:func:`load_learner` with one noise variance per output (the state estimate's
     variance differs per component, see :class:`Adapter`): one covariance per output row,
     at the prior (Algorithm 1 line 1). Mathematically the same beam while all variances
     are equal."""
@@ -108,22 +109,22 @@ def adapter_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
 
     from arcade_core import adaptation
 
-    agent, method = load_agent(weights, dtype)
-    cfg, d = agent.config, agent.vld.theta0.shape[0]
+    learner, method = load_learner(weights, dtype)
+    cfg, d = learner.config, learner.vld.theta0.shape[0]
     vec = cfg._replace(sigma2=jnp.broadcast_to(jnp.asarray(cfg.sigma2, dtype), (d,)))
-    beam = adaptation.init(agent.vld.theta0, vec._replace(K=int(agent.beam.means.shape[0])))
-    return agent._replace(config=vec, beam=beam), method
+    beam = adaptation.init(learner.vld.theta0, vec._replace(K=int(learner.beam.means.shape[0])))
+    return learner._replace(config=vec, beam=beam), method
 
 
-def agent_features(agent: Any, x: Any, u: Any) -> Any:
+def learner_features(learner: Any, x: Any, u: Any) -> Any:
     """Latent features ``z = mu_phi(x, u)`` as the in-process method computes them
-    (clipped to the training range when the agent carries a guard)."""
+    (clipped to the training range when the learner carries a guard)."""
     from benchmarks import quadrotor_closedloop as cl
 
-    guard = getattr(agent, "guard", None)
+    guard = getattr(learner, "guard", None)
     if guard is not None and hasattr(cl, "_features"):
-        return cl._features(agent.vld, guard, x, u)
-    return agent.vld.features(x, u)
+        return cl._features(learner.vld, guard, x, u)
+    return learner.vld.features(x, u)
 
 
 class Adapter(runtime.Service):
@@ -144,57 +145,57 @@ class Adapter(runtime.Service):
         self.dtype = jnp.result_type(float)
         weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
         self.weights = weights
-        self.agent = None
+        self.learner = None
         self.meta: dict[str, Any] = {}
         if weights.is_file():
-            self.agent, self.method = adapter_learner(weights, self.dtype)
+            self.learner, self.method = adapter_learner(weights, self.dtype)
             self.meta = {"weights_sha256": hashlib.sha256(weights.read_bytes()).hexdigest()}
         params = quadrotor_params(load_vehicle())
         self.model_dt = 0.05
 
-        def features(agent, x, u):
-            return agent_features(agent, x, u)
+        def features(learner, x, u):
+            return learner_features(learner, x, u)
 
-        def marginal(agent, x, u):
-            theta, cov = adaptation.marginal_decoder(agent.beam)
-            return theta, cov, self.method.sigma(agent, x, u)
+        def marginal(learner, x, u):
+            theta, cov = adaptation.marginal_decoder(learner.beam)
+            return theta, cov, self.method.sigma(learner, x, u)
 
         # At the model's step (the default 20 Hz) the in-process method's own ``learn``
         # runs; at other rates the same update with the nominal step over the elapsed time.
         exact = abs(1.0 / a.rate - self.model_dt) < 1e-9
 
-        base_sigma2 = None if self.agent is None else self.agent.config.sigma2
+        base_sigma2 = None if self.learner is None else self.learner.config.sigma2
 
-        def adapt(agent, xp, up, x, h, learn, var_p, var_x):
-            vld = agent.vld
-            z = features(agent, xp, up)
+        def adapt(learner, xp, up, x, h, learn, var_p, var_x):
+            vld = learner.vld
+            z = features(learner, xp, up)
             dn = vld.normalise_residual(x - quadrotor_step(xp, up, params, h))
             # Estimation noise of the two states enters the residual (errors in variables,
             # first order): its normalised variance adds to the observation noise sigma_j^2.
             J = jax.jacfwd(lambda xx: quadrotor_step(xx, up, params, h))(xp)
             var_res = var_x + jnp.einsum("ij,j,ij->i", J, var_p, J)
-            agent = agent._replace(config=agent.config._replace(
+            learner = learner._replace(config=learner.config._replace(
                 sigma2=base_sigma2 + var_res / vld.delta_scale**2))
-            pred = adaptation.predict(agent.beam, z, vld.latent_variance(xp, up))
+            pred = adaptation.predict(learner.beam, z, vld.latent_variance(xp, up))
             if exact:
-                new = self.method.learn(agent, xp, up, x)
+                new = self.method.learn(learner, xp, up, x)
             else:
-                beam, info = adaptation.update(agent.beam, z, dn, agent.config)
-                new = agent._replace(beam=beam, changepoint=info.changepoint.astype(z.dtype),
+                beam, info = adaptation.update(learner.beam, z, dn, learner.config)
+                new = learner._replace(beam=beam, changepoint=info.changepoint.astype(z.dtype),
                                      cp_prob=info.cp_prob)
-            new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, agent)
+            new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, learner)
             cp = (new.changepoint > 0) & learn
             theta, cov, sig = marginal(new, x, up)
             return new, dn, pred, new.cp_prob, cp, theta, cov, sig
 
-        if self.agent is not None:
+        if self.learner is not None:
             self._adapt = jax.jit(adapt)
             self._marginal = jax.jit(marginal)
-            self._prior = self.agent
+            self._prior = self.learner
             if a.checkpoint is not None:
-                restored = load_checkpoint(a.checkpoint, self.agent.beam, self.meta)
+                restored = load_checkpoint(a.checkpoint, self.learner.beam, self.meta)
                 if restored is not None:
-                    self.agent = self.agent._replace(beam=restored)
+                    self.learner = self.learner._replace(beam=restored)
                     self._restored = int(restored.step)
         self._cond = threading.Condition()
         self._setpoints: dict[float, Setpoint] = {}
@@ -210,16 +211,16 @@ class Adapter(runtime.Service):
     _restored: int | None = None
 
     def warmup(self) -> None:
-        if self.agent is None:
+        if self.learner is None:
             return
         x = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
         u = np.array([5.6, 0.0, 0.0, 0.0])
         for _ in range(3):
-            self._adapt(self.agent, x, u, x, self.model_dt, False, np.zeros(13), np.zeros(13))
-            self._marginal(self.agent, x, u)
+            self._adapt(self.learner, x, u, x, self.model_dt, False, np.zeros(13), np.zeros(13))
+            self._marginal(self.learner, x, u)
 
     def ready(self) -> None:
-        if self.agent is None:
+        if self.learner is None:
             self.event("degraded", f"no weights file at {self.weights}: no adaptation, the "
                        "controller runs the nominal model", "warning")
         elif self._restored is not None:
@@ -247,13 +248,13 @@ class Adapter(runtime.Service):
     def on_state(self, s: State) -> None:
         t0 = self.now()
         prev, self._prev = self._prev, s
-        if self.agent is None:
+        if self.learner is None:
             self.pub_model.put(Model(theta=np.zeros((13, 1)), sigma_tot2=np.zeros(13),
                                      state_seq=s.seq, stamp=s.stamp))
             return
         sp = self._input_for(prev) if prev is not None else None
         if sp is None:
-            theta, cov, sig = self._marginal(self.agent, s.x, self._u_hover())
+            theta, cov, sig = self._marginal(self.learner, s.x, self._u_hover())
             self.stats["skipped"] += prev is not None
         else:
             learn = not s.predicted_through_dropout
@@ -263,8 +264,8 @@ class Adapter(runtime.Service):
             zeros = np.zeros(13)
             var_p = prev.cov_diag if prev.cov_diag is not None else zeros
             var_x = s.cov_diag if s.cov_diag is not None else zeros
-            out = self._adapt(self.agent, prev.x, sp.u, s.x, h, learn, var_p, var_x)
-            self.agent, dn, pred, cp_prob, cp, theta, cov, sig = out
+            out = self._adapt(self.learner, prev.x, sp.u, s.x, h, learn, var_p, var_x)
+            self.learner, dn, pred, cp_prob, cp, theta, cov, sig = out
             self.stats["learned"] += learn
             pred_np = type(pred)(*(np.asarray(p, dtype=float) for p in pred))
             if np.all(np.isfinite(np.asarray(dn))) and all(
@@ -276,31 +277,31 @@ class Adapter(runtime.Service):
             if bool(cp):
                 self.stats["changepoints"] += 1
                 self.event("changepoint", "changepoint detected", stamp=s.stamp,
-                           cp_prob=float(cp_prob), step=int(self.agent.beam.step),
+                           cp_prob=float(cp_prob), step=int(self.learner.beam.step),
                            state_seq=s.seq)
         theta, cov, sig = (np.asarray(v, dtype=float) for v in (theta, cov, sig))
         if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(cov))
                 and np.all(np.isfinite(sig))):
             self.log.error("non-finite posterior: resetting the beam to the prior")
-            self.agent = self._prior
+            self.learner = self._prior
             return
         self.pub_model.put(Model.from_marginal(
-            theta, cov, np.maximum(sig, 0.0), step=int(self.agent.beam.step),
+            theta, cov, np.maximum(sig, 0.0), step=int(self.learner.beam.step),
             changepoints=self.stats["changepoints"], state_seq=s.seq, stamp=s.stamp))
         self.stats["steps"] += 1
         self._lat.append(self.now() - t0)
         every = self.args.checkpoint_every
         if self.args.checkpoint is not None and every > 0 and self.stats["steps"] % every == 0:
-            save_checkpoint(self.args.checkpoint, self.agent.beam, self.meta)
+            save_checkpoint(self.args.checkpoint, self.learner.beam, self.meta)
 
     def _u_hover(self) -> np.ndarray:
         return np.array([0.57 * 9.81, 0.0, 0.0, 0.0])
 
     def teardown(self) -> None:
         self.stats["update"] = runtime.percentiles_ms(self._lat)
-        if self.agent is not None and self.args.checkpoint is not None:
-            save_checkpoint(self.args.checkpoint, self.agent.beam, self.meta)
-            self.stats["checkpoint_step"] = int(self.agent.beam.step)
+        if self.learner is not None and self.args.checkpoint is not None:
+            save_checkpoint(self.args.checkpoint, self.learner.beam, self.meta)
+            self.stats["checkpoint_step"] = int(self.learner.beam.step)
 
 
 def _extra(p) -> None:

@@ -78,9 +78,9 @@ def moment_matched(method):
     return method._replace(sigma=sigma)
 
 
-def with_agent(carry, agent):
+def with_learner(carry, learner):
     """``carry`` of the in-process loop with its adaptive state (first field) replaced."""
-    return carry._replace(**{carry._fields[0]: agent})
+    return carry._replace(**{carry._fields[0]: learner})
 
 
 class Controller(runtime.Service):
@@ -94,7 +94,7 @@ class Controller(runtime.Service):
 
         from arcade_core import adaptation
         from benchmarks import quadrotor_closedloop as cl
-        from services.adapter import DEFAULT_WEIGHTS, load_agent
+        from services.adapter import DEFAULT_WEIGHTS, load_learner
 
         a = self.args
         self.jnp = jnp
@@ -112,29 +112,29 @@ class Controller(runtime.Service):
         self.x_ref_all, self.u_ref_all = cl.reference(scen, self.n_ref, N)
         weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
         self.weights = weights
-        self.agent0 = None
+        self.learner0 = None
         # The in-process per-step update, with learning left to the adapter.
-        no_learn = {"learn": lambda agent, x_prev, u_prev, x: agent}
+        no_learn = {"learn": lambda learner, x_prev, u_prev, x: learner}
         self._step_nominal = cl.make_controller_step(
             cl.make_method("nominal")._replace(**no_learn), cfg)
-        self._agent_nominal = jnp.zeros((), dtype)
+        self._learner_nominal = jnp.zeros((), dtype)
         if weights.is_file():
-            self.agent0, method = load_agent(weights, dtype)
+            self.learner0, method = load_learner(weights, dtype)
             step = cl.make_controller_step(method._replace(**no_learn), cfg)
 
             def learned(carry, x, k, theta, cov, x_ref_all, u_ref_all):
-                agent = carry[0]
-                beam = one_hypothesis_beam(agent.beam, theta, cov)
-                carry = with_agent(carry, agent._replace(beam=beam))
+                learner = carry[0]
+                beam = one_hypothesis_beam(learner.beam, theta, cov)
+                carry = with_learner(carry, learner._replace(beam=beam))
                 return step(carry, x, carry.u_mpc, k, x_ref_all, u_ref_all)
 
             self._step_learned = jax.jit(learned)
-            d, l = self.agent0.vld.theta0.shape
-            self._theta0 = np.asarray(adaptation.marginal_decoder(self.agent0.beam)[0])
-            self._cov0 = np.broadcast_to(np.asarray(self.agent0.beam.covariances[0]),
+            d, l = self.learner0.vld.theta0.shape
+            self._theta0 = np.asarray(adaptation.marginal_decoder(self.learner0.beam)[0])
+            self._cov0 = np.broadcast_to(np.asarray(self.learner0.beam.covariances[0]),
                                          (d, l, l)).copy()
         u0 = jnp.asarray(self.u_hover, dtype)
-        self.carry = cl.Carry(self.agent0 if self.agent0 is not None else self._agent_nominal,
+        self.carry = cl.Carry(self.learner0 if self.learner0 is not None else self._learner_nominal,
                               jnp.broadcast_to(u0, (N, 4)), u0, jnp.zeros(13, dtype),
                               jnp.zeros((), bool))
         self.t0: float | None = None
@@ -153,11 +153,11 @@ class Controller(runtime.Service):
         x = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
         for k in range(3):  # the first calls after compiling are still slow
             self._solve(x, k, None)
-            if self.agent0 is not None:
+            if self.learner0 is not None:
                 self._solve(x, k, (self._theta0, self._cov0))
 
     def ready(self) -> None:
-        if self.agent0 is None:
+        if self.learner0 is None:
             self.event("degraded", f"no weights file at {self.weights}: nominal MPC", "warning")
 
     def _solve(self, x: np.ndarray, k: int, posterior: tuple | None) -> np.ndarray:
@@ -166,11 +166,11 @@ class Controller(runtime.Service):
         x = jnp.asarray(x, self.dtype)
         carry = self.carry
         if posterior is None:
-            carry = with_agent(carry, self._agent_nominal)
+            carry = with_learner(carry, self._learner_nominal)
             new, u, _ = self._step_nominal(carry, x, carry.u_mpc, k, self.x_ref_all,
                                            self.u_ref_all)
         else:
-            carry = with_agent(carry, self.agent0)
+            carry = with_learner(carry, self.learner0)
             theta, cov = (jnp.asarray(v, self.dtype) for v in posterior)
             new, u, _ = self._step_learned(carry, x, k, theta, cov, self.x_ref_all,
                                            self.u_ref_all)
@@ -223,12 +223,12 @@ class Controller(runtime.Service):
     def model_for(self, s: State) -> Model | None:
         a = self.args
         with self._cond:
-            if a.lockstep and self.agent0 is not None:
+            if a.lockstep and self.learner0 is not None:
                 self._cond.wait_for(
                     lambda: (self._model is not None and (self._model.state_seq or 0) >= s.seq)
                     or self.stop.is_set(), a.model_timeout)
             m = self._model
-        if m is None or self.agent0 is None or m.theta.shape != self._theta0.shape:
+        if m is None or self.learner0 is None or m.theta.shape != self._theta0.shape:
             return None
         if a.lockstep and (m.state_seq or 0) < s.seq:
             return None
@@ -266,7 +266,7 @@ class Controller(runtime.Service):
         k = min(max(round(t / self.ref_dt), 0), self.n_ref - 1)
         t0 = time.perf_counter()
         if m is None:
-            if self.agent0 is not None:
+            if self.learner0 is not None:
                 self.stats["nominal_model"] += 1
             mode = "nominal_model"
             u = self._solve(s.x, k, None)

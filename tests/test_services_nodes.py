@@ -136,8 +136,8 @@ def test_adapter_checkpoint_round_trip(tmp_path):
             assert last.step == 5  # five transitions learned
         finally:
             assert stop(proc) == 0
-        agent, _ = adapter_learner(DEFAULT_WEIGHTS, np.float64)
-        beam = load_checkpoint(ckpt, agent.beam, {})
+        learner, _ = adapter_learner(DEFAULT_WEIGHTS, np.float64)
+        beam = load_checkpoint(ckpt, learner.beam, {})
         assert beam is not None and int(beam.step) == 5
 
         proc = start("adapter", hub, tmp_path, *args)

@@ -49,7 +49,10 @@ GROUND_RAMP_S = 2.5
 GROUND_HOLD_S = 4.0
 APPROACH_HEIGHT_M = 0.6
 GROUND_HEIGHT_M = 0.15
-GROUND_EXCITATION = 0.0
+GROUND_EXCITATION = 0.15
+#: Below this height [m] the pilot adds an upward acceleration (gain [1/s^2] per metre).
+FLOOR_GUARD_M = 0.1
+FLOOR_GUARD_GAIN = 150.0
 #: Quadrotor sensor noise at noise_scale 1 (module docstring).
 VEL_NOISE_MPS = 0.005
 VEL_NOISE_TAU_S = 0.1
@@ -175,7 +178,10 @@ def fly_quadrotor(
 
     def control(x, t):
         nonlocal exc
-        u = pilot(x, path(max(t, 0.0)), CONTROL_DT)
+        p_ref, v_ref, a_ref, yaw = path(max(t, 0.0))
+        # Like a pilot near the floor: pull up harder the closer the vehicle gets.
+        a_ref = a_ref + np.array([0.0, 0.0, FLOOR_GUARD_GAIN * max(0.0, FLOOR_GUARD_M - x[2])])
+        u = pilot(x, (p_ref, v_ref, a_ref, yaw), CONTROL_DT)
         w = np.clip(rng_exc.standard_normal(4), -2.0, 2.0)
         exc = a * exc + np.sqrt(1.0 - a * a) * w
         return sim.set_setpoint(u + path.excitation_scale(t) * exc * EXCITATION_STD)
