@@ -20,6 +20,9 @@ COMMANDS: tuple[str, ...] = (
     "train",
     "eval",
     "bench",
+    "simulate",
+    "effects",
+    "discrepancy",
 )
 
 

@@ -68,7 +68,7 @@ def write_plots(out: Path, result: dict[str, Any], details: dict[str, Any]) -> l
             ax.plot(mids, v, "o-", ms=3, label=c)
         ax.set_xlabel(name)
         ax.set_yscale("log")
-    axes[0, 0].set_ylabel("one-step residual RMS")
+    axes[0, 0].set_ylabel("one-step residual / noise level")
     axes[0, -1].legend(fontsize=6)
     fig.tight_layout()
     paths.append(out / "gap_by_regime.png")
@@ -128,18 +128,20 @@ def render_report(result: dict[str, Any], plots: list[Path]) -> str:
         lines.append(f"| {c} | {b:.4g} | {result['gap_after'][c]:.4g} | {cb:.4g} | {ca:.4g} |")
     loc = result["localisation"]
     lines += ["", "## Where the gap is (current model, fitted part)", ""]
-    lines.append(f"Largest one-step residual: {loc['largest']}.")
+    noise = ", ".join(f"{c} {v:.2f}" for c, v in loc["rms_noise"].items())
+    lines.append(f"One-step residual in noise levels (1 = noise only): {noise}.")
+    lines.append(f"Largest: {loc['largest']}.")
     for r in loc["regimes"]:
         lines.append(
-            f"- {r['component']} residual is {r['ratio']:.2f}x its overall RMS for "
-            f"{r['regime']} in [{r['bin'][0]:.3g}, {r['bin'][1]:.3g}]"
+            f"- {r['component']}: {r['rms_noise']:.2f} x noise ({r['ratio']:.2f} x its mean) "
+            f"for {r['regime']} in [{r['bin'][0]:.3g}, {r['bin'][1]:.3g}]"
         )
     lines.append(f"- {len(loc['segments'])} time segment(s) (changepoints of Algorithm 1):")
     for s in loc["segments"][:12]:
-        worst = max(s["rms"], key=s["rms"].get)
+        worst = max(s["rms_noise"], key=s["rms_noise"].get)
         lines.append(
             f"  - {s['t_start']:.1f}-{s['t_end']:.1f} s: largest {worst} "
-            f"({s['rms'][worst]:.3g})"
+            f"({s['rms_noise'][worst]:.2f} x noise)"
         )
     lines += ["", f"Model file: `{result['model_file']}`", ""]
     lines += [f"![{p.stem}]({p.name})" for p in plots]

@@ -165,5 +165,7 @@ def _validated(system: str, data: np.ndarray, name: str) -> FlightLog:
         if np.any(norm < 0.5):
             i = int(np.argmax(norm < 0.5))
             raise LogError(f"{name}: quaternion at row {i + 2} is not a unit quaternion")
-        X[:, 6:10] /= norm[:, None]
+        # Renormalise logs written with few digits; exact unit quaternions stay untouched.
+        off = np.abs(norm - 1.0) > 1e-12
+        X[off, 6:10] /= norm[off, None]
     return FlightLog(system, t.copy(), X, U)

@@ -79,6 +79,7 @@ def prepare_models(
 
     data = qd.make_dataset(seed=seed, progress=progress)
     x, u, delta = (jnp.asarray(data[k]) for k in ("x", "u", "delta"))
+    vld_from_file = vld is None
     if vld is None:
         progress("loading the VLD weights")
         vld = load_quadrotor()
@@ -105,7 +106,15 @@ def prepare_models(
         tuning[f"{lr:g}"] = c if np.isfinite(c) else float("inf")
     best = min(tuning, key=tuning.get)
     stats = {"transitions": int(x.shape[0]), "mlp_epochs": epochs}
-    return Models(vld, net, float(best), tuning, gpm, sid, stats)
+    # The trust region the weights file carries (what the services use), if it has one.
+    guard = None
+    if vld_from_file:
+        from arcade.training_quadrotor import QUADROTOR_WEIGHTS
+        from arcade.weights import load_model
+        from benchmarks.quadrotor_closedloop import guard_from_metadata
+
+        guard = guard_from_metadata(load_model(QUADROTOR_WEIGHTS)[2])
+    return Models(vld, net, float(best), tuning, gpm, sid, stats, guard=guard)
 
 
 # ----------------------------------------------------------------------- online runners

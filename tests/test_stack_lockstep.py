@@ -65,8 +65,11 @@ def in_process_rmse(monkeypatch) -> float:
 
     beam_method = cl.beam_method
     monkeypatch.setattr(cl, "beam_method", lambda name="ours": moment_matched(beam_method(name)))
-    vld, _, _ = load_model(DEFAULT_WEIGHTS)
-    flight = cl.Runner(types.SimpleNamespace(vld=vld)).fly("ours", cl.Scenario(), seed=SEED)
+    vld, _, extra = load_model(DEFAULT_WEIGHTS)
+    # The same trust region as the services: the one the weights file carries.
+    models = types.SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra))
+    assert models.guard is not None
+    flight = cl.Runner(models).fly("ours", cl.Scenario(), seed=SEED)
     assert not flight.crashed
     return flight.metrics["rmse_m"]
 

@@ -64,7 +64,8 @@ class Settings:
     burn_in_s: float = 3.0
     block_s: float = 2.0
     confidence: float = 0.9
-    min_explained: float = 0.05
+    min_explained: float = 0.02
+    min_size: float = 0.02
     n_boot: int = 200
     seed: int = 0
 
@@ -279,7 +280,7 @@ def run_workflow(
     H = max(1, round(settings.step_s / dt))
     if not 0.05 <= settings.heldout <= 0.5:
         raise ValueError("heldout must be between 0.05 and 0.5")
-    n_fit = int(round(n * (1.0 - settings.heldout)))
+    n_fit = round(n * (1.0 - settings.heldout))
     burn = round(settings.burn_in_s / dt) if system == "quadrotor" else 0
     fit_starts = _windows(burn, n_fit, H, H)
     if len(fit_starts) < 50:
@@ -296,6 +297,7 @@ def run_workflow(
     say(f"{n} samples at {1.0 / dt:.4g} Hz; fitting {len(fit_starts)} windows of {H} steps")
     cfg = SelectionConfig(
         min_explained=settings.min_explained,
+        min_size=settings.min_size,
         confidence=settings.confidence,
         n_boot=settings.n_boot,
         block=max(1, round(settings.block_s / (H * dt))),
@@ -416,7 +418,12 @@ def _interval(lo, hi):
 
 
 def _localise(sysm, X, U, dt, starts, H, theta, W) -> dict[str, Any]:
-    """Step 2: residual of the current model by component, regime and time segment."""
+    """Step 2: the current model's one-step residual by component, regime and time segment.
+
+    Residuals of the velocity/rate channels are expressed in units of their noise level
+    (``sigma`` from what is left after fitting every candidate effect), so "4 x noise" reads
+    the same for m/s and rad/s and a noisy channel does not look like a gap.
+    """
     from arcade_core.discrepancy.localize import binned_rms, changepoints, segment_rms
 
     err = sysm.errors(X, sysm.predict(theta, X, U, starts, H, dt), starts, H)[:, -1]
@@ -424,6 +431,10 @@ def _localise(sysm, X, U, dt, starts, H, theta, W) -> dict[str, Any]:
     dyn = [comps.index(c) for c in
            (("vx", "vy", "vz", "wx", "wy", "wz") if sysm.name == "quadrotor"
             else ("xdot", "thetadot"))]
+    W = np.asarray(W)
+    sigma = np.sqrt(np.diag(np.linalg.inv(W.T @ W)))
+    norm = err[:, dyn] / sigma
+    names = [comps[d] for d in dyn]
     x0 = X[starts]
     if sysm.name == "quadrotor":
         qx, qy = x0[:, 7], x0[:, 8]
@@ -441,39 +452,35 @@ def _localise(sysm, X, U, dt, starts, H, theta, W) -> dict[str, Any]:
             "pole_cos": np.cos(x0[:, 2]),
             "force_n": np.abs(U[starts, 0]),
         }
-    overall = _rms(err)
-    by_regime = {}
-    findings = []
+    overall = _rms(norm)
+    by_regime, findings = {}, []
     for name, var in regimes.items():
-        b = binned_rms(err[:, dyn], var, bins=4)
-        by_regime[name] = {
-            "edges": b.edges.tolist(),
-            "rms": {comps[d]: b.rms[:, i].tolist() for i, d in enumerate(dyn)},
-        }
-        for i, d in enumerate(dyn):
+        b = binned_rms(norm, var, bins=4)
+        by_regime[name] = {"edges": b.edges.tolist(),
+                           "rms": {c: b.rms[:, i].tolist() for i, c in enumerate(names)}}
+        for i, c in enumerate(names):
             k = int(np.argmax(b.rms[:, i]))
-            ratio = float(b.rms[k, i] / max(overall[d], 1e-12))
-            findings.append((ratio, name, k, comps[d], b.edges[k], b.edges[k + 1]))
-    findings.sort(reverse=True)
-    # Time segments of the whitened identification residual (Algorithm 1 changepoints).
-    resid_ch = err[:, dyn]
-    white = resid_ch @ np.asarray(W).T
-    cps = changepoints(white, min_gap=max(1, round(1.0 / (H * dt))))
-    segs = segment_rms(resid_ch, cps)
+            findings.append((float(b.rms[k, i]), float(b.rms[k, i] / max(overall[i], 1e-12)),
+                             name, c, b.edges[k], b.edges[k + 1]))
+    # Regimes where a component's gap concentrates: most noise levels, then most contrast.
+    findings.sort(key=lambda f: (-f[0] * f[1]))
+    cps = changepoints(norm @ np.eye(len(names)), min_gap=max(1, round(1.0 / (H * dt))))
     t0 = starts * dt
     segments = [
         {"t_start": float(t0[a]), "t_end": float(t0[b - 1] + H * dt),
-         "rms": {comps[d]: float(r[i]) for i, d in enumerate(dyn)}}
-        for a, b, r in segs
+         "rms_noise": {c: float(r[i]) for i, c in enumerate(names)}}
+        for a, b, r in segment_rms(norm, cps)
     ]  # fmt: skip
-    top = [
-        {"regime": f, "bin": [float(lo), float(hi)], "component": c, "ratio": r}
-        for r, f, _, c, lo, hi in findings[:3]
-    ]
     summary = {
-        "rmse": {comps[i]: float(overall[i]) for i in range(len(comps))},
-        "largest": max((comps[d] for d in dyn), key=lambda c: overall[comps.index(c)]),
-        "regimes": top,
+        "rmse": {comps[i]: float(v) for i, v in enumerate(_rms(err))},
+        "rms_noise": {c: float(v) for c, v in zip(names, overall)},
+        "noise": {c: float(v) for c, v in zip(names, sigma)},
+        "largest": names[int(np.argmax(overall))],
+        "regimes": [
+            {"regime": f, "bin": [float(lo), float(hi)], "component": c, "rms_noise": r,
+             "ratio": q}
+            for r, q, f, c, lo, hi in findings[:3]
+        ],
         "segments": segments,
     }
     return {"summary": summary, "by_regime": by_regime, "err": err, "t": t0}

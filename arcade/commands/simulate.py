@@ -50,6 +50,7 @@ GROUND_HOLD_S = 4.0
 APPROACH_HEIGHT_M = 0.6
 GROUND_HEIGHT_M = 0.15
 GROUND_EXCITATION = 0.15
+GROUND_SPEED = 0.3
 #: Below this height [m] the pilot adds an upward acceleration (gain [1/s^2] per metre).
 FLOOR_GUARD_M = 0.1
 FLOOR_GUARD_GAIN = 150.0
@@ -99,13 +100,20 @@ class GroundPassPath:
 
     Each pass descends to :data:`APPROACH_HEIGHT_M` over :data:`GROUND_RAMP_S`, then
     slowly to :data:`GROUND_HEIGHT_M` over the same time, holds :data:`GROUND_HOLD_S`
-    and climbs back the same way; the horizontal path goes on throughout.
+    and climbs back the same way. The horizontal path goes on throughout, slowed down to
+    :data:`GROUND_SPEED` of its pace below the approach height (time warp), so that the
+    vehicle does not bank hard next to the floor.
     """
 
     def __init__(self, rng: np.random.Generator, duration: float):
         from benchmarks.quadrotor_data import RandomPath
 
         self.path = RandomPath(rng, duration)
+        # Warped path time tau(t) = int_0^t (1 - (1 - GROUND_SPEED) c(s)) ds on a grid.
+        self._grid = np.arange(0.0, duration + 5.0, 1e-3)
+        rate = 1.0 - (1.0 - GROUND_SPEED) * np.array([self._weights(t)[1][0]
+                                                       for t in self._grid])
+        self._tau = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * 1e-3)])
 
     @staticmethod
     def _weights(t: float, widen: float = 0.0):
@@ -125,9 +133,13 @@ class GroundPassPath:
         return 1.0 - (1.0 - GROUND_EXCITATION) * outer[0]
 
     def __call__(self, t: float):
-        p, v, a, yaw = self.path(t)
         (b, db, ddb), (c, dc, ddc) = self._weights(t)
-        p, v, a = p.copy(), v.copy(), a.copy()
+        # Time warp of the horizontal path: tau' = 1 - k c, tau'' = -k c'.
+        k = 1.0 - GROUND_SPEED
+        tau = float(np.interp(t, self._grid, self._tau))
+        d1, d2 = 1.0 - k * c, -k * dc
+        p, v, a, yaw = self.path(tau)
+        p, v, a = p.copy(), v * d1, a * d1 * d1 + v * d2
         z, vz, az = p[2], v[2], a[2]
         gap, step = APPROACH_HEIGHT_M - z, GROUND_HEIGHT_M - APPROACH_HEIGHT_M
         p[2] = z + b * gap + c * step

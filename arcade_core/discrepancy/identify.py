@@ -17,11 +17,12 @@ predicted). Identification:
 3. **Select** the subset of effects (all ``2^G`` subsets, from per-block sufficient
    statistics) with the smallest BIC ``N log(RSS/N) + k log N`` among the *admissible*
    subsets: each effect in the subset must explain at least ``min_explained`` of the
-   residual sum of squares that is left without it, with its parameters held in their
-   plausible ranges. BIC alone would, on long logs, name any effect that explains a sliver
-   of systematic model error; the relevance test asks for a physically relevant size, the
-   ranges for a physical explanation (the linearised model would otherwise happily
-   "explain" a slightly fast rate loop with a negative delay).
+   residual sum of squares that is left without it, move some parameter by at least
+   ``min_size`` of its plausible range, and keep its parameters in their plausible ranges.
+   BIC alone would, on long logs, name any effect that explains a sliver of systematic
+   model error (a motor time constant 0.5 ms off); the relevance tests ask for a
+   physically relevant size, the ranges for a physical explanation (the linearised model
+   would otherwise happily "explain" a slightly fast rate loop with a negative delay).
 4. **Fit** the selected effects' parameters on the full nonlinear model (projected
    Levenberg-Marquardt within the plausible ranges), linearise again there and repeat
    selection: an effect that only shows once another is in (wind through drag) is found in
@@ -58,11 +59,13 @@ class SelectionConfig(NamedTuple):
     """Settings of :func:`identify`.
 
     ``min_explained``: smallest fraction of the remaining residual sum of squares an effect
-    must explain to be admissible. ``confidence``: bootstrap inclusion probability needed
-    to add an effect. ``block``: windows per bootstrap block.
+    must explain to be admissible; ``min_size``: smallest parameter change (largest over
+    the effect's parameters, as a share of its plausible range). ``confidence``: bootstrap
+    inclusion probability needed to add an effect. ``block``: windows per bootstrap block.
     """
 
-    min_explained: float = 0.05
+    min_explained: float = 0.02
+    min_size: float = 0.02
     confidence: float = 0.9
     n_boot: int = 200
     block: int = 40
@@ -123,25 +126,29 @@ def group_masks(groups: Sequence[Sequence[int]], n_params: int) -> np.ndarray:
 def _cholesky_solve(A: Array, b: Array) -> Array:
     """``A^{-1} b`` for a small symmetric positive definite ``A`` (unrolled Cholesky).
 
-    Written with elementwise operations only: these solves run batched inside the
-    bootstrap (resamples x subsets), where plain arithmetic compiles to one fused loop.
+    Written with scalar arithmetic only (no in-place updates, no LAPACK call): these
+    solves run batched inside the bootstrap (resamples x subsets), where plain arithmetic
+    compiles to one fused loop.
     """
     n = A.shape[0]
-    L = jnp.zeros_like(A)
+    L: list[list[Array]] = [[None] * n for _ in range(n)]  # type: ignore[list-item]
     for j in range(n):
-        d = A[j, j] - jnp.sum(L[j, :j] ** 2)
-        ljj = jnp.sqrt(jnp.maximum(d, 1e-300))
-        L = L.at[j, j].set(ljj)
-        if j + 1 < n:
-            col = (A[j + 1 :, j] - L[j + 1 :, :j] @ L[j, :j]) / ljj
-            L = L.at[j + 1 :, j].set(col)
-    y = jnp.zeros_like(b)
+        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), start=jnp.zeros((), A.dtype))
+        L[j][j] = jnp.sqrt(jnp.maximum(d, 1e-300))
+        for i in range(j + 1, n):
+            acc = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)),
+                                start=jnp.zeros((), A.dtype))
+            L[i][j] = acc / L[j][j]
+    y: list[Array] = []
     for j in range(n):
-        y = y.at[j].set((b[j] - L[j, :j] @ y[:j]) / L[j, j])
-    x = jnp.zeros_like(b)
+        acc = b[j] - sum((L[j][k] * y[k] for k in range(j)), start=jnp.zeros((), A.dtype))
+        y.append(acc / L[j][j])
+    x: list[Array] = [None] * n  # type: ignore[list-item]
     for j in reversed(range(n)):
-        x = x.at[j].set((y[j] - L[j + 1 :, j] @ x[j + 1 :]) / L[j, j])
-    return x
+        acc = y[j] - sum((L[k][j] * x[k] for k in range(j + 1, n)),
+                         start=jnp.zeros((), A.dtype))
+        x[j] = acc / L[j][j]
+    return jnp.stack(x)
 
 
 def _solve_masked(G: Array, g: Array, mask: Array, ridge: float = 1e-10) -> Array:
@@ -154,6 +161,9 @@ def _solve_masked(G: Array, g: Array, mask: Array, ridge: float = 1e-10) -> Arra
     return beta / d
 
 
+_solve_masked_jit = jax.jit(_solve_masked)
+
+
 def _rss(G: Array, g: Array, s: Array, delta: Array) -> Array:
     return jnp.maximum(s - 2.0 * delta @ g + delta @ G @ delta, 0.0)
 
@@ -163,6 +173,7 @@ class Bounds(NamedTuple):
 
     lo: Array
     hi: Array
+    span: Array
 
 
 def _solve_bounded(G: Array, g: Array, mask: Array, bounds: Bounds) -> Array:
@@ -190,11 +201,12 @@ def subset_rss(G: Array, g: Array, s: Array, masks: Array, bounds: Bounds) -> tu
 
 @jax.jit
 def choose_subset(
-    rss: Array, k: Array, n: Array, group_bits: Array, min_explained: Array
+    rss: Array, k: Array, n: Array, group_bits: Array, min_explained: Array, sized: Array
 ) -> Array:
     """Index of the admissible subset with the smallest BIC (module docstring, step 3).
 
-    ``k`` (M,) free parameters per subset, ``n`` rows, ``group_bits`` (G,) ``1 << j``.
+    ``k`` (M,) free parameters per subset, ``n`` rows, ``group_bits`` (G,) ``1 << j``,
+    ``sized`` (M, G) whether each effect's estimate is of relevant size in that subset.
     """
     M = rss.shape[0]
     idx = jnp.arange(M)
@@ -203,12 +215,12 @@ def choose_subset(
     has = (idx[:, None] & group_bits[None, :]) != 0  # (M, G)
     without = rss[idx[:, None] & ~group_bits[None, :]]  # (M, G)
     gain = (without - rss[:, None]) / jnp.maximum(without, 1e-300)
-    ok = jnp.all(~has | (gain >= min_explained), axis=1)
+    ok = jnp.all(~has | ((gain >= min_explained) & sized), axis=1)
     return jnp.argmin(jnp.where(ok, bic, jnp.inf))
 
 
 def _select(lin: Linearisation, weights: Array, masks: Array, group_bits, min_explained,
-            bounds: Bounds):
+            bounds: Bounds, min_size, members: Array):
     G = jnp.einsum("b,bij->ij", weights, lin.G)
     g = jnp.einsum("b,bi->i", weights, lin.g)
     s = weights @ lin.s
@@ -216,15 +228,19 @@ def _select(lin: Linearisation, weights: Array, masks: Array, group_bits, min_ex
     live = masks & lin.alive[None, :]
     rss, deltas = subset_rss(G, g, s, live, bounds)
     k = jnp.sum(live, axis=1)
-    best = choose_subset(rss, k, n, group_bits, min_explained)
+    # Size of each effect: its largest parameter step as a share of the plausible range.
+    rel = jnp.abs(deltas) / bounds.span  # (M, P)
+    size = jnp.max(jnp.where(members[None, :, :], rel[:, None, :], 0.0), axis=2)  # (M, G)
+    best = choose_subset(rss, k, n, group_bits, min_explained, size >= min_size)
     return best, rss, deltas
 
 
 @jax.jit
 def _bootstrap(lin: Linearisation, counts: Array, masks: Array, group_bits, min_explained,
-               bounds: Bounds, fixed_mask: Array):
+               bounds: Bounds, min_size, members: Array, fixed_mask: Array):
     def one(w):
-        best, _, _ = _select(lin, w, masks, group_bits, min_explained, bounds)
+        best, _, _ = _select(lin, w, masks, group_bits, min_explained, bounds, min_size,
+                             members)
         G = jnp.einsum("b,bij->ij", w, lin.G)
         g = jnp.einsum("b,bi->i", w, lin.g)
         return best, _solve_masked(G, g, fixed_mask & lin.alive)
@@ -360,9 +376,10 @@ def identify(
     groups: Sequence[Sequence[int]],
     low: np.ndarray,
     high: np.ndarray,
-    config: SelectionConfig = SelectionConfig(),
+    config: SelectionConfig | None = None,
 ) -> Identification:
     """Select, fit and rate effects for the residuals ``residual_fn`` (module docstring)."""
+    config = SelectionConfig() if config is None else config
     theta_base = np.asarray(theta_base, dtype=float)
     low, high = np.asarray(low, float), np.asarray(high, float)
     P = theta_base.shape[0]
@@ -372,7 +389,10 @@ def identify(
     masks = jnp.asarray(group_masks(groups, P))
     bits = jnp.asarray([1 << j for j in range(len(groups))])
     rho = jnp.asarray(config.min_explained)
-    bounds = Bounds(jnp.asarray(low - theta_base), jnp.asarray(high - theta_base))
+    bounds = Bounds(jnp.asarray(low - theta_base), jnp.asarray(high - theta_base),
+                    jnp.asarray(span))
+    min_size = jnp.asarray(config.min_size)
+    members = jnp.asarray(group_masks(groups, P)[[1 << j for j in range(len(groups))]])
 
     r_base = np.asarray(residual_fn(jnp.asarray(theta_base)))
     n_win = r_base.shape[0]
@@ -385,7 +405,7 @@ def identify(
     W0, _ = _whitening(np.nan_to_num(r_base), keep)
     lin0, _, _ = linearise(np.nan_to_num(r_base), np.nan_to_num(jac), W0, keep, blocks,
                            n_blocks, span)
-    full = _solve_masked(lin0.G.sum(0), lin0.g.sum(0), lin0.alive)
+    full = _solve_masked_jit(lin0.G.sum(0), lin0.g.sum(0), lin0.alive)
     e_all = r_base + np.einsum("ncp,p->nc", np.nan_to_num(jac), np.asarray(full))
     W, keep = _whitening(np.nan_to_num(e_all), keep)
 
@@ -417,17 +437,21 @@ def identify(
             gains[j] = (c_off - c_full) / max(c_off, 1e-300)
         return gains
 
+    def size(th: np.ndarray, j: int) -> float:
+        idx = list(groups[j])
+        return float(np.max(np.abs(th[idx] - theta_base[idx]) / span[idx]))
+
     theta = theta_base.copy()
     alive_any = np.asarray(lin0.alive).copy()
     selected: tuple[int, ...] = ()
     r, J = r_base, jac
     rounds = 0
-    for rounds in range(1, config.max_rounds + 1):  # noqa: B007
+    for rounds in range(1, config.max_rounds + 1):
         # Linearise at the current fit; target as if the fitted effects were switched off.
         y_base = r - np.einsum("ncp,p->nc", J, theta - theta_base)
         lin, _, _ = linearise(y_base, J, W, keep, blocks, n_blocks, span)
         alive_any |= np.asarray(lin.alive)
-        best, _, deltas = _select(lin, ones, masks, bits, rho, bounds)
+        best, _, deltas = _select(lin, ones, masks, bits, rho, bounds, min_size, members)
         new = tuple(j for j in range(len(groups)) if int(best) >> j & 1)
         if set(new) <= set(selected) and rounds > 1:
             break
@@ -435,7 +459,8 @@ def identify(
         theta = fit(new, theta_base + np.asarray(deltas[int(best)]))
         # Keep only effects that are relevant on the nonlinear model, refit without the rest.
         gains = drop_gains(theta, new)
-        kept = tuple(j for j in new if gains[j] >= config.min_explained)
+        kept = tuple(j for j in new
+                     if gains[j] >= config.min_explained and size(theta, j) >= config.min_size)
         if kept != new:
             theta = theta_base.copy() if not kept else fit(kept, theta)
         selected = kept
@@ -450,7 +475,7 @@ def identify(
     counts = jnp.asarray(rng.multinomial(n_blocks, np.full(n_blocks, 1.0 / n_blocks),
                                          size=config.n_boot).astype(float))
     sel_mask = jnp.asarray(group_masks(groups, P)[sum(1 << j for j in selected)])
-    best_b, _ = _bootstrap(lin, counts, masks, bits, rho, bounds, sel_mask)
+    best_b, _ = _bootstrap(lin, counts, masks, bits, rho, bounds, min_size, members, sel_mask)
     best_b = np.asarray(best_b)
     confidence = np.array([np.mean((best_b >> j) & 1) for j in range(len(groups))])
     contribution = np.zeros(len(groups))
@@ -473,10 +498,10 @@ def identify(
             y_base = r - np.einsum("ncp,p->nc", J, theta_conf - theta_base)
             lin, _, _ = linearise(y_base, J, W, keep, blocks, n_blocks, span)
     conf_mask = jnp.asarray(group_masks(groups, P)[sum(1 << j for j in confident)])
-    _, deltas_b = _bootstrap(lin, counts, masks, bits, rho, bounds, conf_mask)
+    _, deltas_b = _bootstrap(lin, counts, masks, bits, rho, bounds, min_size, members, conf_mask)
     # Bootstrap estimates around the nonlinear fit: the linear solution's spread.
     G_all = lin.G.sum(0)
-    d_full = np.asarray(_solve_masked(G_all, lin.g.sum(0), conf_mask & lin.alive))
+    d_full = np.asarray(_solve_masked_jit(G_all, lin.g.sum(0), conf_mask & lin.alive))
     samples = theta_conf[None, :] + (np.asarray(deltas_b) - d_full[None, :])
     samples = np.clip(samples, low, high)
     return Identification(

@@ -10,6 +10,7 @@ on the MAP path of the beam split the log into segments of homogeneous model err
 
 from __future__ import annotations
 
+import itertools
 from typing import NamedTuple
 
 import jax
@@ -44,12 +45,13 @@ def _map_last_changepoints(resid: Array, pi, beta, tau2, sigma2, theta0: Array) 
     return jax.lax.scan(body, state, resid)[1]
 
 
-def changepoints(resid: Array, seg: Segmenter = Segmenter(), min_gap: int = 1) -> np.ndarray:
+def changepoints(resid: Array, seg: Segmenter | None = None, min_gap: int = 1) -> np.ndarray:
     """Changepoint indices (ascending) of whitened residuals ``resid (n, c)`` (Algorithm 1).
 
     The MAP path's changepoints are recovered by backtracking the per-step latest
     changepoint of the MAP hypothesis; changepoints closer than ``min_gap`` are merged.
     """
+    seg = Segmenter() if seg is None else seg
     resid = jnp.asarray(resid)
     theta0 = jnp.zeros((seg.K, resid.shape[1], 1), resid.dtype)
     last = np.asarray(
@@ -97,6 +99,6 @@ def segment_rms(resid: Array, cps: np.ndarray) -> list[tuple[int, int, np.ndarra
     bounds = [0, *[int(c) for c in cps], resid.shape[0]]
     return [
         (a, b, np.sqrt(np.mean(resid[a:b] ** 2, axis=0)))
-        for a, b in zip(bounds[:-1], bounds[1:])
+        for a, b in itertools.pairwise(bounds)
         if b > a
     ]

@@ -1,0 +1,81 @@
+"""Flight logs (design §5): CSV round trip and clear errors for unusable logs."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+
+from arcade.flightlog import LogError, columns, from_arrays, read_log, write_log
+
+
+def _quad_log(n=50, dt=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n, 13))
+    X[:, 6:10] /= np.linalg.norm(X[:, 6:10], axis=1, keepdims=True)
+    return from_arrays("quadrotor", np.arange(n) * dt, X, rng.normal(size=(n, 4)))
+
+
+def _csv(header, rows):
+    return io.StringIO(",".join(header) + "\n" + "\n".join(",".join(map(str, r)) for r in rows))
+
+
+def test_round_trip_is_exact(tmp_path):
+    log = _quad_log()
+    back = read_log(write_log(tmp_path / "log.csv", log), "quadrotor")
+    np.testing.assert_array_equal(back.t, log.t)
+    np.testing.assert_array_equal(back.X, log.X)
+    np.testing.assert_array_equal(back.U, log.U)
+    assert back.dt == pytest.approx(0.01)
+
+
+def test_extra_columns_and_any_order_are_accepted():
+    n = 30
+    head = ["thetadot", "extra", "u", "t", "x", "xdot", "theta"]
+    rows = [[0.1 * k, 99, -k, 0.05 * k, k, 2 * k, 3 * k] for k in range(n)]
+    log = read_log(_csv(head, rows), "cartpole")
+    np.testing.assert_allclose(log.X[3], [3, 6, 9, 0.3])
+    np.testing.assert_allclose(log.U[:, 0], -np.arange(n))
+    assert log.dt == pytest.approx(0.05)
+
+
+def test_missing_columns_are_named():
+    head = [c for c in columns("quadrotor") if c not in ("qw", "u2")]
+    rows = [[0.01 * k] + [0.0] * (len(head) - 1) for k in range(30)]
+    with pytest.raises(LogError, match=r"missing column\(s\) qw, u2"):
+        read_log(_csv(head, rows), "quadrotor")
+
+
+def test_non_constant_rate_is_rejected():
+    t = np.arange(40) * 0.01
+    t[20:] += 0.004  # one 14 ms step
+    head = list(columns("cartpole"))
+    rows = [[tk, 0, 0, 0, 0, 0] for tk in t]
+    with pytest.raises(LogError, match="sample rate is not constant"):
+        read_log(_csv(head, rows), "cartpole")
+    rows[5][0] = rows[4][0]
+    with pytest.raises(LogError, match="time does not increase at row 7"):
+        read_log(_csv(head, rows), "cartpole")
+
+
+@pytest.mark.parametrize(("value", "message"), [("nan", "non-finite"), ("abc", "not a number")])
+def test_bad_values_are_located(value, message):
+    head = list(columns("cartpole"))
+    rows = [[0.05 * k, 0, 0, 0, 0, 0] for k in range(30)]
+    rows[12][3] = value
+    with pytest.raises(LogError, match=rf"{message}.*theta.*row 14|row 14.*theta.*{message}"):
+        read_log(_csv(head, rows), "cartpole")
+
+
+def test_too_short_and_bad_quaternion():
+    head = list(columns("cartpole"))
+    with pytest.raises(LogError, match="at least"):
+        read_log(_csv(head, [[0.05 * k, 0, 0, 0, 0, 0] for k in range(5)]), "cartpole")
+    log = _quad_log()
+    X = log.X.copy()
+    X[7, 6:10] = 0.0
+    with pytest.raises(LogError, match="unit quaternion"):
+        from_arrays("quadrotor", log.t, X, log.U)
+    with pytest.raises(ValueError, match="unknown system"):
+        columns("boat")
