@@ -42,16 +42,22 @@ def write_plots(out: Path, result: dict[str, Any], details: dict[str, Any]) -> l
     plt.close(fig)
 
     act = result["heldout_components"]
-    t = details["t"][details["ho"]]
-    fig, axes = plt.subplots(len(act), 1, figsize=(9, 1.6 * len(act) + 0.6), sharex=True,
-                             squeeze=False)
+    t = np.array(details["t"][details["ho"]], dtype=float)
+    # Break the lines between held-out blocks.
+    gaps = np.flatnonzero(np.diff(t) > 1.5 * np.median(np.diff(t))) + 1
+    t = np.insert(t, gaps, np.nan)
+    err_b = np.insert(details["err_before"], gaps, np.nan, axis=0)
+    err_a = np.insert(details["err_after"], gaps, np.nan, axis=0)
+    fig, axes = plt.subplots(
+        len(act), 1, figsize=(9, 1.6 * len(act) + 0.6), sharex=True, squeeze=False
+    )
     for ax, c in zip(axes[:, 0], act):
         i = comps.index(c)
-        ax.plot(t, details["err_before"][:, i], lw=0.6, label="current model")
-        ax.plot(t, details["err_after"][:, i], lw=0.6, label="with named effects")
+        ax.plot(t, err_b[:, i], lw=0.6, label="current model")
+        ax.plot(t, err_a[:, i], lw=0.6, label="with named effects")
         ax.set_ylabel(c)
     axes[0, 0].legend(loc="upper right", fontsize=7)
-    axes[-1, 0].set_xlabel("time [s] (held-out part)")
+    axes[-1, 0].set_xlabel("time [s] (held-out blocks)")
     fig.tight_layout()
     paths.append(out / "heldout_residuals.png")
     fig.savefig(paths[-1], dpi=110)
@@ -90,7 +96,7 @@ def render_report(result: dict[str, Any], plots: list[Path]) -> str:
         "",
         f"**{result['summary']}**",
         "",
-        f"Log: {result['samples']} samples; the first {result['fit_samples']} were fitted, "
+        f"Log: {result['samples']} samples; {result['fit_samples']} in the fitted blocks, "
         f"the rest held out. Model step {result['step_s']:.3g} s; "
         f"{result['outlier_windows']} outlier windows left out.",
         "",
@@ -136,8 +142,12 @@ def render_report(result: dict[str, Any], plots: list[Path]) -> str:
             f"- {r['component']}: {r['rms_noise']:.2f} x noise ({r['ratio']:.2f} x its mean) "
             f"for {r['regime']} in [{r['bin'][0]:.3g}, {r['bin'][1]:.3g}]"
         )
-    lines.append(f"- {len(loc['segments'])} time segment(s) (changepoints of Algorithm 1):")
-    for s in loc["segments"][:12]:
+    lines.append(
+        f"- {len(loc['segments'])} time segment(s) (changepoints of Algorithm 1); "
+        "the ones with the largest gap:"
+    )
+    worst_first = sorted(loc["segments"], key=lambda s: -max(s["rms_noise"].values()))
+    for s in sorted(worst_first[:6], key=lambda s: s["t_start"]):
         worst = max(s["rms_noise"], key=s["rms_noise"].get)
         lines.append(
             f"  - {s['t_start']:.1f}-{s['t_end']:.1f} s: largest {worst} "

@@ -27,10 +27,24 @@ from arcade_core.dynamics.cartpole import cartpole_true_step
 from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_NOMINAL, CARTPOLE_TRUE
 from simulator import EFFECTS as SIM_EFFECTS
 
-QUAD_NAMES = {"rotor_drag", "quadratic_drag", "ground_effect", "thrust_scale", "motor_lag",
-              "rate_lag", "com_offset", "wind"}
-CART_NAMES = {"cart_viscous_friction", "pole_viscous_friction", "coulomb_friction",
-              "force_bias", "mass_mismatch", "length_mismatch"}
+QUAD_NAMES = {
+    "rotor_drag",
+    "quadratic_drag",
+    "ground_effect",
+    "thrust_scale",
+    "motor_lag",
+    "rate_lag",
+    "com_offset",
+    "wind",
+}
+CART_NAMES = {
+    "cart_viscous_friction",
+    "pole_viscous_friction",
+    "coulomb_friction",
+    "force_bias",
+    "mass_mismatch",
+    "length_mismatch",
+}
 
 
 # ---------------------------------------------------------------- library
@@ -97,8 +111,9 @@ def test_rate_lag_delay_is_an_exact_input_shift():
     shifted[2:, 1:4] = U[:-2, 1:4]
     shifted[:2, 1:4] = U[0, 1:4]
     a = qm.predict_windows(model, delayed, jnp.asarray(X), jnp.asarray(U), starts, 5, dt)
-    b = qm.predict_windows(model, qm.theta_off(model), jnp.asarray(X), jnp.asarray(shifted),
-                           starts, 5, dt)
+    b = qm.predict_windows(
+        model, qm.theta_off(model), jnp.asarray(X), jnp.asarray(shifted), starts, 5, dt
+    )
     np.testing.assert_allclose(a, b, atol=1e-11)
     # A fractional delay switches the input inside a step, exactly: half a step of delay
     # equals one step of delay on a log sampled twice as fast (rates are solved exactly).
@@ -107,10 +122,10 @@ def test_rate_lag_delay_is_an_exact_input_shift():
     fine_X = np.repeat(X, 2, axis=0)
     half = qm.theta_off(model).at[9].set(0.5 * dt)
     c = qm.predict_windows(model, half, jnp.asarray(X), jnp.asarray(U), starts, 5, dt)
-    f = qm.predict_windows(model, qm.theta_off(model), jnp.asarray(fine_X),
-                           jnp.asarray(fine_U), 2 * starts, 10, dt / 2)
-    np.testing.assert_allclose(np.asarray(c)[:, -1, 10:13], np.asarray(f)[:, -1, 10:13],
-                               atol=1e-10)
+    f = qm.predict_windows(
+        model, qm.theta_off(model), jnp.asarray(fine_X), jnp.asarray(fine_U), 2 * starts, 10, dt / 2
+    )
+    np.testing.assert_allclose(np.asarray(c)[:, -1, 10:13], np.asarray(f)[:, -1, 10:13], atol=1e-10)
 
 
 def test_hover_is_an_equilibrium_and_rates_follow_setpoints():
@@ -119,13 +134,15 @@ def test_hover_is_an_equilibrium_and_rates_follow_setpoints():
     n = 400
     U = np.tile([0.57 * 9.81, 0.0, 0.0, 0.0], (n, 1))
     X = np.tile(np.r_[0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0.0], (n, 1))
-    pred = np.asarray(qm.predict_windows(model, theta, jnp.asarray(X), jnp.asarray(U),
-                                         jnp.array([0]), 300, 0.01))[0]
+    pred = np.asarray(
+        qm.predict_windows(model, theta, jnp.asarray(X), jnp.asarray(U), jnp.array([0]), 300, 0.01)
+    )[0]
     np.testing.assert_allclose(pred[-1], X[0], atol=1e-9)
     # A constant yaw-rate setpoint is tracked without steady-state error (PID integrator).
     U[100:, 3] = 0.4
-    pred = np.asarray(qm.predict_windows(model, theta, jnp.asarray(X), jnp.asarray(U),
-                                         jnp.array([0]), 300, 0.01))[0]
+    pred = np.asarray(
+        qm.predict_windows(model, theta, jnp.asarray(X), jnp.asarray(U), jnp.array([0]), 300, 0.01)
+    )[0]
     assert pred[-1, 12] == pytest.approx(0.4, abs=2e-3)
     assert abs(pred[99, 12]) < 1e-9  # pred[k] is the state at sample k + 1
     assert 0.05 < pred[102, 12] < 0.3  # ... with the loop's lag (about 50 ms)
@@ -145,8 +162,9 @@ def test_cartpole_model_with_the_papers_effects_is_the_papers_true_system():
         x = jnp.asarray(rng.normal(size=4))
         u, noise = rng.normal(scale=3.0), rng.normal(scale=0.7)
         ours = cp.true_step(model, theta, x, u, CARTPOLE_DT, noise)
-        paper = cartpole_true_step(None, x, u, CARTPOLE_TRUE, CARTPOLE_DT,
-                                   u_dist=CARTPOLE_TRUE.dist_mean + noise)
+        paper = cartpole_true_step(
+            None, x, u, CARTPOLE_TRUE, CARTPOLE_DT, u_dist=CARTPOLE_TRUE.dist_mean + noise
+        )
         np.testing.assert_allclose(ours, paper, rtol=1e-12, atol=1e-12)
     # Coulomb friction opposes the cart's motion.
     x = jnp.array([0.0, 1.0, 0.0, 0.0])
@@ -186,8 +204,14 @@ def test_identify_names_the_true_effects_with_confidence_and_intervals():
 
 
 def test_identify_says_nothing_when_there_is_nothing():
-    res = identify(_linear_problem(np.zeros(5), seed=3), np.zeros(5), GROUPS, LOW, HIGH,
-                   SelectionConfig(n_boot=100, block=50))
+    res = identify(
+        _linear_problem(np.zeros(5), seed=3),
+        np.zeros(5),
+        GROUPS,
+        LOW,
+        HIGH,
+        SelectionConfig(n_boot=100, block=50),
+    )
     assert res.confident == () and np.all(res.theta == 0.0)
     assert np.all(res.confidence < 0.9)
 

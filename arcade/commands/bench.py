@@ -16,6 +16,7 @@ BENCHES = {
     "adapt": "benchmarks.adapt",
     "mpc": "benchmarks.mpc",
     "loop": "benchmarks.loop",
+    "discrepancy": "benchmarks.discrepancy",
 }
 
 

@@ -16,9 +16,14 @@ The workflow of design §6 on one flight log (CSV, design §5 columns, any const
    ``--confidence`` are added; otherwise the answer is "no confident effect".
 4. **Add**: an updated vehicle/model file with the effects in its ``[effects]`` table,
    loadable by ``arcade.vehicle.load_vehicle``, the simulator and the JAX model.
-5. **Show**: the log is split in time: the first part is fitted, the last ``--heldout``
-   fraction only evaluated. Before/after one-step RMSE and multi-step CRMSE per component,
-   plots and a short report in ``--out``.
+5. **Show**: the log is split in time into blocks of 2 s; a ``--heldout`` fraction of
+   them, spread evenly over the flight, is only evaluated, never fitted (so that the
+   held-out part sees the same kinds of flight as the fitted part). Before/after one-step
+   RMSE and multi-step CRMSE per component, plots and a short report in ``--out``.
+
+Inputs are a zero-order hold per row (design §5: the setpoint in effect from ``t`` to the
+next row). A log whose setpoint changed between rows (resampled without regard to the
+controller's instants) shows an apparent input lag, which the workflow will name.
 
 ``heldout_rmse_before/after`` is the one-step RMSE over the state components the added
 effects act on (the library's ``acts_on``) where their contribution to the held-out
@@ -31,6 +36,7 @@ every component.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -60,6 +66,7 @@ class Settings:
 
     step_s: float = 0.05
     heldout: float = 0.3
+    heldout_block_s: float = 2.0
     horizon_s: float = 1.0
     burn_in_s: float = 3.0
     block_s: float = 2.0
@@ -148,8 +155,6 @@ class _System:
     """One system's model, parameter layout and jitted predictions."""
 
     def __init__(self, system: str, vehicle: dict[str, Any]):
-        import jax
-
         from arcade.commands.simulate import validate_tables
 
         self.name = system
@@ -165,8 +170,9 @@ class _System:
             from arcade_core.discrepancy import cartpole as mod
 
             c = vehicle["cartpole"]
-            self.model = mod.CartpoleModel(float(c["M"]), float(c["m"]), float(c["L"]),
-                                           float(c.get("g", 9.81)))
+            self.model = mod.CartpoleModel(
+                float(c["M"]), float(c["m"]), float(c["L"]), float(c.get("g", 9.81))
+            )
             self.components = CART_COMPONENTS
             self.channels = CART_CHANNELS
         self.mod = mod
@@ -175,7 +181,6 @@ class _System:
         self.high = np.asarray(mod.THETA_HIGH, float)
         self.theta_base = np.asarray(mod.theta_from_effects(self.model, self.effect_tables))
         self._predict = _jitted_predict(system)
-        del jax
 
     def predict(self, theta, X, U, starts, steps: int, dt: float) -> np.ndarray:
         """Predictions ``(len(starts), steps, nx)`` (padded to shared shapes for jit reuse)."""
@@ -187,8 +192,15 @@ class _System:
         Xp = np.concatenate([X, np.repeat(X[-1:], n_pad - n, axis=0)])
         Up = np.concatenate([U, np.repeat(U[-1:], n_pad - n, axis=0)])
         sp = np.concatenate([starts, np.full(m_pad - m, starts[0])]).astype(np.int32)
-        out = self._predict(self.model, jnp.asarray(theta), jnp.asarray(Xp), jnp.asarray(Up),
-                            jnp.asarray(sp), steps=steps, dt=dt)
+        out = self._predict(
+            self.model,
+            jnp.asarray(theta),
+            jnp.asarray(Xp),
+            jnp.asarray(Up),
+            jnp.asarray(sp),
+            steps=steps,
+            dt=dt,
+        )
         return np.asarray(out)[:m]
 
     def errors(self, X, pred, starts, steps) -> np.ndarray:
@@ -207,16 +219,15 @@ class _System:
         return self.mod.effect_params(theta, name)
 
 
+@functools.cache
 def _jitted_predict(system: str):
+    """One jitted prediction function per system (compiled once per shape)."""
     import jax
 
     from arcade_core.discrepancy import cartpole, quadrotor
 
     fn = quadrotor.predict_windows if system == "quadrotor" else cartpole.predict_windows
-    return _JIT.setdefault(system, jax.jit(fn, static_argnames=("steps", "dt")))
-
-
-_JIT: dict[str, Any] = {}
+    return jax.jit(fn, static_argnames=("steps", "dt"))
 
 
 def _attitude_error(q_meas: np.ndarray, q_pred: np.ndarray) -> np.ndarray:
@@ -242,6 +253,22 @@ class Outcome:
 
 def _windows(start: int, stop: int, steps: int, stride: int) -> np.ndarray:
     return np.arange(start, max(stop - steps, start), stride, dtype=np.int64)
+
+
+def split_blocks(n: int, block: int, fraction: float) -> list[tuple[int, int, bool]]:
+    """``(start, stop, held_out)`` blocks of ``block`` samples; a ``fraction`` of them,
+    spread evenly over the log (the last block of every ``1/fraction``), is held out."""
+    out = []
+    n_blocks = max(1, -(-n // block))
+    for i in range(n_blocks):
+        held = math.floor((i + 1) * fraction) > math.floor(i * fraction)
+        out.append((i * block, min(n, (i + 1) * block), held))
+    return out
+
+
+def _block_windows(blocks, held: bool, start: int, steps: int, stride: int) -> np.ndarray:
+    parts = [_windows(max(a, start), b, steps, stride) for a, b, h in blocks if h == held]
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
 
 def _rms(a: np.ndarray, axis=0) -> np.ndarray:
@@ -280,9 +307,10 @@ def run_workflow(
     H = max(1, round(settings.step_s / dt))
     if not 0.05 <= settings.heldout <= 0.5:
         raise ValueError("heldout must be between 0.05 and 0.5")
-    n_fit = round(n * (1.0 - settings.heldout))
     burn = round(settings.burn_in_s / dt) if system == "quadrotor" else 0
-    fit_starts = _windows(burn, n_fit, H, H)
+    blocks = split_blocks(n, max(1, round(settings.heldout_block_s / dt)), settings.heldout)
+    n_fit = sum(b - a for a, b, h in blocks if not h)
+    fit_starts = _block_windows(blocks, False, burn, H, H)
     if len(fit_starts) < 50:
         raise ValueError(
             f"log too short: {len(fit_starts)} fitting windows of {H * dt:.3g} s "
@@ -303,16 +331,18 @@ def run_workflow(
         block=max(1, round(settings.block_s / (H * dt))),
         seed=settings.seed,
     )
-    ident = identify(residual_fn, sysm.theta_base, [g for _, g in sysm.groups], sysm.low,
-                     sysm.high, cfg)
+    ident = identify(
+        residual_fn, sysm.theta_base, [g for _, g in sysm.groups], sysm.low, sysm.high, cfg
+    )
     say(f"selected {[sysm.groups[j][0] for j in ident.selected]} in {ident.rounds} round(s)")
 
     # ---- effects, parameters, intervals
     specs = effects_for(system)
     effects_out = []
-    listed = sorted(set(ident.selected) | {j for j, c in enumerate(ident.confidence) if c >= 0.5},
-                    key=lambda j: (-(j in ident.confident), -ident.contribution[j],
-                                   -ident.confidence[j]))
+    listed = sorted(
+        set(ident.selected) | {j for j, c in enumerate(ident.confidence) if c >= 0.5},
+        key=lambda j: (-(j in ident.confident), -ident.contribution[j], -ident.confidence[j]),
+    )
     for j in listed:
         name = sysm.groups[j][0]
         theta_j = ident.theta if j in ident.confident else ident.theta_selected
@@ -332,7 +362,7 @@ def run_workflow(
     confident_names = [sysm.groups[j][0] for j in ident.confident]
 
     # ---- held-out before/after
-    ho = _windows(n_fit, n, H, 1)
+    ho = _block_windows(blocks, True, burn, H, 1)
     theta_b, theta_a = sysm.theta_base, ident.theta
     err_b = sysm.errors(X, sysm.predict(theta_b, X, U, ho, H, dt), ho, H)[:, -1]
     err_a = sysm.errors(X, sysm.predict(theta_a, X, U, ho, H, dt), ho, H)[:, -1]
@@ -343,20 +373,22 @@ def run_workflow(
         # The components the added effects act on (library) and, of those, the ones where
         # their contribution to the held-out prediction stands out of what is left (at
         # least half of it): where the effect is visible in this log.
-        act = sorted({c for nme in confident_names for c in specs[nme].acts_on},
-                     key=comps.index)
+        act = sorted({c for nme in confident_names for c in specs[nme].acts_on}, key=comps.index)
         change = _rms(err_b - err_a)
         moved = [c for c in act if change[comps.index(c)] >= 0.5 * gap_after[c]]
         act = moved or act
     else:
-        act = [comps[i] for i in (3, 4, 5, 9, 10, 11)] if system == "quadrotor" else [
-            "xdot", "thetadot"]
+        act = (
+            [comps[i] for i in (3, 4, 5, 9, 10, 11)]
+            if system == "quadrotor"
+            else ["xdot", "thetadot"]
+        )
     sel = [comps.index(c) for c in act]
     rmse_b = float(_rms(err_b[:, sel].reshape(-1)))
     rmse_a = float(_rms(err_a[:, sel].reshape(-1)))
     M = max(2, round(settings.horizon_s / dt))
     stride = max(1, round(0.5 / dt))
-    cr_starts = _windows(n_fit, n, M, stride)
+    cr_starts = _block_windows(blocks, True, burn, M, stride)
     crmse_b: dict[str, float] = {}
     crmse_a: dict[str, float] = {}
     if len(cr_starts):
@@ -370,9 +402,12 @@ def run_workflow(
     loc = _localise(sysm, X, U, dt, fit_starts, H, theta_b, ident.weights)
 
     summary = (
-        "named: " + ", ".join(
-            f"{e['name']} (confidence {e['confidence']:.2f})" for e in effects_out if e["added"])
-        if confident_names else "no confident effect"
+        "named: "
+        + ", ".join(
+            f"{e['name']} (confidence {e['confidence']:.2f})" for e in effects_out if e["added"]
+        )
+        if confident_names
+        else "no confident effect"
     )
     result: dict[str, Any] = {
         "system": system,
@@ -428,9 +463,14 @@ def _localise(sysm, X, U, dt, starts, H, theta, W) -> dict[str, Any]:
 
     err = sysm.errors(X, sysm.predict(theta, X, U, starts, H, dt), starts, H)[:, -1]
     comps = list(sysm.components)
-    dyn = [comps.index(c) for c in
-           (("vx", "vy", "vz", "wx", "wy", "wz") if sysm.name == "quadrotor"
-            else ("xdot", "thetadot"))]
+    dyn = [
+        comps.index(c)
+        for c in (
+            ("vx", "vy", "vz", "wx", "wy", "wz")
+            if sysm.name == "quadrotor"
+            else ("xdot", "thetadot")
+        )
+    ]
     W = np.asarray(W)
     sigma = np.sqrt(np.diag(np.linalg.inv(W.T @ W)))
     norm = err[:, dyn] / sigma
@@ -456,14 +496,24 @@ def _localise(sysm, X, U, dt, starts, H, theta, W) -> dict[str, Any]:
     by_regime, findings = {}, []
     for name, var in regimes.items():
         b = binned_rms(norm, var, bins=4)
-        by_regime[name] = {"edges": b.edges.tolist(),
-                           "rms": {c: b.rms[:, i].tolist() for i, c in enumerate(names)}}
+        by_regime[name] = {
+            "edges": b.edges.tolist(),
+            "rms": {c: b.rms[:, i].tolist() for i, c in enumerate(names)},
+        }
         for i, c in enumerate(names):
             k = int(np.argmax(b.rms[:, i]))
-            findings.append((float(b.rms[k, i]), float(b.rms[k, i] / max(overall[i], 1e-12)),
-                             name, c, b.edges[k], b.edges[k + 1]))
+            findings.append(
+                (
+                    float(b.rms[k, i]),
+                    float(b.rms[k, i] / max(overall[i], 1e-12)),
+                    name,
+                    c,
+                    b.edges[k],
+                    b.edges[k + 1],
+                )
+            )
     # Regimes where a component's gap concentrates: most noise levels, then most contrast.
-    findings.sort(key=lambda f: (-f[0] * f[1]))
+    findings.sort(key=lambda f: -f[0] * f[1])
     cps = changepoints(norm @ np.eye(len(names)), min_gap=max(1, round(1.0 / (H * dt))))
     t0 = starts * dt
     segments = [
@@ -477,8 +527,7 @@ def _localise(sysm, X, U, dt, starts, H, theta, W) -> dict[str, Any]:
         "noise": {c: float(v) for c, v in zip(names, sigma)},
         "largest": names[int(np.argmax(overall))],
         "regimes": [
-            {"regime": f, "bin": [float(lo), float(hi)], "component": c, "rms_noise": r,
-             "ratio": q}
+            {"regime": f, "bin": [float(lo), float(hi)], "component": c, "rms_noise": r, "ratio": q}
             for r, q, f, c, lo, hi in findings[:3]
         ],
         "segments": segments,
@@ -529,13 +578,13 @@ def _clip_to_spec(system: str, name: str, params: dict[str, Any]) -> dict[str, A
     out = {}
     for k, v in params.items():
         lo, hi = specs[k].low, specs[k].high
-        out[k] = ([min(max(x, lo), hi) for x in v] if isinstance(v, list)
-                  else min(max(v, lo), hi))
+        out[k] = [min(max(x, lo), hi) for x in v] if isinstance(v, list) else min(max(v, lo), hi)
     return out
 
 
-def write_model_file(out: Path, system: str, veh: dict[str, Any], vehicle_path, sysm,
-                     ident) -> Path:
+def write_model_file(
+    out: Path, system: str, veh: dict[str, Any], vehicle_path, sysm, ident
+) -> Path:
     """The updated vehicle/model file: the original plus the confident effects."""
     effects = {k: dict(v) for k, v in sysm.effect_tables.items()}
     for j in ident.confident:
@@ -551,7 +600,8 @@ def write_model_file(out: Path, system: str, veh: dict[str, Any], vehicle_path, 
     else:
         c = veh["cartpole"]
         base = "[cartpole]\n" + "".join(
-            f"{k} = {_toml_value(float(c[k]))}\n" for k in ("M", "m", "L", "g") if k in c)
+            f"{k} = {_toml_value(float(c[k]))}\n" for k in ("M", "m", "L", "g") if k in c
+        )
         path = out / "cartpole_model.toml"
         header = "# Cartpole model file updated by `arcade discrepancy`.\n"
     path.write_text(header + base + _effects_toml(effects))
@@ -593,9 +643,13 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(result["summary"])
         for e in result["effects"]:
-            print(f"  {e['name']}: {e['params']} confidence {e['confidence']:.2f}"
-                  f"{'' if e['added'] else ' (not added)'}")
-        print(f"held-out one-step RMSE on {', '.join(result['heldout_components'])}: "
-              f"{result['heldout_rmse_before']:.4g} -> {result['heldout_rmse_after']:.4g}")
+            print(
+                f"  {e['name']}: {e['params']} confidence {e['confidence']:.2f}"
+                f"{'' if e['added'] else ' (not added)'}"
+            )
+        print(
+            f"held-out one-step RMSE on {', '.join(result['heldout_components'])}: "
+            f"{result['heldout_rmse_before']:.4g} -> {result['heldout_rmse_after']:.4g}"
+        )
         print(f"model file: {result['model_file']}; report in {out}")
     return 0

@@ -9,8 +9,12 @@ HELP = "list the library of physical effects (name, parameters with units and ra
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--system", choices=["quadrotor", "cartpole"], default=None,
-                   help="only the effects of one system")
+    p.add_argument(
+        "--system",
+        choices=["quadrotor", "cartpole"],
+        default=None,
+        help="only the effects of one system",
+    )
     p.add_argument("--json", action="store_true", help="print the library as JSON")
 
 

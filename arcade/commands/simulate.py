@@ -4,22 +4,30 @@ Quadrotor: the MuJoCo simulator (``simulator.QuadrotorSim``) with the effects of
 file (TOML, one table per effect by canonical name, e.g. ``[rotor_drag]`` /
 ``d = [0.4, 0.4, 0.05]``) on top of the vehicle file's own ``[effects]``. The pilot is the
 expert pilot of the offline datasets (``benchmarks.quadrotor_data.ExpertPilot``: cascaded
-position/attitude control emitting thrust + body rates, unaware of the effects) with its
-low-pass setpoint excitation, following the datasets' random spline
-(``RandomPath``) with one addition: **ground passes**. Every :data:`GROUND_PERIOD_S` the
-reference height blends smoothly down to :data:`APPROACH_HEIGHT_M`, then slowly on to
-:data:`GROUND_HEIGHT_M`, holds there for :data:`GROUND_HOLD_S` and climbs back (with the
-horizontal motion going on), so that effects that live near
-the floor are observable in every part of the log; the excitation is turned down to
-:data:`GROUND_EXCITATION` of its size from one ramp before the descent to one ramp after the
-climb, so that it cannot push the vehicle into the floor.
+position/attitude control emitting thrust + body rates at 20 Hz, unaware of the effects)
+with its low-pass setpoint excitation, following the datasets' random spline
+(``RandomPath``), with three changes (:class:`GroundPassPath`):
+
+- **ground passes**: every :data:`GROUND_PERIOD_S` the reference height blends down to
+  :data:`APPROACH_HEIGHT_M`, then slowly on to :data:`GROUND_HEIGHT_M`, holds there for
+  :data:`GROUND_HOLD_S` and climbs back, so that effects that live near the floor show in
+  every part of the log. Near the floor the excitation is turned down to
+  :data:`GROUND_EXCITATION` of its size, the horizontal path slowed to
+  :data:`GROUND_SPEED` of its pace, and the pilot pulls up harder below
+  :data:`FLOOR_GUARD_M`: the vehicle never touches the floor (contacts are not part of any
+  model);
+- **pace**: slow random paths are flown faster, towards :data:`TARGET_RMS_SPEED`, so that
+  speed-dependent effects (drag) are excited in every flight;
+- a :data:`WARMUP_S` hover before the log starts (integrators settled, as in a log that
+  starts in flight).
 
 Sensor noise (``noise_scale`` 1, the default; 0 logs the ground truth). What a motion-capture
 based state estimate looks like: position white ``N(0, 0.3 mm)`` and attitude white
 ``0.2 deg`` per body axis (the simulator's motion-capture defaults), velocity an estimator's
-correlated error (AR(1), 0.01 m/s, correlation time 0.1 s), body rates the gyro's white noise
-(0.005 rad/s) plus a constant bias drawn once (0.002 rad/s std). The inputs are logged
-exactly (they are the commands that were sent).
+correlated error (AR(1), :data:`VEL_NOISE_MPS`, correlation time :data:`VEL_NOISE_TAU_S`),
+body rates the gyro's white noise (0.005 rad/s) plus a constant bias drawn once
+(0.002 rad/s std). The inputs are logged exactly (the commands that were sent); the log is
+100 Hz.
 
 Cartpole: the Appendix D system with the effects (relative to the nominal model) simulated
 by :func:`arcade_core.discrepancy.cartpole.true_step` at 20 Hz, driven by a soft cart-position
@@ -40,10 +48,11 @@ import numpy as np
 
 HELP = "fly a standard exciting trajectory in the simulator with effects injected; write a log"
 
-#: Ground passes of the quadrotor trajectory (module docstring).
 #: Hover before the log starts [s].
 WARMUP_S = 5.0
-GROUND_PERIOD_S = 20.0
+#: Ground passes of the quadrotor trajectory (module docstring); the period is chosen
+#: incommensurate with the workflow's 2 s held-out blocks.
+GROUND_PERIOD_S = 23.0
 GROUND_FIRST_S = 6.0
 GROUND_RAMP_S = 2.5
 GROUND_HOLD_S = 4.0
@@ -51,6 +60,12 @@ APPROACH_HEIGHT_M = 0.6
 GROUND_HEIGHT_M = 0.15
 GROUND_EXCITATION = 0.15
 GROUND_SPEED = 0.3
+#: Pace of the random path: sped up (at most MAX_PACE times) towards TARGET_RMS_SPEED
+#: (drag effects need speed), but no more than keeps its peak acceleration below
+#: PACE_MAX_ACCEL for the pilot.
+TARGET_RMS_SPEED = 1.5
+MAX_PACE = 1.6
+PACE_MAX_ACCEL = 8.0
 #: Below this height [m] the pilot adds an upward acceleration (gain [1/s^2] per metre).
 FLOOR_GUARD_M = 0.1
 FLOOR_GUARD_GAIN = 150.0
@@ -100,19 +115,31 @@ class GroundPassPath:
 
     Each pass descends to :data:`APPROACH_HEIGHT_M` over :data:`GROUND_RAMP_S`, then
     slowly to :data:`GROUND_HEIGHT_M` over the same time, holds :data:`GROUND_HOLD_S`
-    and climbs back the same way. The horizontal path goes on throughout, slowed down to
-    :data:`GROUND_SPEED` of its pace below the approach height (time warp), so that the
-    vehicle does not bank hard next to the floor.
+    and climbs back the same way. The random path is flown faster than the datasets fly
+    it where it is slow (towards :data:`TARGET_RMS_SPEED`, so that every flight excites
+    speed-dependent effects alike), and slowed down to :data:`GROUND_SPEED` of its pace
+    below the approach height (time warp), so that the vehicle does not bank hard next to
+    the floor.
     """
 
     def __init__(self, rng: np.random.Generator, duration: float):
         from benchmarks.quadrotor_data import RandomPath
 
-        self.path = RandomPath(rng, duration)
-        # Warped path time tau(t) = int_0^t (1 - (1 - GROUND_SPEED) c(s)) ds on a grid.
+        self.path = RandomPath(rng, MAX_PACE * duration)
+        # Pace: as fast as needed for the target RMS speed, as slow as the pilot needs.
+        pace = 1.0
+        for _ in range(3):
+            ts = np.arange(0.0, pace * duration, 0.05)
+            vel = self.path.spline(ts, 1)
+            rms = float(np.sqrt(np.mean(np.sum(vel**2, axis=1))))
+            acc = float(np.max(np.linalg.norm(self.path.spline(ts, 2), axis=1)))
+            pace = min(max(1.0, TARGET_RMS_SPEED / rms), np.sqrt(PACE_MAX_ACCEL / acc), MAX_PACE)
+        self.pace = max(pace, 1.0)
+        # Warped path time tau(t) = int_0^t pace (1 - (1 - GROUND_SPEED) c(s)) ds on a grid.
         self._grid = np.arange(0.0, duration + 5.0, 1e-3)
-        rate = 1.0 - (1.0 - GROUND_SPEED) * np.array([self._weights(t)[1][0]
-                                                       for t in self._grid])
+        rate = self.pace * (
+            1.0 - (1.0 - GROUND_SPEED) * np.array([self._weights(t)[1][0] for t in self._grid])
+        )
         self._tau = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * 1e-3)])
 
     @staticmethod
@@ -134,10 +161,10 @@ class GroundPassPath:
 
     def __call__(self, t: float):
         (b, db, ddb), (c, dc, ddc) = self._weights(t)
-        # Time warp of the horizontal path: tau' = 1 - k c, tau'' = -k c'.
+        # Time warp of the horizontal path: tau' = pace (1 - k c), tau'' = -pace k c'.
         k = 1.0 - GROUND_SPEED
         tau = float(np.interp(t, self._grid, self._tau))
-        d1, d2 = 1.0 - k * c, -k * dc
+        d1, d2 = self.pace * (1.0 - k * c), -self.pace * k * dc
         p, v, a, yaw = self.path(tau)
         p, v, a = p.copy(), v * d1, a * d1 * d1 + v * d2
         z, vz, az = p[2], v[2], a[2]
@@ -271,8 +298,14 @@ def fly_cartpole(
     seed: int = 0,
     *,
     noise_scale: float = 1.0,
+    system=None,
 ):
-    """The cartpole with ``effects`` under the exciting controller; a noisy 20 Hz log."""
+    """The cartpole with ``effects`` under the exciting controller; a noisy 20 Hz log.
+
+    ``system``: drive this stateful cartpole instead (``reset(state)``, ``step(u)``, ``dt``,
+    e.g. ``simulator.cartpole.CartpoleSim``, the paper's true system); ``effects`` are then
+    ignored.
+    """
     import jax
     import jax.numpy as jnp
 
@@ -285,14 +318,17 @@ def fly_cartpole(
     theta = cp.theta_from_effects(model, tables)
     std = float(tables.get("force_bias", {}).get("std_n", 0.0))
     n = round(duration / CARTPOLE_DT) + 1
-    rng = np.random.default_rng(seed)
+    # Independent streams: excitation, disturbance, sensor noise.
+    rng, rng_dist, rng_noise = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)
+    )
     a = np.exp(-CARTPOLE_DT / CARTPOLE_EXCITATION_TAU_S)
     w = rng.standard_normal(n) * np.sqrt(1.0 - a * a)
     exc = np.empty(n)
     exc[0] = rng.standard_normal()
     for k in range(1, n):
         exc[k] = a * exc[k - 1] + w[k]
-    dist = std * rng.standard_normal(n)
+    dist = std * rng_dist.standard_normal(n)
     x0 = np.array([0.0, 0.0, 0.3 * rng.standard_normal(), 0.0])
 
     def body(x, inp):
@@ -301,13 +337,21 @@ def fly_cartpole(
         xn = cp.true_step(model, theta, x, u, CARTPOLE_DT, d)
         return xn, (x, u)
 
-    _, (X, U) = jax.jit(lambda x, e, d: jax.lax.scan(body, x, (e, d)))(
-        jnp.asarray(x0), jnp.asarray(exc), jnp.asarray(dist)
-    )
-    X, U = np.asarray(X), np.asarray(U)
+    if system is None:
+        _, (X, U) = jax.jit(lambda x, e, d: jax.lax.scan(body, x, (e, d)))(
+            jnp.asarray(x0), jnp.asarray(exc), jnp.asarray(dist)
+        )
+        X, U = np.asarray(X), np.asarray(U)
+    else:
+        X, U = np.empty((n, 4)), np.empty(n)
+        x = system.reset(x0)
+        for k in range(n):
+            X[k] = x
+            U[k] = -CARTPOLE_KP * x[0] - CARTPOLE_KD * x[1] + CARTPOLE_EXCITATION_N * exc[k]
+            x = system.step(U[k])
     if not np.isfinite(X).all():
         raise RuntimeError("the simulated cartpole diverged (non-finite state)")
-    X = X + noise_scale * CARTPOLE_NOISE * rng.standard_normal(X.shape)
+    X = X + noise_scale * CARTPOLE_NOISE * rng_noise.standard_normal(X.shape)
     return from_arrays("cartpole", np.arange(n) * CARTPOLE_DT, X, U[:, None])
 
 
@@ -387,8 +431,13 @@ def run(args: argparse.Namespace) -> int:
     path = write_log(args.out, log)
     print(
         json.dumps(
-            {"log": str(path), "system": args.system, "rows": len(log), "dt": log.dt,
-             "effects": sorted(tables)}
+            {
+                "log": str(path),
+                "system": args.system,
+                "rows": len(log),
+                "dt": log.dt,
+                "effects": sorted(tables),
+            }
         )
     )
     return 0

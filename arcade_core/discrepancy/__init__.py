@@ -1,0 +1,14 @@
+"""Model discrepancy: the effect library, models with effects, identification (design §6).
+
+- :mod:`~arcade_core.discrepancy.library`: canonical effects (names, units, ranges; plain
+  data, shared with the simulator);
+- :mod:`~arcade_core.discrepancy.quadrotor`, :mod:`~arcade_core.discrepancy.cartpole`:
+  the nominal models (Appendix D) with the effect terms, parameter vectors ``theta``;
+- :mod:`~arcade_core.discrepancy.identify`: sparse selection over effects with block
+  bootstrap confidence and nonlinear parameter fit;
+- :mod:`~arcade_core.discrepancy.localize`: where the gap is (regimes, changepoint
+  segments via Algorithm 1).
+
+Submodules are imported explicitly (the library is imported by the simulator, which should
+not pay for JAX).
+"""

@@ -94,8 +94,9 @@ def effect_params(theta, name: str) -> dict[str, float]:
 
 
 def _params(model: CartpoleModel, theta: Array) -> CartpoleParams:
-    return CartpoleParams(M=theta[4], m=theta[5], L=theta[6], g=model.g, mu_c=theta[0],
-                          mu_p=theta[1])
+    return CartpoleParams(
+        M=theta[4], m=theta[5], L=theta[6], g=model.g, mu_c=theta[0], mu_p=theta[1]
+    )
 
 
 def deriv(model: CartpoleModel, theta: Array, x: Array, u) -> Array:
@@ -116,7 +117,12 @@ def true_step(model: CartpoleModel, theta: Array, x: Array, u, dt: float, noise)
 
 
 def predict_windows(
-    model: CartpoleModel, theta: Array, X: Array, U: Array, starts: Array, steps: int,
+    model: CartpoleModel,
+    theta: Array,
+    X: Array,
+    U: Array,
+    starts: Array,
+    steps: int,
     dt: float,
 ) -> Array:
     """Predictions ``(len(starts), steps, 4)`` after 1..``steps`` steps from each ``X[start]``."""

@@ -136,8 +136,7 @@ def _cholesky_solve(A: Array, b: Array) -> Array:
         d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), start=jnp.zeros((), A.dtype))
         L[j][j] = jnp.sqrt(jnp.maximum(d, 1e-300))
         for i in range(j + 1, n):
-            acc = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)),
-                                start=jnp.zeros((), A.dtype))
+            acc = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), start=jnp.zeros((), A.dtype))
             L[i][j] = acc / L[j][j]
     y: list[Array] = []
     for j in range(n):
@@ -145,8 +144,7 @@ def _cholesky_solve(A: Array, b: Array) -> Array:
         y.append(acc / L[j][j])
     x: list[Array] = [None] * n  # type: ignore[list-item]
     for j in reversed(range(n)):
-        acc = y[j] - sum((L[k][j] * x[k] for k in range(j + 1, n)),
-                         start=jnp.zeros((), A.dtype))
+        acc = y[j] - sum((L[k][j] * x[k] for k in range(j + 1, n)), start=jnp.zeros((), A.dtype))
         x[j] = acc / L[j][j]
     return jnp.stack(x)
 
@@ -219,8 +217,16 @@ def choose_subset(
     return jnp.argmin(jnp.where(ok, bic, jnp.inf))
 
 
-def _select(lin: Linearisation, weights: Array, masks: Array, group_bits, min_explained,
-            bounds: Bounds, min_size, members: Array):
+def _select(
+    lin: Linearisation,
+    weights: Array,
+    masks: Array,
+    group_bits,
+    min_explained,
+    bounds: Bounds,
+    min_size,
+    members: Array,
+):
     G = jnp.einsum("b,bij->ij", weights, lin.G)
     g = jnp.einsum("b,bi->i", weights, lin.g)
     s = weights @ lin.s
@@ -236,11 +242,19 @@ def _select(lin: Linearisation, weights: Array, masks: Array, group_bits, min_ex
 
 
 @jax.jit
-def _bootstrap(lin: Linearisation, counts: Array, masks: Array, group_bits, min_explained,
-               bounds: Bounds, min_size, members: Array, fixed_mask: Array):
+def _bootstrap(
+    lin: Linearisation,
+    counts: Array,
+    masks: Array,
+    group_bits,
+    min_explained,
+    bounds: Bounds,
+    min_size,
+    members: Array,
+    fixed_mask: Array,
+):
     def one(w):
-        best, _, _ = _select(lin, w, masks, group_bits, min_explained, bounds, min_size,
-                             members)
+        best, _, _ = _select(lin, w, masks, group_bits, min_explained, bounds, min_size, members)
         G = jnp.einsum("b,bij->ij", w, lin.G)
         g = jnp.einsum("b,bi->i", w, lin.g)
         return best, _solve_masked(G, g, fixed_mask & lin.alive)
@@ -252,8 +266,11 @@ def _bootstrap(lin: Linearisation, counts: Array, masks: Array, group_bits, min_
 
 
 def fd_jacobian(
-    residual_fn: Callable[[Array], Array], theta: np.ndarray, idx: Sequence[int],
-    steps: np.ndarray, r0: np.ndarray | None = None,
+    residual_fn: Callable[[Array], Array],
+    theta: np.ndarray,
+    idx: Sequence[int],
+    steps: np.ndarray,
+    r0: np.ndarray | None = None,
 ) -> np.ndarray:
     """Forward-difference sensitivities ``d r / d theta_j`` ``(n, c, len(idx))``."""
     theta = np.asarray(theta, dtype=float)
@@ -285,8 +302,13 @@ def _whitening(e: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 def linearise(
-    r0: np.ndarray, jac: np.ndarray, W: np.ndarray, keep: np.ndarray, blocks: np.ndarray,
-    n_blocks: int, span: np.ndarray,
+    r0: np.ndarray,
+    jac: np.ndarray,
+    W: np.ndarray,
+    keep: np.ndarray,
+    blocks: np.ndarray,
+    n_blocks: int,
+    span: np.ndarray,
 ) -> tuple[Linearisation, np.ndarray, np.ndarray]:
     """Whitened block statistics of ``y = W r0 ~ A delta`` with ``A = -W jac``.
 
@@ -308,8 +330,9 @@ def linearise(
     # whitened residual by more than a thousandth of its size.
     col = np.sqrt(np.maximum(np.einsum("bpp->p", G), 0.0)) * span
     alive = col > 1e-3 * np.sqrt(max(s.sum(), 1e-300))
-    lin = Linearisation(jnp.asarray(G), jnp.asarray(g), jnp.asarray(s), jnp.asarray(n),
-                        jnp.asarray(alive))
+    lin = Linearisation(
+        jnp.asarray(G), jnp.asarray(g), jnp.asarray(s), jnp.asarray(n), jnp.asarray(alive)
+    )
     return lin, y, A
 
 
@@ -389,8 +412,9 @@ def identify(
     masks = jnp.asarray(group_masks(groups, P))
     bits = jnp.asarray([1 << j for j in range(len(groups))])
     rho = jnp.asarray(config.min_explained)
-    bounds = Bounds(jnp.asarray(low - theta_base), jnp.asarray(high - theta_base),
-                    jnp.asarray(span))
+    bounds = Bounds(
+        jnp.asarray(low - theta_base), jnp.asarray(high - theta_base), jnp.asarray(span)
+    )
     min_size = jnp.asarray(config.min_size)
     members = jnp.asarray(group_masks(groups, P)[[1 << j for j in range(len(groups))]])
 
@@ -403,8 +427,9 @@ def identify(
     # Whitening from what is left after all candidates (step 2).
     keep = np.isfinite(r_base).all(axis=1)
     W0, _ = _whitening(np.nan_to_num(r_base), keep)
-    lin0, _, _ = linearise(np.nan_to_num(r_base), np.nan_to_num(jac), W0, keep, blocks,
-                           n_blocks, span)
+    lin0, _, _ = linearise(
+        np.nan_to_num(r_base), np.nan_to_num(jac), W0, keep, blocks, n_blocks, span
+    )
     full = _solve_masked_jit(lin0.G.sum(0), lin0.g.sum(0), lin0.alive)
     e_all = r_base + np.einsum("ncp,p->nc", np.nan_to_num(jac), np.asarray(full))
     W, keep = _whitening(np.nan_to_num(e_all), keep)
@@ -423,8 +448,9 @@ def identify(
         prev = theta_base.copy()
         prev[free] = theta[free]
         th0 = th0 if cost(np.clip(th0, low, high)) <= cost(prev) else prev
-        return fit_nonlinear(residual_fn, th0, free, low, high, W, keep, steps,
-                             config.lm_iterations)
+        return fit_nonlinear(
+            residual_fn, th0, free, low, high, W, keep, steps, config.lm_iterations
+        )
 
     def drop_gains(th: np.ndarray, sel: tuple[int, ...]) -> dict[int, float]:
         """Share of the residual each effect explains on the nonlinear model."""
@@ -459,8 +485,9 @@ def identify(
         theta = fit(new, theta_base + np.asarray(deltas[int(best)]))
         # Keep only effects that are relevant on the nonlinear model, refit without the rest.
         gains = drop_gains(theta, new)
-        kept = tuple(j for j in new
-                     if gains[j] >= config.min_explained and size(theta, j) >= config.min_size)
+        kept = tuple(
+            j for j in new if gains[j] >= config.min_explained and size(theta, j) >= config.min_size
+        )
         if kept != new:
             theta = theta_base.copy() if not kept else fit(kept, theta)
         selected = kept
@@ -472,8 +499,11 @@ def identify(
     y_base = r - np.einsum("ncp,p->nc", J, theta - theta_base)
     lin, _, _ = linearise(y_base, J, W, keep, blocks, n_blocks, span)
     rng = np.random.default_rng(config.seed)
-    counts = jnp.asarray(rng.multinomial(n_blocks, np.full(n_blocks, 1.0 / n_blocks),
-                                         size=config.n_boot).astype(float))
+    counts = jnp.asarray(
+        rng.multinomial(n_blocks, np.full(n_blocks, 1.0 / n_blocks), size=config.n_boot).astype(
+            float
+        )
+    )
     sel_mask = jnp.asarray(group_masks(groups, P)[sum(1 << j for j in selected)])
     best_b, _ = _bootstrap(lin, counts, masks, bits, rho, bounds, min_size, members, sel_mask)
     best_b = np.asarray(best_b)
@@ -481,8 +511,12 @@ def identify(
     contribution = np.zeros(len(groups))
     for j, gain in drop_gains(theta_selected, selected).items():
         contribution[j] = gain
-    confident = tuple(sorted((j for j in selected if confidence[j] >= config.confidence),
-                             key=lambda j: -contribution[j]))
+    confident = tuple(
+        sorted(
+            (j for j in selected if confidence[j] >= config.confidence),
+            key=lambda j: -contribution[j],
+        )
+    )
 
     # The model that is added: confident effects only (refit if that is fewer).
     theta_conf = theta_base.copy()
@@ -491,8 +525,9 @@ def identify(
         keep_idx = [i for j in confident for i in groups[j]]
         theta_conf[keep_idx] = theta_selected[keep_idx]
         if set(confident) != set(selected):
-            theta_conf = fit_nonlinear(residual_fn, theta_conf, free, low, high, W, keep,
-                                       steps, config.lm_iterations)
+            theta_conf = fit_nonlinear(
+                residual_fn, theta_conf, free, low, high, W, keep, steps, config.lm_iterations
+            )
             r = np.asarray(residual_fn(jnp.asarray(theta_conf)))
             J = fd_jacobian(residual_fn, theta_conf, all_idx, steps, r)
             y_base = r - np.einsum("ncp,p->nc", J, theta_conf - theta_base)

@@ -33,8 +33,9 @@ class Segmenter(NamedTuple):
 
 @jax.jit
 def _map_last_changepoints(resid: Array, pi, beta, tau2, sigma2, theta0: Array) -> Array:
-    config = adaptation.AdaptationConfig(K=theta0.shape[0], pi=pi, beta=beta, tau2=tau2,
-                                         sigma2=sigma2)
+    config = adaptation.AdaptationConfig(
+        K=theta0.shape[0], pi=pi, beta=beta, tau2=tau2, sigma2=sigma2
+    )
     state = adaptation.init(theta0[0], config)
     one = jnp.ones((1,), resid.dtype)
 
@@ -54,9 +55,7 @@ def changepoints(resid: Array, seg: Segmenter | None = None, min_gap: int = 1) -
     seg = Segmenter() if seg is None else seg
     resid = jnp.asarray(resid)
     theta0 = jnp.zeros((seg.K, resid.shape[1], 1), resid.dtype)
-    last = np.asarray(
-        _map_last_changepoints(resid, seg.pi, seg.beta, seg.tau2, seg.sigma2, theta0)
-    )
+    last = np.asarray(_map_last_changepoints(resid, seg.pi, seg.beta, seg.tau2, seg.sigma2, theta0))
     # map_last_changepoint counts processed observations: a changepoint at step k means
     # observation k-1 (0-based) starts a new segment.
     cps: list[int] = []

@@ -36,7 +36,9 @@ of mass) accelerates by ``-R (omegadot x r + omega x (omega x r))`` more (``com_
 signals.
 
 Parameter vector ``theta`` (internal coordinates, :data:`GROUPS`): ``d (3), c (3), R^2,
-scale, motor tau, delay, filter tau, r (3), wind (3)``.
+scale, motor tau, delay, filter tau, r (3), wind (3)``. The vertical centre-of-mass offset
+``r_z`` makes no thrust torque, so identification leaves it at the model file's value
+(only ``r_x, r_y`` form the ``com_offset`` group).
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ GROUPS: tuple[tuple[str, tuple[int, ...]], ...] = (
     ("thrust_scale", (7,)),
     ("motor_lag", (8,)),
     ("rate_lag", (9, 10)),
-    ("com_offset", (11, 12, 13)),
+    ("com_offset", (11, 12)),
     ("wind", (14, 15, 16)),
 )
 N_THETA = 17
@@ -122,8 +124,7 @@ def _axis_system(model: QuadModel, theta: Array, axis: int):
     J = par.inertia[axis]
     k = theta[7]
     tmax = model.torque_max[axis] * k
-    p, i, d, ff = (model.rate_p[axis], model.rate_i[axis], model.rate_d[axis],
-                   model.rate_ff[axis])
+    p, i, d, ff = (model.rate_p[axis], model.rate_i[axis], model.rate_d[axis], model.rate_ff[axis])
     tau_m = jnp.maximum(theta[8], _TINY_TAU)
     wc = model.d_cutoff_rad_s
     fd = jnp.array([1.0 / wc, 1.0])  # D-term low-pass denominator s/wc + 1
@@ -131,8 +132,9 @@ def _axis_system(model: QuadModel, theta: Array, axis: int):
     # D = J s^2 (tau_m s + 1)(s/wc + 1) + tmax ((p s + i)(s/wc + 1) + d s^2).
     s2m = jnp.polymul(jnp.array([J, 0.0, 0.0]), jnp.array([tau_m, 1.0]))
     den = jnp.polymul(s2m, fd)
-    den = jnp.polyadd(den, tmax * jnp.polyadd(jnp.polymul(jnp.array([p, i]), fd),
-                                               jnp.array([d, 0.0, 0.0])))
+    den = jnp.polyadd(
+        den, tmax * jnp.polyadd(jnp.polymul(jnp.array([p, i]), fd), jnp.array([d, 0.0, 0.0]))
+    )
     lead = jnp.array([1.0, 1.0 / tau_r])
     num_g = jnp.polymul(lead, tmax * jnp.polymul(jnp.array([p + ff, i]), fd))
     a_g, b_g, c_g = _companion(num_g, den)
@@ -293,9 +295,7 @@ def _step(model, theta, tr: _Transitions, a_m, x, T0, F0, U, k, dt):
         (w, wdot), T = sig[i]
         p, v, q = y[0:3], y[3:6], y[6:10]
         thrust, a_eff = _accel(model, theta, p, v, q, w, wdot, T)
-        xd = quadrotor_deriv(
-            jnp.concatenate([p, v, q, w]), jnp.concatenate([thrust[None], w]), par
-        )
+        xd = quadrotor_deriv(jnp.concatenate([p, v, q, w]), jnp.concatenate([thrust[None], w]), par)
         return jnp.concatenate([xd[0:3], xd[3:6] + a_eff, xd[6:10]])
 
     y0 = x[0:10]
