@@ -71,13 +71,17 @@ def train_cartpole(
     return path
 
 
-def load_cartpole(path: Path | None = None):
-    """The cartpole VLD; trains and writes it first if the file is missing."""
+def load_or_train(path: Path, command: str, train) -> object:
+    """The VLD in ``path``; if the file is missing, says so and runs ``train(out=path)``."""
     from arcade.weights import load_model
 
-    path = Path(path) if path is not None else CARTPOLE_WEIGHTS
     if not path.is_file():
-        print(f"{path} not found: training it now ({CARTPOLE_COMMAND})", file=sys.stderr)
-        train_cartpole(out=path)
+        print(f"{path} not found: training it now ({command})", file=sys.stderr)
+        train(out=path)
     model, _, _ = load_model(path)
     return model
+
+
+def load_cartpole(path: Path | None = None):
+    """The cartpole VLD; trains and writes it first if the file is missing."""
+    return load_or_train(Path(path or CARTPOLE_WEIGHTS), CARTPOLE_COMMAND, train_cartpole)

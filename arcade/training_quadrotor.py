@@ -15,7 +15,7 @@ from pathlib import Path
 
 import jax
 
-from arcade.training import WEIGHTS_DIR, progress_callback
+from arcade.training import WEIGHTS_DIR, load_or_train, progress_callback
 from arcade.weights import save_model
 
 QUADROTOR_WEIGHTS = WEIGHTS_DIR / "quadrotor_vld.eqx"
@@ -87,11 +87,4 @@ def train_quadrotor(
 
 def load_quadrotor(path: Path | None = None):
     """The quadrotor VLD; trains and writes it first if the file is missing."""
-    from arcade.weights import load_model
-
-    path = Path(path) if path is not None else QUADROTOR_WEIGHTS
-    if not path.is_file():
-        print(f"{path} not found: training it now ({QUADROTOR_COMMAND})", file=sys.stderr)
-        train_quadrotor(out=path)
-    model, _, _ = load_model(path)
-    return model
+    return load_or_train(Path(path or QUADROTOR_WEIGHTS), QUADROTOR_COMMAND, train_quadrotor)
