@@ -15,7 +15,7 @@ wrong shapes and values outside the plausible range are rejected with a ``ValueE
 that names the offending entry, so a typo never silently turns an effect off.
 
 The parameter table :data:`EFFECTS` is plain data (unit, plausible range, default,
-description) taken from the discrepancy library (``arcade_core.discrepancy.library``).
+description) taken from the discrepancy library (``arcade_core.discrepancy.catalog``).
 Physical forms, world ENU / body FLU, ``v_rel = v - wind`` the air-relative velocity of
 the airframe:
 
@@ -63,7 +63,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade_core.discrepancy.library import QUADROTOR_EFFECTS, ParamSpec
+from arcade_core.discrepancy.catalog import QUADROTOR_EFFECTS, ParamSpec
 
 #: Canonical effect names -> parameter name -> :class:`ParamSpec`. Single-sourced from the
 #: discrepancy library, so the simulator and the identification share units and ranges.

@@ -53,7 +53,7 @@ def test_library_terms():
 def test_recovers_sparse_coefficients_exactly(data):
     x, u, delta = data
     model = sysid.fit(x, u, delta, degree=2, angle_indices=(2,), threshold=0.02)
-    names = model.library.names
+    names = model.terms.names
     coef, active = np.asarray(model.coef), np.asarray(model.active)
     for j, terms in TRUTH.items():
         assert {names[t] for t in np.flatnonzero(active[:, j])} == set(terms)

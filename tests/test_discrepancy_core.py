@@ -15,13 +15,13 @@ from arcade.commands.discrepancy import quad_model_from_vehicle
 from arcade.vehicle import load_vehicle
 from arcade_core.discrepancy import cartpole as cp
 from arcade_core.discrepancy import quadrotor as qm
+from arcade_core.discrepancy.catalog import CARTPOLE_EFFECTS, EFFECTS, QUADROTOR_EFFECTS
 from arcade_core.discrepancy.identify import (
     Bounds,
     SelectionConfig,
     _solve_bounded,
     identify,
 )
-from arcade_core.discrepancy.library import CARTPOLE_EFFECTS, EFFECTS, QUADROTOR_EFFECTS
 from arcade_core.discrepancy.localize import binned_rms, changepoints, segment_rms
 from arcade_core.dynamics.cartpole import cartpole_true_step
 from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_NOMINAL, CARTPOLE_TRUE

@@ -23,7 +23,7 @@ from arcade.commands.simulate import fly_quadrotor
 from arcade.flightlog import from_arrays
 from arcade.vehicle import load_vehicle
 from arcade_core.discrepancy import quadrotor as qm
-from arcade_core.discrepancy.library import QUADROTOR_EFFECTS
+from arcade_core.discrepancy.catalog import QUADROTOR_EFFECTS
 from simulator import QuadrotorSim
 
 DURATION_S = 90.0

@@ -287,8 +287,8 @@ def run_workflow(
 
     Writes the model file, plots and report into ``out`` when it is given.
     """
+    from arcade_core.discrepancy.catalog import effects_for
     from arcade_core.discrepancy.identify import SelectionConfig, identify
-    from arcade_core.discrepancy.library import effects_for
 
     say = progress or (lambda _msg: None)
     if system != log.system:
@@ -572,7 +572,7 @@ def _strip_effects(text: str) -> str:
 
 
 def _clip_to_spec(system: str, name: str, params: dict[str, Any]) -> dict[str, Any]:
-    from arcade_core.discrepancy.library import effects_for
+    from arcade_core.discrepancy.catalog import effects_for
 
     specs = effects_for(system)[name].params
     out = {}

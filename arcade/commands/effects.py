@@ -19,7 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from arcade_core.discrepancy.library import describe
+    from arcade_core.discrepancy.catalog import describe
 
     effects = describe(args.system)
     if args.json:

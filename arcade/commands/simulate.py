@@ -368,7 +368,7 @@ def validate_tables(system: str, tables: dict[str, Any]) -> dict[str, dict[str, 
         from simulator.effects import validate_effects
 
         return validate_effects(tables).to_dict()
-    from arcade_core.discrepancy.library import CARTPOLE_EFFECTS
+    from arcade_core.discrepancy.catalog import CARTPOLE_EFFECTS
 
     out: dict[str, dict[str, Any]] = {}
     for name, table in tables.items():

@@ -113,7 +113,7 @@ def make_library(
 class SysIDModel(eqx.Module):
     """Identified sparse residual model ``delta = Theta(z) @ coef``."""
 
-    library: Library
+    terms: Library  # the candidate library the coefficients refer to
     coef: Array  # (T, d), zero where inactive
     active: Array  # (T, d) bool
 
@@ -165,7 +165,7 @@ def _fit(library: Library, z: Array, delta: Array, threshold: Array, ridge: Arra
     rhs = q.T @ (delta / out / jnp.sqrt(n))
     alive = jnp.broadcast_to(alive[:, None], rhs.shape)
     xi, active = _stlsq(r, rhs, alive, threshold, ridge, iters)
-    return SysIDModel(library=library, coef=xi * out[None, :] / col[:, None], active=active)
+    return SysIDModel(terms=library, coef=xi * out[None, :] / col[:, None], active=active)
 
 
 def fit(
@@ -199,7 +199,7 @@ def fit(
 
 def predict(model: SysIDModel, x: Array, u: Array) -> Array:
     """Residual at one (x, u), shape (d,)."""
-    return model.library(jnp.concatenate([x, u])) @ model.coef
+    return model.terms(jnp.concatenate([x, u])) @ model.coef
 
 
 def active_terms(
@@ -213,6 +213,6 @@ def active_terms(
     if len(outs) != d:
         raise ValueError("output_names must have one name per residual component")
     return {
-        outs[j]: [(model.library.names[t], float(coef[t, j])) for t in np.flatnonzero(active[:, j])]
+        outs[j]: [(model.terms.names[t], float(coef[t, j])) for t in np.flatnonzero(active[:, j])]
         for j in range(d)
     }

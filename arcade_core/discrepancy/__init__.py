@@ -1,6 +1,6 @@
 """Model discrepancy: the effect library, models with effects, identification (design §6).
 
-- :mod:`~arcade_core.discrepancy.library`: canonical effects (names, units, ranges; plain
+- :mod:`~arcade_core.discrepancy.catalog`: canonical effects (names, units, ranges; plain
   data, shared with the simulator);
 - :mod:`~arcade_core.discrepancy.quadrotor`, :mod:`~arcade_core.discrepancy.cartpole`:
   the nominal models (Appendix D) with the effect terms, parameter vectors ``theta``;

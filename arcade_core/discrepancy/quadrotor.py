@@ -3,7 +3,7 @@
 What a log is compared against: the rigid-body part of the nominal model
 (Appendix D; :func:`~arcade_core.dynamics.quadrotor.quadrotor_deriv` supplies ``pdot,
 vdot, qdot``) driven by what the vehicle file says about the motors and the rate loop,
-plus the effects of :mod:`arcade_core.discrepancy.library` with parameters ``theta``.
+plus the effects of :mod:`arcade_core.discrepancy.catalog` with parameters ``theta``.
 
 Body rates. The nominal model's first-order rate lag ``omegadot = (omega_cmd - omega) /
 rate_tau`` is completed with the vehicle file's linear rate loop: with ``G(s)`` the closed
