@@ -21,6 +21,7 @@ COMMANDS: tuple[str, ...] = (
     "eval",
     "bench",
     "simulate",
+    "sim",
     "effects",
     "discrepancy",
 )

@@ -46,10 +46,10 @@ def fly(vld, key, x0, schedule: cd.Schedule, adaptive: bool) -> dict[str, np.nda
         theta, _ = adaptation.marginal_decoder(beam)
         if adaptive:
             model = (vld, theta)
-            # sigma_tot^2 is in normalised residual units; Q modulation (Sec. IV) takes
-            # the physical variance, the units the paper's alpha2 is chosen for.
+            # sigma_tot^2 in normalised residual units, like the quadrotor controller: one
+            # alpha1/alpha2 (Appendix D) then means the same for every state component.
             z, s2z = vld.features(x, u_prev), vld.latent_variance(x, u_prev)
-            s2 = adaptation.sigma_tot2(beam, z, s2z) * vld.delta_scale**2
+            s2 = adaptation.sigma_tot2(beam, z, s2z)
         else:
             model, s2 = (vld, zero_theta), None
         sol = controller.solve(x, x_ref, u_ref, u_warm, u_prev, model, s2)

@@ -14,6 +14,11 @@ Eq. 9 changepoint posterior, Eq. 10 beam predictive. One step of Algorithm 1:
    to the survivors only. The update of a candidate depends on its parent and branch
    alone, so pruning before updating gives the same beam at half the work.
 
+Optionally (``AdaptationConfig.prior_floor``) a changepoint's tempered prior keeps at
+least the offline prior precision ``tau^-2 I``, the assumption in the proof of Lemma 2:
+Eq. 5 alone multiplies the covariance by ``beta^-2`` in every direction the data do not
+excite, at every changepoint.
+
 Numerics. Each covariance is carried as a square root ``W`` with ``Sigma = W W^T``
 (``BeamState.sqrt_covariances``) and updated with Potter's rank-one square-root form
 [Potter 1963], the textbook numerically robust form of the Sherman--Morrison update of
@@ -57,6 +62,15 @@ class AdaptationConfig(NamedTuple):
     Python floats or arrays and are traced under ``jit``. ``beta`` is the temperature of
     Eq. 5 (``gamma = beta^2`` on a changepoint). ``sigma2`` is a scalar or per-output
     ``(d,)`` observation-noise variance.
+
+    ``prior_floor`` (``rho`` in ``[0, 1]``, default ``0``: Eq. 5 as written) re-injects
+    part of the offline prior precision at a changepoint: the tempered precision is
+    ``gamma Sigma^{-1} + rho (1 - gamma) tau^{-2} I`` (mean kept). With ``rho = 1`` a
+    tempered prior is never more diffuse than the offline prior ``tau^2 I`` (every
+    posterior then satisfies ``Sigma <= tau^2 I``), which is what the proof of Lemma 2
+    assumes; without it, repeated changepoints inflate the covariance geometrically
+    (``beta^-2`` per changepoint) in directions the data do not excite. Needs
+    ``tau2 > 0``.
     """
 
     K: int
@@ -64,11 +78,15 @@ class AdaptationConfig(NamedTuple):
     beta: ArrayLike
     tau2: ArrayLike
     sigma2: ArrayLike
+    prior_floor: ArrayLike = 0.0
 
 
 def quadrotor_config() -> AdaptationConfig:
-    """Quadrotor preset (Appendix D, quadrotor "Online Inference" table)."""
-    return AdaptationConfig(K=15, pi=0.05, beta=0.997, tau2=0.1, sigma2=0.1)
+    """Quadrotor preset (Appendix D, quadrotor "Online Inference" table), with the prior
+    precision floor at changepoints that Lemma 2's proof assumes (``prior_floor = 1``):
+    the swinging payload makes changepoints frequent, and repeated tempering would
+    otherwise inflate the covariance beyond the prior in weakly excited directions."""
+    return AdaptationConfig(K=15, pi=0.05, beta=0.997, tau2=0.1, sigma2=0.1, prior_floor=1.0)
 
 
 def cartpole_config() -> AdaptationConfig:
@@ -379,6 +397,42 @@ def _log_marginal(q: Array, r: Array, sigma2: Array, gamma: ArrayLike) -> Array:
     return -0.5 * jnp.sum(_LOG_2PI + jnp.log(s) + r * r / s, axis=-1)
 
 
+def _tempered(
+    state: BeamState, z: Array, proj: _Projections, beta2: Array, config: AdaptationConfig
+) -> tuple[Array, Array, Array, Array, Array]:
+    """Prior of the changepoint branch of every hypothesis: ``(W1, a1, b1, q1, g1)`` such
+    that the tempered covariance is ``W1 W1^T / g1`` and ``a1, b1, q1`` are the projections
+    of ``W1`` onto ``z`` (as in :class:`_Projections`).
+
+    Eq. 5 as written (``prior_floor = 0``): ``W1 = W``, ``g1 = beta^2``. With the precision
+    floor ``c = rho (1 - beta^2) / tau^2 > 0`` (:class:`AdaptationConfig`): the tempered
+    precision ``beta^2 W^-T W^-1 + c I`` has the square root ``W1 = W L^-T`` with ``L L^T
+    = beta^2 I + c W^T W`` (no inverse of ``W`` needed), and ``g1 = 1``.
+    """
+    dtype = state.means.dtype
+    rho = jnp.asarray(config.prior_floor, dtype)
+    c = jnp.where(rho > 0, rho * (1.0 - beta2) / jnp.asarray(config.tau2, dtype), 0.0)
+    w = state.sqrt_covariances
+
+    def eq5(_):
+        return w, proj.a, proj.b, proj.q, beta2
+
+    def floored(_):
+        l = w.shape[-1]
+        m = beta2 * jnp.eye(l, dtype=dtype) + c * jnp.einsum("...ji,...jk->...ik", w, w)
+        chol = jnp.linalg.cholesky(m)
+        # W L^-T = (L^-1 W^T)^T
+        w1 = jnp.swapaxes(
+            jax.scipy.linalg.solve_triangular(chol, jnp.swapaxes(w, -1, -2), lower=True), -1, -2
+        )
+        zb = jnp.broadcast_to(z, w1.shape[:-1])
+        a1 = jnp.einsum("kdji,kdj->kdi", w1, zb)
+        b1 = jnp.einsum("kdij,kdj->kdi", w1, a1)
+        return w1, a1, b1, jnp.sum(a1 * a1, axis=-1), jnp.ones((), dtype)
+
+    return jax.lax.cond(c > 0, floored, eq5, None)
+
+
 def _update(
     state: BeamState, z: Array, delta: Array, config: AdaptationConfig, proj: _Projections
 ) -> tuple[BeamState, UpdateInfo]:
@@ -395,8 +449,10 @@ def _update(
         )
 
     r = delta - proj.m  # (K, d) innovation under each parent
+    # Changepoint branch: tempered prior (Eq. 5), optionally floored at the prior precision.
+    w1, a1, b1, q1, g1 = _tempered(state, z, proj, beta2, config)
     ll0 = _log_marginal(proj.q, r, sigma2, 1.0)
-    ll1 = _log_marginal(proj.q, r, sigma2, beta2)
+    ll1 = _log_marginal(q1, r, sigma2, g1)
     # Eq. 9 in log-odds form: logit p(c=1|.) = log Lambda + log(pi / (1 - pi)).
     logit = ll1 - ll0 + jnp.log(pi) - jnp.log1p(-pi)
     logp1 = jax.nn.log_sigmoid(logit)
@@ -408,11 +464,17 @@ def _update(
     top, idx = top_k(cand, K)
     parent = idx % K
     branch = idx >= K
-    gamma = jnp.where(branch, beta2, jnp.ones((), dtype))
+    gamma = jnp.where(branch, g1, jnp.ones((), dtype))
 
-    # One gather of everything the survivors need from their parents.
+    # One gather of everything the survivors need from their parents (and branch).
     parts = (state.means, state.sqrt_covariances, proj.a, proj.b, proj.q, r)
-    rows = jnp.concatenate([x.reshape(K, -1) for x in parts], axis=1)[parent]
+    parts1 = (state.means, w1, a1, b1, q1, r)
+    rows = jnp.concatenate(
+        [
+            jnp.concatenate([x.reshape(K, -1) for x in parts], axis=1),
+            jnp.concatenate([x.reshape(K, -1) for x in parts1], axis=1),
+        ]
+    )[idx]
     sizes = [math.prod(x.shape[1:]) for x in parts]
     splits = [sum(sizes[: i + 1]) for i in range(len(sizes) - 1)]
     mean_p, w_p, a_p, b_p, q_p, r_p = (
@@ -506,12 +568,14 @@ def step(
 
 
 class PackedBeam(NamedTuple):
-    """A :class:`BeamState` plus ``pi, beta, tau2`` in four arrays, for the real-time loop.
+    """A :class:`BeamState` plus ``pi, beta, tau2, prior_floor`` in four arrays, for the
+    real-time loop.
 
     At this problem size a jitted call costs about as much per argument and result leaf
     as the arithmetic of a whole step, so the loop passes the two large arrays as they are
     and everything small in one float and one int buffer:
-    ``floats = [log_scores (K), log_offset, sigma2 (d), pi, beta, tau2]`` (state dtype),
+    ``floats = [log_scores (K), log_offset, sigma2 (d), pi, beta, tau2, prior_floor]``
+    (state dtype),
     ``ints = [num_changepoints (K), last_changepoint (K), is_changepoint (K), step]``.
     (Flattening the large arrays into the float buffer too would save two leaves but makes
     XLA fuse the update into one slow concatenation kernel.) See :func:`make_packed_step`.
@@ -529,7 +593,9 @@ def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
     ``state`` stays valid after the packed beam has been donated to a step.
     """
     dtype = state.means.dtype
-    hyper = jnp.stack([jnp.asarray(v, dtype) for v in (config.pi, config.beta, config.tau2)])
+    hyper = jnp.stack(
+        [jnp.asarray(v, dtype) for v in (config.pi, config.beta, config.tau2, config.prior_floor)]
+    )
     floats = jnp.concatenate([state.log_scores, state.log_offset[None], state.sigma2, hyper])
     ints = jnp.concatenate(
         [
@@ -548,7 +614,7 @@ def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
     K, d, _ = packed.means.shape
     f, n = packed.floats, packed.ints
     sigma2 = f[K + 1 : K + 1 + d]
-    pi, beta, tau2 = f[K + 1 + d], f[K + 2 + d], f[K + 3 + d]
+    pi, beta, tau2, floor = f[K + 1 + d], f[K + 2 + d], f[K + 3 + d], f[K + 4 + d]
     state = BeamState(
         means=packed.means,
         sqrt_covariances=packed.sqrt_covariances,
@@ -562,7 +628,9 @@ def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
     )
     shared = packed.sqrt_covariances.shape[1] == 1
     noise = sigma2[0] if shared else sigma2  # keeps the shared-covariance contract
-    return state, AdaptationConfig(K=K, pi=pi, beta=beta, tau2=tau2, sigma2=noise)
+    return state, AdaptationConfig(
+        K=K, pi=pi, beta=beta, tau2=tau2, sigma2=noise, prior_floor=floor
+    )
 
 
 def packed_step(packed: PackedBeam, inputs: Array) -> tuple[PackedBeam, Array]:

@@ -36,8 +36,12 @@ Design decisions:
   with Q acting on all 13 states; references are generated with ``w >= 0`` near the
   vehicle's attitude so the double cover does not matter in practice.
 - **Safety.** A non-finite solution, or one costlier than the warm start, is never
-  returned: the controller falls back to the (clipped) warm start and ``converged`` is
-  False.
+  returned: the controller falls back to the cheaper of the (clipped) warm start and the
+  (clipped) input reference ``u_ref`` (the feedforward of the reference: hover when
+  hovering), and ``converged`` is False. The input reference is the fallback of last
+  resort: a warm start that the model rolls out to non-finite states (a diverged plan,
+  carried over by the receding-horizon shift) is then dropped instead of being handed
+  out again at every later step.
 - **Models never recompile**: the learned model is an arbitrary pytree passed at solve
   time, ``step_fn(x, u, model) -> x_next``.
 """
@@ -114,11 +118,14 @@ def quadrotor_mpc_config(
     dt: float = 0.05,
     rate_limit: tuple[float, float, float] = (3.5, 3.5, 3.0),
     dtype=None,
+    max_thrust: float = 20.0,
     **overrides: Any,
 ) -> MPCConfig:
     """Quadrotor MPC gains of the Appendix D table.
 
     Q, P, R, thrust bounds [0.1, 20] N, N = 20 over 1 s, alpha1 = 10, alpha2 = 1e3.
+    ``max_thrust`` replaces the table's 20 N by what the vehicle can produce (the MPC's
+    model must not plan with thrust the rotors do not have; the default vehicle: 16 N).
     Departure from the table: its ±0.5 limits apply to body *torques*; our last three
     inputs are body-rate *setpoints*, bounded by the vehicle's rate limits
     (default vehicle: 3.5, 3.5, 3.0 rad/s), which covers a 2.5 m/s figure-eight.
@@ -131,7 +138,7 @@ def quadrotor_mpc_config(
         P=arr([400, 400, 600, 20, 20, 20, 1, 10, 10, 10, 10, 10, 10]),
         R=arr([10, 20, 20, 20]),
         u_min=arr([0.1, -rate_limit[0], -rate_limit[1], -rate_limit[2]]),
-        u_max=arr([20.0, rate_limit[0], rate_limit[1], rate_limit[2]]),
+        u_max=arr([max_thrust, rate_limit[0], rate_limit[1], rate_limit[2]]),
         N=N,
         dt=dt,
     )
@@ -366,10 +373,22 @@ def make_controller(step_fn: StepFn, config: MPCConfig) -> Controller:
         X = rollout(x0, U, model)
         cost = jnp.sum(residuals(U, X, prob) ** 2)
         # Safeguards: never hand out a non-finite plan, nor one worse than the warm start
-        # (undamped Gauss-Newton can overshoot far from the optimum).
-        U_safe = jnp.clip(u_warm, lo, hi)
-        X_safe = rollout(x0, U_safe, model)
-        cost_safe = jnp.sum(residuals(U_safe, X_safe, prob) ** 2)
+        # (undamped Gauss-Newton can overshoot far from the optimum); the fallback is the
+        # cheaper finite one of the warm start and the input reference.
+        def plan(U):
+            X = rollout(x0, U, model)
+            c = jnp.sum(residuals(U, X, prob) ** 2)
+            ok = jnp.isfinite(c) & jnp.all(jnp.isfinite(U)) & jnp.all(jnp.isfinite(X))
+            return X, jnp.where(ok, c, jnp.inf)
+
+        U_warm = jnp.clip(u_warm, lo, hi)
+        U_ref = jnp.clip(u_ref, lo, hi).astype(U_warm.dtype)
+        X_warm, cost_warm = plan(U_warm)
+        X_ref, cost_ref = plan(U_ref)
+        warm_ok = ~(cost_warm > cost_ref)
+        U_safe = jnp.where(warm_ok, U_warm, U_ref)
+        X_safe = jnp.where(warm_ok, X_warm, X_ref)
+        cost_safe = jnp.where(warm_ok, cost_warm, cost_ref)
         finite = jnp.isfinite(cost) & jnp.all(jnp.isfinite(U)) & jnp.all(jnp.isfinite(X))
         better = finite & ~(cost > cost_safe)
         U = jnp.where(better, U, U_safe)

@@ -4,10 +4,23 @@ One OS process per service (``python -m services <name>``): recorder, estimator,
 controller and the vehicle link (profile ``sim``: the MuJoCo simulator). Start-up is
 event-driven: each service compiles before it declares its liveliness token, the launcher
 waits for all tokens (:meth:`Stack.wait_ready`), and the simulator waits for the consumers'
-tokens before it takes off. Supervision: if any service exits before the flight is over,
-the stack is stopped and the failure reported. Stop: SIGINT to every service in data-flow
-order (vehicle first, recorder last so it records the end), then SIGTERM and SIGKILL for
-those that do not exit in time.
+tokens before it takes off.
+
+Supervision (:class:`Stack`): one watcher thread per process notices its exit at once.
+A service that exits before the flight is over (non-zero code, killed by a signal, or
+even code 0) is restarted after an exponential back-off (``restart_backoff_s`` doubling up
+to ``restart_backoff_max_s``), at most ``max_restarts`` times per service; each crash and
+each restart is published as an ``event`` (kinds ``fault`` and ``restart``, source
+``launcher``) and written to ``events.jsonl``. A restarted service gets
+``--incarnation N`` (its files that would overwrite the first run's get a suffix) and,
+for the adapter, the same posterior checkpoint (default ``<out>/adapter_checkpoint.npz``),
+which it restores. The vehicle link is not restarted: its process *is* the vehicle (the
+simulator's physics state); when it ends, the flight ends (code 0: normal end; otherwise
+:class:`StackError`). :attr:`Stack.alive` is the set of services whose liveliness token is
+visible on the bus (a crashed process's token disappears with its session).
+
+Stop: SIGINT to every service in data-flow order (vehicle first, recorder last so it
+records the end), then SIGTERM and SIGKILL for those that do not exit in time.
 
 Run folder (``--out``): ``logs/<service>.log`` (each service's log), ``logs/<service>.out``
 (its stdout/stderr), ``stats/<service>.json``, ``events.jsonl`` (every event seen by the
@@ -56,6 +69,9 @@ class StackConfig:
     speed: float = 2.5
     seed: int = 0
     release: float = 0.95
+    #: Hover before the figure-eight [s] (None: the scenario's); horizontal plan offset [m].
+    hover_s: float | None = None
+    origin: tuple[float, float] = (0.0, 0.0)
     x64: bool = False
     weights: Path | None = None
     checkpoint: Path | None = None
@@ -64,6 +80,18 @@ class StackConfig:
     #: Diagnostic: the simulator publishes the ground-truth state, no estimator runs.
     truth_state: bool = False
     extra: dict[str, list[str]] = field(default_factory=dict)
+    #: Supervision: restarts per service (0: a crash stops the stack) and the back-off
+    #: before restart ``n`` (``restart_backoff_s * 2**n``, at most ``restart_backoff_max_s``).
+    max_restarts: int = 3
+    restart_backoff_s: float = 0.5
+    restart_backoff_max_s: float = 8.0
+
+    def checkpoint_path(self) -> Path:
+        """The adapter's posterior checkpoint (restored by a restarted adapter). Without
+        ``checkpoint`` it is the run folder's own, removed at start: a new flight starts
+        at the prior, a restarted adapter continues from it."""
+        return Path(self.checkpoint) if self.checkpoint is not None else (
+            Path(self.out) / "adapter_checkpoint.npz")
 
     def services(self) -> tuple[str, ...]:
         """The processes of this configuration, in start order."""
@@ -82,13 +110,17 @@ class StackConfig:
                 "--seed", str(self.seed), "--release", f"{self.release:g}"]
         if self.duration is not None:
             plan += ["--duration", f"{self.duration:g}"]
+        if self.hover_s is not None:
+            plan += ["--hover-s", f"{self.hover_s:g}"]
+        if tuple(self.origin) != (0.0, 0.0):
+            plan.append(f"--origin={self.origin[0]:g},{self.origin[1]:g}")  # may start with "-"
         own: list[str] = []
         if service in ("sim", "controller"):
             own += plan
         if service in ("adapter", "controller") and self.weights is not None:
             own += ["--weights", str(self.weights)]
-        if service == "adapter" and self.checkpoint is not None:
-            own += ["--checkpoint", str(self.checkpoint)]
+        if service == "adapter":
+            own += ["--checkpoint", str(self.checkpoint_path())]
         if service == "sim":
             own += ["--ready-timeout", f"{self.ready_timeout:g}"]
             consumers = [s for s in self.services() if s != "sim"]  # incl. the recorder
@@ -101,24 +133,41 @@ class StackConfig:
 
 
 class StackError(RuntimeError):
-    """A service failed to start or died during the run."""
+    """A service failed to start, gave up restarting, or the vehicle link died."""
+
+
+#: The process whose end is the end of the flight (never restarted: it is the vehicle).
+VEHICLE = "sim"
 
 
 class Stack:
-    """The running stack; use as a context manager (stops everything on exit)."""
+    """The running stack; use as a context manager (stops everything on exit).
 
-    def __init__(self, config: StackConfig, services: tuple[str, ...] | None = None):
+    ``on_event`` (optional) is called with every event record (bus events and the
+    supervisor's own), from a background thread.
+    """
+
+    def __init__(self, config: StackConfig, services: tuple[str, ...] | None = None,
+                 on_event: Callable[[dict[str, Any]], None] | None = None):
         if config.profile not in PROFILES:
             raise ValueError(f"unknown profile {config.profile!r} (one of {PROFILES})")
-        if config.profile == "px4":
-            raise StackError("profile px4 needs the PX4 bridge service, which this build does "
-                             "not include; use --profile sim")
+        if config.profile == "px4" and not hasattr(config, "vehicle_process"):
+            raise ValueError("profile px4 takes a deploy.px4_profile.Px4StackConfig")
+        #: The vehicle link process (profile px4: see deploy.px4_profile).
+        self.vehicle_process: str = getattr(config, "vehicle_process", VEHICLE)
         self.config = config
         self.services = services if services is not None else config.services()
         self.procs: dict[str, subprocess.Popen] = {}
+        self.restarts: dict[str, int] = dict.fromkeys(self.services, 0)
         self.events: list[dict[str, Any]] = []
         self._events_lock = threading.Lock()
+        self._on_event_cb = on_event
         self._bus: Any = None
+        self._env: dict[str, str] = {}
+        self._stopping = threading.Event()
+        self._changed = threading.Condition()  # a process ended or the supervisor gave up
+        self._failed: str | None = None
+        self._event_stamp = 0.0
         self.last_stamp = 0.0
         self.out = Path(config.out)
 
@@ -127,37 +176,109 @@ class Stack:
         from services.bus import Bus, peer_config
 
         (self.out / "logs").mkdir(parents=True, exist_ok=True)
+        if self.config.checkpoint is None:  # the run's own checkpoint: for restarts only
+            self.config.checkpoint_path().unlink(missing_ok=True)
         self._bus = Bus(self.config.vehicle, "launcher", peer_config(self.config.hub)).open()
         self._bus.subscribe("event", self._on_event, check_order=False)
         self._bus.subscribe("state", self._on_state, check_order=False)
+        self._bus.publisher("event")
         env = dict(os.environ)
         env.setdefault("JAX_PLATFORMS", "cpu")
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
+        self._env = env
         for name in self.services:
-            cmd = [sys.executable, "-m", "services", name, *self.config.args(name)]
-            with (self.out / "logs" / f"{name}.out").open("w") as log:
-                self.procs[name] = subprocess.Popen(
-                    cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT,
-                    start_new_session=True)  # Ctrl-C goes to the launcher, which stops them
+            self._spawn(name)
         return self
 
-    def _on_event(self, e: Any) -> None:
-        rec = {"stamp": e.stamp, "src": e.src, "kind": e.kind, "severity": e.severity,
-               "text": e.text, "data": dict(e.data)}
+    def _spawn(self, name: str) -> None:
+        n = self.restarts[name]
+        cmd = [sys.executable, "-m", "services", name, *self.config.args(name)]
+        if n:
+            cmd += ["--incarnation", str(n)]
+        with (self.out / "logs" / f"{name}.out").open("a" if n else "w") as log:
+            proc = subprocess.Popen(
+                cmd, cwd=REPO, env=self._env, stdout=log, stderr=subprocess.STDOUT,
+                start_new_session=True)  # Ctrl-C goes to the launcher, which stops them
+        self.procs[name] = proc
+        threading.Thread(target=self._watch, args=(name, proc), daemon=True,
+                         name=f"watch-{name}").start()
+
+    def _watch(self, name: str, proc: subprocess.Popen) -> None:
+        """Wait for ``proc`` to end; restart it (back-off) unless the stack is stopping."""
+        code = proc.wait()
+        with self._changed:
+            self._changed.notify_all()
+        if self._stopping.is_set() or name == self.vehicle_process:
+            return
+        n = self.restarts[name]
+        how = f"killed by signal {-code}" if code < 0 else f"exited with code {code}"
+        if n >= self.config.max_restarts:
+            with self._changed:
+                self._failed = self._failed or f"service {name} {how} (after {n} restarts)"
+                self._changed.notify_all()
+            self.emit("fault", f"{name} {how}; no restart left ({n} used): stopping",
+                      "critical", service=name, code=code, restarts=n)
+            return
+        delay = min(self.config.restart_backoff_s * 2.0**n, self.config.restart_backoff_max_s)
+        self.emit("fault", f"{name} {how}: restarting in {delay:.1f} s", "error",
+                  service=name, code=code, restarts=n, backoff_s=delay)
+        if self._stopping.wait(delay):
+            return
+        self.restarts[name] = n + 1
+        self._spawn(name)
+        self.emit("restart", f"{name} restarted (restart {n + 1} of "
+                  f"{self.config.max_restarts})", "warning", service=name, restarts=n + 1,
+                  pid=self.procs[name].pid)
+
+    # -- events
+    def emit(self, kind: str, text: str, severity: str = "info", **data: Any) -> None:
+        """Publish a supervisor event on the bus and record it (``events.jsonl``)."""
+        from services.messages import Event
+
+        stamp = self._event_stamp = max(self._event_stamp, self.last_stamp)
+        rec = {"stamp": stamp, "src": "launcher", "kind": kind, "severity": severity,
+               "text": text, "data": data}
+        self._record(rec)
+        bus = self._bus
+        if bus is not None:
+            with contextlib.suppress(Exception):  # the bus may close under a late watcher
+                bus.put(Event(kind=kind, severity=severity, text=text, data=data,
+                              stamp=stamp))
+
+    def _record(self, rec: dict[str, Any]) -> None:
         with self._events_lock:
             self.events.append(rec)
             with (self.out / "events.jsonl").open("a") as f:
                 f.write(json.dumps(rec) + "\n")
+        if self._on_event_cb is not None:
+            with contextlib.suppress(Exception):
+                self._on_event_cb(rec)
+
+    def _on_event(self, e: Any) -> None:
+        if e.src.startswith("launcher/"):
+            return  # our own, recorded when emitted
+        self._record({"stamp": e.stamp, "src": e.src, "kind": e.kind, "severity": e.severity,
+                      "text": e.text, "data": dict(e.data)})
 
     def _on_state(self, s: Any) -> None:
         self.last_stamp = s.stamp
 
-    def _check_alive(self, until_exit: str | None = None) -> None:
-        for name, p in self.procs.items():
-            code = p.poll()
-            if code is not None and name != until_exit:
-                raise StackError(f"service {name} exited with code {code}; see "
-                                 f"{self.out / 'logs' / (name + '.out')}")
+    @property
+    def failed(self) -> str | None:
+        """Why the supervisor gave up (a service out of restarts), or None."""
+        return self._failed
+
+    @property
+    def alive(self) -> frozenset[str]:
+        """Services whose liveliness token is visible on the bus right now."""
+        return self._bus.alive if self._bus is not None else frozenset()
+
+    def _check_alive(self) -> None:
+        if self._failed is not None:
+            raise StackError(f"{self._failed}; see {self.out / 'logs'}")
+        sim = self.procs.get(self.vehicle_process)
+        if sim is not None and sim.poll() is not None and not self._stopping.is_set():
+            raise StackError(f"vehicle process exited with code {sim.returncode}")
 
     def wait_ready(self, timeout: float | None = None) -> float:
         """Block until every service declared its liveliness token; returns seconds."""
@@ -176,18 +297,24 @@ class Stack:
 
     def wait(self, timeout: float | None = None,
              progress: Callable[[float], None] | None = None) -> int:
-        """Wait for the vehicle process (the flight) to end; returns its exit code."""
+        """Wait for the vehicle process (the flight) to end; returns its exit code.
+
+        Crashed services are restarted meanwhile; :class:`StackError` when one has no
+        restart left.
+        """
         t0 = time.monotonic()
-        sim = self.procs.get("sim")
+        sim = self.procs.get(self.vehicle_process)
         if sim is None:
             raise StackError("no vehicle process to wait for")
         while True:
-            try:
-                code = sim.wait(timeout=0.5)
+            with self._changed:  # woken by any process end; 0.5 s slices for progress
+                self._changed.wait_for(lambda: sim.poll() is not None
+                                       or self._failed is not None, 0.5)
+            code = sim.poll()
+            if code is not None:
                 break
-            except subprocess.TimeoutExpired:
-                pass
-            self._check_alive(until_exit="sim")
+            if self._failed is not None:
+                raise StackError(f"{self._failed}; see {self.out / 'logs'}")
             if progress is not None:
                 progress(self.last_stamp)
             if timeout is not None and time.monotonic() - t0 > timeout:
@@ -196,9 +323,16 @@ class Stack:
             progress(self.last_stamp)
         return code
 
+    def kill(self, service: str, sig: int = signal.SIGKILL) -> int:
+        """Send ``sig`` to a service (fault injection); returns its pid."""
+        proc = self.procs[service]
+        proc.send_signal(sig)
+        return proc.pid
+
     def stop(self, grace: float = 20.0) -> dict[str, int | None]:
         """SIGINT everything (data-flow order), then SIGTERM/SIGKILL stragglers."""
-        for name in STOP_ORDER:
+        self._stopping.set()
+        for name in getattr(self.config, "stop_order", STOP_ORDER):
             p = self.procs.get(name)
             if p is None or p.poll() is not None:
                 continue
@@ -213,8 +347,8 @@ class Stack:
                     p.kill()
                     p.wait()
         if self._bus is not None:
-            self._bus.close()
-            self._bus = None
+            bus, self._bus = self._bus, None
+            bus.close()
         return {name: p.returncode for name, p in self.procs.items()}
 
     def __enter__(self) -> Stack:
@@ -226,17 +360,26 @@ class Stack:
 
 def run_flight(config: StackConfig, progress: Callable[[str], None] = lambda m: None,
                on_time: Callable[[float], None] | None = None,
-               timeout: float | None = None) -> dict[str, Any]:
-    """Start the stack, fly the plan to the end, stop; returns codes, events and timings."""
+               timeout: float | None = None,
+               on_event: Callable[[dict[str, Any]], None] | None = None,
+               on_ready: Callable[[Stack], None] | None = None) -> dict[str, Any]:
+    """Start the stack, fly the plan to the end, stop; returns codes, events and timings.
+
+    ``on_event``: see :class:`Stack`; ``on_ready(stack)`` runs once every service is up
+    (fault injection hooks in here).
+    """
     config.out.mkdir(parents=True, exist_ok=True)
-    with Stack(config) as stack:
+    with Stack(config, on_event=on_event) as stack:
         progress("starting services (compiling on first use) ...")
         ready_s = stack.wait_ready()
         progress(f"all services ready after {ready_s:.1f} s; flying")
+        if on_ready is not None:
+            on_ready(stack)
         t0 = time.monotonic()
         sim_code = stack.wait(timeout=timeout, progress=on_time)
         flight_s = time.monotonic() - t0
         codes = stack.stop()
-    codes["sim"] = sim_code
+    codes[stack.vehicle_process] = sim_code
     return {"codes": codes, "events": list(stack.events), "ready_s": ready_s,
-            "flight_wall_s": flight_s, "out": str(config.out)}
+            "flight_wall_s": flight_s, "out": str(config.out),
+            "restarts": {k: v for k, v in stack.restarts.items() if v}}

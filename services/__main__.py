@@ -1,7 +1,8 @@
 """``python -m services <name> [options]``: run one service process.
 
-Services: ``sim``, ``estimator``, ``adapter``, ``controller``, ``recorder``. Each takes
-``--help``. The launcher (``arcade up``) starts them all.
+Services: ``sim``, ``estimator``, ``adapter``, ``controller``, ``recorder``, ``bridge``
+(MAVSDK link to a PX4 vehicle) and ``px4sim`` (the simulator as a PX4 vehicle on MAVLink).
+Each takes ``--help``. The launcher (``arcade up``) starts the ones a profile needs.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ SERVICES = {
     "adapter": "services.adapter",
     "controller": "services.controller",
     "recorder": "services.recorder",
+    "px4sim": "services.px4_sim",
+    "bridge": "services.px4_bridge",
 }
 
 

@@ -16,7 +16,12 @@ approximate residual). The beam-marginal prediction of ``delta`` before the upda
 the Eq. 9 changepoint probability). The ``model`` message carries the moment-matched
 beam-marginal decoder posterior (mean and per-row covariance) and ``sigma_tot^2`` at the
 newest state, in normalised units.
-Transitions that end in a state predicted through a mocap dropout are not learned from.
+Transitions that end in a state predicted through a mocap dropout are not learned from,
+nor transitions whose input the vehicle did not apply: in realtime the vehicle follows the
+controller only from the mission ``start`` command on (before it the simulator's pre-roll or
+PX4 holds the vehicle, while the controller already streams setpoints), and not while a
+``failsafe`` holds it (until ``failsafe_cleared`` or a new ``start``). In lockstep every
+setpoint is applied from the first state on.
 Estimation noise: the residual of two estimated states contains their errors; to first
 order (errors in variables) their variances (``State.cov_diag``, propagated through the
 Jacobian of ``f_nom``) add to the observation noise ``sigma_j^2`` of each output, in
@@ -42,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from services import runtime
-from services.messages import Model, Residual, Setpoint, State
+from services.messages import MAX_VARIANCE, Event, Model, Residual, Setpoint, State
 
 #: The shipped quadrotor VLD (``arcade train --system quadrotor`` writes it).
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "deploy" / "weights" / "quadrotor_vld.eqx"
@@ -203,8 +208,11 @@ class Adapter(runtime.Service):
         self._prev: State | None = None
         self._lat: list[float] = []
         self.stats.update(steps=0, learned=0, changepoints=0, skipped=0)
+        # Whether the vehicle is flying the controller's setpoints (see the module docstring).
+        self._applied = bool(a.lockstep)
         bus.subscribe("setpoint", self.on_setpoint)
         bus.subscribe("state", self.on_state)
+        bus.subscribe("event", self.on_event, check_order=False)
         self.pub_model = bus.publisher("model")
         self.pub_res = bus.publisher("residual")
 
@@ -227,6 +235,19 @@ class Adapter(runtime.Service):
             self.event("restart", f"restored the posterior from {self.args.checkpoint} "
                        f"(step {self._restored})", steps=self._restored)
 
+    def on_command(self, cmd) -> None:
+        if cmd.name == "start" and not self._applied:
+            self._applied = True
+            self.log.info("mission started: learning from the applied setpoints")
+
+    def on_event(self, e: Event) -> None:
+        if e.kind == "failsafe" and self._applied:
+            self._applied = False
+            self.log.info("vehicle in failsafe (%s): not learning until it resumes", e.src)
+        elif e.kind == "failsafe_cleared" and not self._applied:
+            self._applied = True
+            self.log.info("failsafe cleared (%s): learning again", e.src)
+
     def on_setpoint(self, sp: Setpoint) -> None:
         with self._cond:
             self._setpoints[sp.stamp] = sp
@@ -237,11 +258,14 @@ class Adapter(runtime.Service):
                     del self._setpoints[s]
             self._cond.notify_all()
 
+    def _controller_alive(self) -> bool:
+        return self.bus is None or "controller" in self.bus.alive
+
     def _input_for(self, prev: State) -> Setpoint | None:
         with self._cond:
             if self.args.lockstep:
-                self._cond.wait_for(lambda: prev.stamp in self._setpoints or self.stop.is_set(),
-                                    self.args.step_timeout)
+                self._cond.wait_for(lambda: prev.stamp in self._setpoints or self.stop.is_set()
+                                    or not self._controller_alive(), self.args.step_timeout)
                 return self._setpoints.get(prev.stamp)
             return self._setpoints.get(prev.stamp, self._latest_sp)
 
@@ -252,13 +276,18 @@ class Adapter(runtime.Service):
             self.pub_model.put(Model(theta=np.zeros((13, 1)), sigma_tot2=np.zeros(13),
                                      state_seq=s.seq, stamp=s.stamp))
             return
+        # A gap in the states (a restarted estimator, a stall) is no transition to learn.
+        h = s.stamp - prev.stamp if prev is not None else 0.0
+        if prev is not None and not 0.0 < h <= self.args.max_gap_periods / self.args.rate:
+            self.stats["gaps"] = self.stats.get("gaps", 0) + 1
+            prev = None
         sp = self._input_for(prev) if prev is not None else None
         if sp is None:
             theta, cov, sig = self._marginal(self.learner, s.x, self._u_hover())
             self.stats["skipped"] += prev is not None
         else:
-            learn = not s.predicted_through_dropout
-            h = s.stamp - prev.stamp
+            learn = self._applied and not s.predicted_through_dropout
+            self.stats["not_applied"] = self.stats.get("not_applied", 0) + (not self._applied)
             if abs(h - self.model_dt) < 1e-6:
                 h = self.model_dt  # bit-identical to the fixed-step nominal model
             zeros = np.zeros(13)
@@ -268,6 +297,8 @@ class Adapter(runtime.Service):
             self.learner, dn, pred, cp_prob, cp, theta, cov, sig = out
             self.stats["learned"] += learn
             pred_np = type(pred)(*(np.asarray(p, dtype=float) for p in pred))
+            pred_np = pred_np._replace(**{f: np.clip(v, 0.0, MAX_VARIANCE) for f, v in
+                                          pred_np._asdict().items() if f != "mean"})
             if np.all(np.isfinite(np.asarray(dn))) and all(
                     np.all(np.isfinite(p)) for p in pred_np):
                 self.pub_res.put(Residual.from_prediction(
@@ -280,6 +311,9 @@ class Adapter(runtime.Service):
                            cp_prob=float(cp_prob), step=int(self.learner.beam.step),
                            state_seq=s.seq)
         theta, cov, sig = (np.asarray(v, dtype=float) for v in (theta, cov, sig))
+        # Huge but finite state variances (a long dropout) must not make the message invalid.
+        cov = np.clip(cov, -MAX_VARIANCE, MAX_VARIANCE)
+        sig = np.clip(sig, 0.0, MAX_VARIANCE)
         if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(cov))
                 and np.all(np.isfinite(sig))):
             self.log.error("non-finite posterior: resetting the beam to the prior")
@@ -313,6 +347,8 @@ def _extra(p) -> None:
                    help="steps between checkpoints (0: only at shutdown)")
     p.add_argument("--step-timeout", type=float, default=5.0,
                    help="lockstep: longest wait for the setpoint of the previous state [s]")
+    p.add_argument("--max-gap-periods", type=float, default=2.5,
+                   help="states further apart (in control periods) are not learned from")
 
 
 def main(argv: list[str] | None = None) -> int:

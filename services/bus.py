@@ -352,10 +352,17 @@ class Bus:
         self._pub_lock = threading.Lock()
 
     # -- lifecycle
-    def open(self) -> Bus:
-        """Open the Zenoh session (idempotent) and start tracking liveliness."""
+    def open(self, session: Any = None) -> Bus:
+        """Open the Zenoh session (idempotent) and start tracking liveliness.
+
+        ``session``: use this already open session instead of opening one from
+        :attr:`config` -- anything with the methods of ``zenoh.Session`` the bus calls, so
+        an in-process stand-in can drive a service's handlers without a network. The bus
+        closes it on :meth:`close`.
+        """
         if self._session is None:
-            session = zenoh.open(self.config if self.config is not None else peer_config())
+            if session is None:
+                session = zenoh.open(self.config if self.config is not None else peer_config())
             self._session = session
             self._src = f"{self.name}/{session.zid()}"
             self._alive_sub = session.liveliness().declare_subscriber(

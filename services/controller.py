@@ -17,17 +17,28 @@ between-hypothesis parts of the beam mixture exactly (``z^T Sigma_j z`` of the
 moment-matched covariance) and the encoder part from the marginal mean (the mixture's
 encoder part also counts the spread of the hypotheses' means: slightly less caution).
 
-Lockstep: the solve waits for the model that answers the same state (``--model-timeout``).
-Realtime: the newest model is used.
+Lockstep: the solve waits for the model that answers the same state (``--model-timeout``)
+while the adapter is alive (its liveliness token); without it, the newest model is used.
+Realtime: the newest model is used. Models are ordered by their ``stamp`` (the stamp of the
+state they answer), which stays monotonic when a restarted estimator counts ``seq`` from 1.
+The mission clock: lockstep, simulated time (it starts at 0 with the mission, so a
+restarted controller is on it at once); realtime, the ``t0`` of the ``start`` command
+(sent again by the simulator when a controller joins late).
 
 Safety: a setpoint is always finite and within the MPC input bounds. Degraded modes, each
 announced by an event when entered:
 
+- stale model (older than ``--stale-model-s``, e.g. the adapter died): the last model is
+  still used (mode ``track``) and a ``degraded`` event with ``flag: stale_model`` says so;
 - no model (no weights, model late or older than ``--max-model-age``): nominal MPC
   (mode ``nominal_model``);
 - stale state (realtime: older than ``--max-state-age`` on arrival; any mode: newest
-  fused mocap older than ``--max-meas-age``): level hover at the nominal hover thrust
-  (mode ``hover``), tracking resumes with the next fresh state;
+  fused mocap older than ``--max-meas-age``, 0.2 s: the estimator's constant-acceleration
+  prediction extrapolates its acceleration estimate, whose noise (~1-2 m/s^2) makes the
+  predicted velocity drift by tenths of m/s within a few tenths of a second, which the MPC
+  would chase): level hover (mode ``hover``) at the hover
+  thrust learned while tracking (the mean of the recent tracking thrusts, corrected for
+  tilt; the nominal one before any), tracking resumes with the next fresh state;
 - a non-finite or failed solve: hover for that step.
 
 A solve that ends after the next control instant (``1 / rate``) is a deadline miss.
@@ -44,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from services import runtime
-from services.messages import Model, Setpoint, State
+from services.messages import MAX_STAMP_S, Model, Setpoint, State
 
 
 def one_hypothesis_beam(beam, theta, cov):
@@ -142,6 +153,8 @@ class Controller(runtime.Service):
         self._cond = threading.Condition()
         self._queue: queue.Queue[State] = queue.Queue()
         self._mode = "track"
+        self._stale_model = False
+        self._thrust_hover = float(self.u_hover[0])  # learned while tracking
         self._solve_s: list[float] = []
         self.stats.update(setpoints=0, deadline_misses=0, hover=0, nominal_model=0,
                           solver_failures=0)
@@ -181,14 +194,20 @@ class Controller(runtime.Service):
     def on_command(self, cmd) -> None:
         if cmd.name == "start" and cmd.target in ("", self.name):
             t0 = cmd.args.get("t0", cmd.stamp)
-            self.t0 = float(t0) if isinstance(t0, int | float) else cmd.stamp
+            if not (isinstance(t0, int | float) and 0.0 <= t0 <= MAX_STAMP_S):
+                self.log.warning("start command with an invalid t0 %r: using its stamp", t0)
+                t0 = cmd.stamp
+            self.t0 = float(t0)
             self.log.info("mission clock started at %.3f", self.t0)
 
     def on_model(self, m: Model) -> None:
         with self._cond:
-            if self._model is None or (m.state_seq or 0) >= (self._model.state_seq or 0):
+            if self._model is None or m.stamp >= self._model.stamp:
                 self._model = m
             self._cond.notify_all()
+
+    def _adapter_alive(self) -> bool:
+        return self.bus is None or "adapter" in self.bus.alive
 
     def on_state(self, s: State) -> None:
         self._queue.put(s)
@@ -222,18 +241,29 @@ class Controller(runtime.Service):
 
     def model_for(self, s: State) -> Model | None:
         a = self.args
+        def current() -> bool:
+            return self._model is not None and self._model.stamp >= s.stamp
+
         with self._cond:
             if a.lockstep and self.learner0 is not None:
-                self._cond.wait_for(
-                    lambda: (self._model is not None and (self._model.state_seq or 0) >= s.seq)
-                    or self.stop.is_set(), a.model_timeout)
+                self._cond.wait_for(lambda: current() or self.stop.is_set()
+                                    or not self._adapter_alive(), a.model_timeout)
             m = self._model
         if m is None or self.learner0 is None or m.theta.shape != self._theta0.shape:
             return None
-        if a.lockstep and (m.state_seq or 0) < s.seq:
+        age = s.stamp - m.stamp
+        if a.lockstep and age > 0 and self._adapter_alive():
+            return None  # the adapter is up but late: no guessing in lockstep
+        if age > a.max_model_age:
             return None
-        if s.stamp - m.stamp > a.max_model_age:
-            return None
+        stale = age > a.stale_model_s
+        if stale != self._stale_model:
+            self._stale_model = stale
+            if stale:
+                self.event("degraded", f"model {age:.2f} s old: flying on the last one",
+                           "warning", stamp=s.stamp, flag="stale_model", age_s=float(age))
+            else:
+                self.event("info", "fresh models again", stamp=s.stamp, flag="stale_model")
         return m
 
     def hover(self, s: State) -> np.ndarray:
@@ -243,14 +273,14 @@ class Controller(runtime.Service):
         g_b = np.array([2 * (q[1] * q[3] - q[0] * q[2]), 2 * (q[2] * q[3] + q[0] * q[1]),
                         1 - 2 * (q[1] ** 2 + q[2] ** 2)])
         rates = 2.0 * np.array([g_b[1], -g_b[0], 0.0])
-        thrust = self.u_hover[0] / max(g_b[2], 0.5)
+        thrust = self._thrust_hover / max(g_b[2], 0.5)
         return np.clip(np.r_[thrust, rates], self.u_min, self.u_max)
 
     def handle(self, s: State) -> None:
         a = self.args
         t_recv = self.now()
         if self.t0 is None and a.lockstep:
-            self.t0 = s.stamp  # simulated time: the mission starts with the first state
+            self.t0 = 0.0  # simulated time starts at 0 with the mission
         age = t_recv - s.stamp if not a.lockstep else 0.0
         meas_age = s.stamp - s.meas_stamp if s.meas_stamp is not None else 0.0
         if age > a.max_state_age or meas_age > a.max_meas_age:
@@ -284,6 +314,12 @@ class Controller(runtime.Service):
             self.publish(s, self.hover(s), "hover", solve_s)
             return
         self.carry = self._new_carry
+        # Hover thrust for the hover mode: what tracking on measured states needed,
+        # level-equivalent (a slow mean: a few seconds).
+        if not s.predicted_through_dropout:
+            q = s.q
+            tilt = 1 - 2 * (q[1] ** 2 + q[2] ** 2)
+            self._thrust_hover += 0.02 * (float(u[0]) * max(tilt, 0.5) - self._thrust_hover)
         self._set_mode(mode, "model available" if m is not None else "no current model",
                        s.stamp)
         self.publish(s, u, mode, solve_s)
@@ -319,9 +355,11 @@ def _extra(p) -> None:
                    help="lockstep: longest wait for the model of the current state [s]")
     p.add_argument("--max-model-age", type=float, default=0.5,
                    help="older models are not used (nominal MPC instead) [s]")
+    p.add_argument("--stale-model-s", type=float, default=0.15,
+                   help="older models are still used but flagged (stale_model event) [s]")
     p.add_argument("--max-state-age", type=float, default=0.1,
                    help="realtime: older states on arrival give a hover setpoint [s]")
-    p.add_argument("--max-meas-age", type=float, default=0.5,
+    p.add_argument("--max-meas-age", type=float, default=0.2,
                    help="states whose newest mocap frame is older give a hover setpoint [s]")
 
 

@@ -12,17 +12,37 @@ no frame was fused this period and ``predicted_through_dropout`` when the newest
 frame is older than the filter's ``dropout_s``. Before the first frame no state exists, and
 none is published. The filter always runs in float64 (its covariance spans too many
 orders of magnitude for float32).
+
+Sensor faults, screened before the filter (each announced by an event when it starts and
+when it ends; counts in the statistics):
+
+- frozen frames: a frame whose pose is bit-identical to the previous one is a tracker
+  repeating its last pose (real mocap noise never repeats exactly); it is dropped, so the
+  filter predicts through as in a dropout (``mocap_stale`` / ``predicted_through_dropout``
+  flags, ``fault`` event);
+- clock jumps: when every frame of a period was captured in the future of the control
+  instant (more than ``--stamp-tolerance``) or more than ``--max-frame-lag`` before it, the
+  stamps come from a clock that jumped (a stall of a process instead delays or advances
+  only some frames of a period: late ones are fused with their own stamps, early ones
+  wait for the next instant); such frames are re-stamped onto the control clock (the newest at the
+  usual capture-to-control lag, the others keeping their spacing), so the filter keeps
+  fusing them (``fault`` event with the offset);
+- outliers: gated out by the filter (:mod:`arcade_core.estimation`); a ``fault`` event at
+  most once per second while they occur;
+- dropouts: the filter predicts (``degraded`` event); the controller hovers when the
+  newest fused frame is older than its ``--max-meas-age``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from typing import Any
 
 import numpy as np
 
 from services import runtime
-from services.messages import Imu, Mocap, State
+from services.messages import MAX_VARIANCE, Imu, Mocap, State
 
 
 class Estimator(runtime.Service):
@@ -46,9 +66,17 @@ class Estimator(runtime.Service):
         self._lock = threading.Lock()
         self._hops: list[float] = []
         self._dropout_reported = False
-        self.stats.update(states=0, frames=0, dropped_frames=0)
+        self._last_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self._frozen = False
+        self._jump: float | None = None  # clock offset being corrected [s]
+        self._lag: float | None = None  # usual lag of the newest frame behind the control instant
+        self._rejected_seen = 0
+        self._outlier_event_t = -np.inf
+        self.stats.update(states=0, frames=0, dropped_frames=0, frozen_frames=0,
+                          restamped_frames=0)
         # One ordered stream: the frames of a period arrive before its imu sample.
-        self._subs = runtime.subscribe_ordered(bus, {"mocap": self.on_mocap, "imu": self.on_imu})
+        self._subs = runtime.subscribe_ordered(bus, {"mocap": self.on_mocap, "imu": self.on_imu},
+                                               seq_only=("mocap",))
         self.pub = bus.publisher("state")
 
     def warmup(self) -> None:
@@ -75,16 +103,78 @@ class Estimator(runtime.Service):
         return est.Frames(jnp.asarray(stamp, self.dtype), jnp.asarray(pos, self.dtype),
                           jnp.asarray(quat, self.dtype), jnp.asarray(valid))
 
+    def _drop_frozen(self, batch: list[Mocap], t: float) -> list[Mocap]:
+        """Frames whose pose differs from the previous frame's (see the module docstring)."""
+        fresh = []
+        for m in sorted(batch, key=lambda m: m.capture_stamp):
+            last = self._last_pose
+            repeat = (last is not None and np.array_equal(m.position, last[0])
+                      and np.array_equal(m.quaternion, last[1]))
+            self._last_pose = (m.position, m.quaternion)
+            if repeat:
+                self.stats["frozen_frames"] += 1
+            else:
+                fresh.append(m)
+        if batch:
+            frozen = not fresh
+            if frozen and not self._frozen:
+                self.event("fault", "mocap frozen: repeated poses dropped, predicting",
+                           "warning", stamp=t, fault="mocap_frozen")
+            elif fresh and self._frozen:
+                self.event("info", "mocap poses change again", stamp=t, fault="mocap_frozen")
+            self._frozen = frozen
+        return fresh
+
+    def _restamp(self, batch: list[Mocap], t: float) -> list[Mocap]:
+        """Frames with capture stamps on the control clock (see the module docstring)."""
+        a = self.args
+        good = [m for m in batch if -a.stamp_tolerance <= t - m.capture_stamp <= a.max_frame_lag]
+        bad = [m for m in batch if m not in good]
+        if good:
+            lag = t - max(m.capture_stamp for m in good)
+            self._lag = lag if self._lag is None else 0.9 * self._lag + 0.1 * lag
+        if bad and good:
+            # Frames on the control clock beside off-clock ones: no clock jump but a stall
+            # (of this process or of the publisher). Late frames keep their true stamps (the
+            # filter fuses what is still in order); early ones belong to a later instant.
+            early = [m for m in bad if m.capture_stamp > t]
+            if early:
+                with self._lock:
+                    self._pending = early + self._pending
+            self.stats["late_frames"] = self.stats.get("late_frames", 0) + len(bad) - len(early)
+            return good + [m for m in bad if m.capture_stamp <= t]
+        if bad:
+            newest = max(m.capture_stamp for m in bad)
+            offset = newest - (t - (self._lag if self._lag is not None else 0.0))
+            self.stats["restamped_frames"] += len(bad)
+            if self._jump is None:
+                self.event("fault", f"mocap clock off by {offset:+.3f} s: re-stamping frames",
+                           "warning", stamp=t, fault="mocap_clock_jump", offset_s=float(offset))
+            self._jump = offset
+            bad = [dataclasses.replace(m, capture_stamp=max(m.capture_stamp - offset, 0.0))
+                   for m in bad]
+        elif batch and self._jump is not None:
+            self.event("info", "mocap clock consistent again", stamp=t, fault="mocap_clock_jump")
+            self._jump = None
+        return good + bad
+
     def on_imu(self, imu: Imu) -> None:
         if not self.args.lockstep:
             self._hops.append(self.now() - imu.stamp)
         with self._lock:
             batch, self._pending = self._pending, []
         self.stats["frames"] += len(batch)
+        batch = self._restamp(self._drop_frozen(batch, imu.stamp), imu.stamp)
         self.filter, out = self._step(self.filter, self._frames(batch), imu.stamp, imu.gyro,
                                       self.config)
         if not bool(self.filter.initialised):
             return
+        rejected = int(self.filter.rejected)
+        if rejected > self._rejected_seen and imu.stamp - self._outlier_event_t >= 1.0:
+            self.event("fault", f"mocap outliers rejected ({rejected} so far)", "warning",
+                       stamp=imu.stamp, fault="mocap_outliers", rejected=rejected)
+            self._outlier_event_t = imu.stamp
+        self._rejected_seen = rejected
         x = np.array(out.x, dtype=float)
         if not np.all(np.isfinite(x)):
             self.log.error("non-finite estimate at %.3f: filter re-initialised", imu.stamp)
@@ -99,7 +189,7 @@ class Estimator(runtime.Service):
         self._dropout_reported = dropout
         x[6:10] /= np.linalg.norm(x[6:10])
         self.pub.put(State(
-            x=x, cov_diag=np.maximum(np.asarray(out.var, dtype=float), 0.0),
+            x=x, cov_diag=np.clip(np.asarray(out.var, dtype=float), 0.0, MAX_VARIANCE),
             mocap_stale=int(out.fused) == 0, predicted_through_dropout=dropout,
             meas_stamp=float(self.filter.t), stamp=imu.stamp,
         ))
@@ -111,7 +201,16 @@ class Estimator(runtime.Service):
         self.stats["outliers_rejected"] = int(self.filter.rejected)
 
 
+def _extra(p) -> None:
+    p.add_argument("--max-frame-lag", type=float, default=0.25,
+                   help="frames captured longer than this before the control instant have a "
+                        "jumped clock and are re-stamped [s]")
+    p.add_argument("--stamp-tolerance", type=float, default=0.005,
+                   help="frames captured later than the control instant by more than this "
+                        "have a jumped clock and are re-stamped [s]")
+
+
 def main(argv: list[str] | None = None) -> int:
     # Always float64: the covariance spans 1e-7 m^2 (mocap noise) to ~1e2 (acceleration),
     # beyond float32's resolution, and the filter is small enough not to care.
-    return runtime.main_for(Estimator, argv, x64=True)
+    return runtime.main_for(Estimator, argv, _extra, x64=True)

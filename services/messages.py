@@ -73,6 +73,7 @@ __all__ = [
     "StreamChecker",
     "decode",
     "encode",
+    "field_specs",
     "message_type",
     "safe_handler",
 ]
@@ -82,7 +83,8 @@ log = logging.getLogger("arcade.messages")
 # ------------------------------------------------------------------------- limits
 # Wire sanity limits, not a flight envelope: they catch garbage, unit mistakes and
 # diverged estimators, and leave the physics to the services.
-MAX_STAMP_S = 1e12
+# Stamps are seconds; in nanoseconds they must fit the uint64 of MCAP/ROS time (1.8e10 s).
+MAX_STAMP_S = 1e10
 MAX_POSITION_M = 1e4
 MAX_SPEED_MPS = 1e3
 MAX_RATE_RADPS = 100.0  # body rates and gyro; MEMS gyros saturate near 35 rad/s
@@ -103,6 +105,7 @@ MODES = ("idle", "takeoff", "hover", "track", "land", "nominal_model")
 EVENT_KINDS = (
     "changepoint",
     "failsafe",
+    "failsafe_cleared",
     "fault",
     "degraded",
     "restart",
@@ -275,6 +278,8 @@ class _Array:
     lo: float | tuple[float, ...] = -np.inf
     hi: float | tuple[float, ...] = np.inf
     optional: bool = False
+    #: ``(start, stop)`` of a 1-D array slice that must be a unit quaternion, if any.
+    unit: tuple[int, int] | None = None
 
     def coerce(self, name: str, v: Any, dims: dict[str, int]) -> np.ndarray | None:
         if v is None and self.optional:
@@ -313,6 +318,8 @@ class _Array:
             raise MessageError(Reason.NON_FINITE, "non-finite element", field=name)
         if not ((arr >= np.asarray(self.lo)).all() and (arr <= np.asarray(self.hi)).all()):
             raise MessageError(Reason.OUT_OF_RANGE, "element out of range", field=name)
+        if self.unit is not None:
+            _check_quaternion(name, arr[self.unit[0] : self.unit[1]])
         arr.flags.writeable = False
         return arr
 
@@ -493,6 +500,18 @@ def _specs(cls: type[Message]) -> Mapping[str, Any]:
     return types.MappingProxyType({f.name: f.metadata["spec"] for f in dataclasses.fields(cls)})
 
 
+def field_specs(cls: type[Message]) -> Mapping[str, Any]:
+    """Field name -> validation spec of a record type, in wire order.
+
+    A spec is a frozen dataclass: ``_Float(lo, hi, optional)``, ``_Int(lo, hi, optional)``,
+    ``_Bool()``, ``_Str(pattern, choices, max_len)``, ``_Array(shape, lo, hi, optional,
+    unit)`` (shape entries are sizes or dimension symbols bounded by :data:`MAX_DIMS`) or
+    ``_Scalars()``. Tools that generate or document records (schemas, fuzzers) read these
+    instead of duplicating the limits.
+    """
+    return _specs(message_type(cls))
+
+
 _R, _V = MAX_RATE_RADPS, MAX_SPEED_MPS
 _P, _Q = MAX_POSITION_M, 1.0 + QUAT_NORM_TOL
 _X_LO = (-_P,) * 3 + (-_V,) * 3 + (-_Q,) * 4 + (-_R,) * 3
@@ -515,13 +534,10 @@ class Mocap(Message):
     TOPIC: ClassVar[str] = "mocap"
 
     position: np.ndarray = field(metadata=_arr((3,), -_P, _P))
-    quaternion: np.ndarray = field(metadata=_arr((4,), -_Q, _Q))
+    quaternion: np.ndarray = field(metadata=_arr((4,), -_Q, _Q, unit=(0, 4)))
     body: str = field(default="vehicle", metadata=_m(_Str(pattern=_IDENT)))
     frame: str = field(default="world", metadata=_m(_Str(pattern=_IDENT)))
     capture_stamp: float = field(metadata=_m(_Float(0.0, MAX_STAMP_S)))
-
-    def _check(self) -> None:
-        _check_quaternion("quaternion", self.quaternion)
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
@@ -552,7 +568,7 @@ class State(Message):
     SCHEMA: ClassVar[str] = "arcade.State"
     TOPIC: ClassVar[str] = "state"
 
-    x: np.ndarray = field(metadata=_arr((13,), _X_LO, _X_HI))
+    x: np.ndarray = field(metadata=_arr((13,), _X_LO, _X_HI, unit=(6, 10)))
     cov_diag: np.ndarray | None = field(
         default=None, metadata=_arr((13,), 0.0, MAX_VARIANCE, optional=True)
     )
@@ -561,9 +577,6 @@ class State(Message):
     meas_stamp: float | None = field(
         default=None, metadata=_m(_Float(0.0, MAX_STAMP_S, optional=True))
     )
-
-    def _check(self) -> None:
-        _check_quaternion("x", self.q)
 
     @classmethod
     def from_parts(cls, *, p: Any, v: Any, q: Any, omega: Any, **kw: Any) -> State:

@@ -57,8 +57,11 @@ class Recorder(runtime.Service):
 
         out = Path(self.args.out or ".")
         out.mkdir(parents=True, exist_ok=True)
+        # A restarted recorder must not overwrite what the crashed one wrote.
+        n = self.args.incarnation
+        suffix = f".{n}" if n else ""
         self._lock = threading.Lock()
-        self._file = (out / "bus.mcap").open("wb")
+        self._file = (out / f"bus{suffix}.mcap").open("wb")
         self.writer = Writer(self._file)
         self.writer.start(profile="", library="arcade")
         self._channels: dict[str, int] = {}
@@ -68,7 +71,7 @@ class Recorder(runtime.Service):
                 data=json.dumps(json_schema(cls)).encode())
             self._channels[topic] = self.writer.register_channel(
                 topic=bus.key(topic), message_encoding="json", schema_id=schema)
-        self._csv_file = (out / "flight_log.csv").open("w", newline="")
+        self._csv_file = (out / f"flight_log{suffix}.csv").open("w", newline="")
         self.csv = csv.writer(self._csv_file)
         self.csv.writerow(["t", "px", "py", "pz", "vx", "vy", "vz", "qw", "qx", "qy", "qz",
                            "wx", "wy", "wz", "u0", "u1", "u2", "u3", "mode"])
@@ -87,25 +90,28 @@ class Recorder(runtime.Service):
             if self.writer is None:
                 return
             self.writer.add_message(self._channels[topic], log_time=time.time_ns(), data=data,
-                                    publish_time=int(m.stamp * 1e9), sequence=m.seq % 2**32)
+                                    publish_time=min(int(m.stamp * 1e9), 2**64 - 1),
+                                    sequence=m.seq % 2**32)
             self.stats["messages"][topic] += 1
             # State and setpoint come from different publishers: pair whichever is second.
+            # By stamp (a setpoint carries the stamp of the state it answers), not by
+            # ``seq``: a restarted estimator counts ``seq`` from 1 again.
             if isinstance(m, State):
                 if self._t0 is None:
                     self._t0 = m.stamp
-                self._states[m.seq] = m
-                sp = self._unpaired.pop(m.seq, None)
+                self._states[m.stamp] = m
+                sp = self._unpaired.pop(m.stamp, None)
                 if sp is not None:
                     self._row(m, sp)
                 if len(self._states) > 256:
                     for k in sorted(self._states)[:-128]:
                         del self._states[k]
             elif isinstance(m, Setpoint):
-                s = self._states.get(m.state_seq)
+                s = self._states.pop(m.stamp, None)
                 if s is not None:
                     self._row(s, m)
                 elif len(self._unpaired) < 256:
-                    self._unpaired[m.state_seq] = m
+                    self._unpaired[m.stamp] = m
 
     def _row(self, s: State, sp: Setpoint) -> None:
         self._rows.append([s.stamp, *s.x, *sp.u, sp.mode])

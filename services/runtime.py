@@ -43,6 +43,8 @@ def common_parser(name: str, description: str) -> argparse.ArgumentParser:
     p.add_argument("--nice", type=int, default=0,
                    help="scheduling priority change (negative: higher; needs privileges, "
                         "ignored with a warning otherwise)")
+    p.add_argument("--incarnation", type=int, default=0,
+                   help="restart count given by the supervisor (0: first start)")
     return p
 
 
@@ -84,14 +86,39 @@ def percentiles_ms(samples_s: list[float]) -> dict[str, float]:
             "p99_ms": float(np.percentile(a, 99)), "max_ms": float(a.max())}
 
 
-def subscribe_ordered(bus: Bus, topics: dict[str, Any]) -> list[Any]:
+def _seq_only(receiver: Any) -> Any:
+    """``receiver`` (without order checks) plus a per-publisher increasing-``seq`` check."""
+    from services.messages import MessageError, Reason
+
+    last: dict[str, int] = {}
+    lock = threading.Lock()
+
+    def decode(payload: bytes) -> Any:
+        record = receiver(payload)
+        with lock:
+            prev = last.get(record.src)
+            if prev is not None and record.seq <= prev:
+                raise MessageError(Reason.OUT_OF_ORDER,
+                                   f"seq {record.seq} after {prev} from {record.src!r}")
+            last[record.src] = record.seq
+            if len(last) > 64:
+                last.pop(next(iter(last)))
+        return record
+
+    return decode
+
+
+def subscribe_ordered(bus: Bus, topics: dict[str, Any],
+                      seq_only: tuple[str, ...] = ()) -> list[Any]:
     """Subscribe ``{topic: callback}`` with callbacks run on Zenoh's receiving thread.
 
     :meth:`Bus.subscribe` runs each subscription's callback on its own thread, so two
     topics from one publisher (mocap frames, then the control-instant imu sample) may be
     handled out of order. Here the callbacks run in arrival order (Zenoh keeps order per
     priority on a link); they must be quick (enqueue, or a few hundred microseconds of work).
-    Validation and reject counting are those of :meth:`Bus.subscribe`.
+    Validation and reject counting are those of :meth:`Bus.subscribe`, except that the
+    topics in ``seq_only`` are order-checked on ``seq`` alone: their stamps are judged by
+    the service (a jumped sensor clock must reach the estimator, which re-stamps it).
     """
     import zenoh
 
@@ -99,7 +126,8 @@ def subscribe_ordered(bus: Bus, topics: dict[str, Any]) -> list[Any]:
 
     subs = []
     for topic, callback in topics.items():
-        receiver = Receiver(topic)
+        receiver = (_seq_only(Receiver(topic, check_order=False)) if topic in seq_only
+                    else Receiver(topic))
         handler = safe_handler(
             lambda sample, r=receiver: r(sample.payload.to_bytes()), callback, bus.rejects,
             topic=topic,
@@ -253,14 +281,29 @@ def add_plan_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--release", type=float, default=0.95,
                    help="release the payload at this fraction of the first lap "
                         "(negative: only on a release_payload command)")
+    p.add_argument("--hover-s", type=float, default=1.5,
+                   help="hover this long at the centre before the figure-eight [s] "
+                        "(longer than the flight: a take-off and hover plan)")
+    p.add_argument("--origin", type=_xy, default=(0.0, 0.0), metavar="X,Y",
+                   help="horizontal offset of the whole plan [m] (one per vehicle on a bus)")
+
+
+def _xy(text: str) -> tuple[float, float]:
+    x, y = (float(v) for v in text.split(","))
+    return x, y
 
 
 def scenario(args: argparse.Namespace) -> Any:
     """The closed-loop scenario (take-off, hover, figure-eight) of the plan options."""
     from benchmarks.quadrotor_closedloop import Scenario
 
+    ox, oy = getattr(args, "origin", (0.0, 0.0))
+    base = Scenario()
     return Scenario(payload_g=float(args.payload_g), speed_mps=float(args.speed),
-                    release_fraction=float(args.release))
+                    release_fraction=float(args.release),
+                    hover_s=float(getattr(args, "hover_s", base.hover_s)),
+                    start=(base.start[0] + ox, base.start[1] + oy, base.start[2]),
+                    center=(base.center[0] + ox, base.center[1] + oy, base.center[2]))
 
 
 class Trial(NamedTuple):

@@ -6,7 +6,9 @@ time) and, once per control period, one ``imu`` sample (the latest gyro reading)
 the control instant; accepts ``setpoint``; emits ``event`` (payload release, timeouts,
 crash). Flies the scenario of the plan options (take-off, hover, two figure-eight laps) and
 releases the payload at ``--release`` of the first lap (jittered per seed like the
-in-process evaluation) or on a ``release_payload`` command.
+in-process evaluation) or on a ``release_payload`` command: at the first control instant
+whose stamp is at or after the command's stamp (a command stamped in the future releases
+at that time; lockstep stamps are simulated time).
 
 Clock modes (design §3):
 
@@ -24,12 +26,30 @@ Clock modes (design §3):
   next instant is a missed deadline (pre-roll instants are ``startup_ticks``). Stamps are
   ``time.monotonic()``-based.
 
+Setpoint watchdog (the failsafe of a flight controller that loses its offboard link):
+when no fresh setpoint has arrived for ``--failsafe-after`` seconds (realtime: wall clock
+since the last setpoint's arrival, checked every physics chunk; lockstep: simulated time
+since the control instant of the last setpoint, so a stale setpoint is held for at most
+that long), the vehicle holds its position (a PD position loop on its own state, the
+role of PX4's position controller, with the hover thrust of the mass it carries) and a
+``failsafe`` event says so, with the measured delay. When setpoints answer
+``--failsafe-resume`` consecutive control instants again, offboard control resumes
+(``info`` event). A (re)joining controller in realtime is sent the mission's ``start``
+command again, so that it picks up the mission clock.
+
+Mocap fault injection (``--mocap-fault``, repeatable; times are mission time in seconds):
+``dropout@T+D`` (no frames captured in ``[T, T+D)``), ``freeze@T+D`` (the last pose before
+``T`` is repeated with fresh stamps, as a tracker that lost the body does),
+``outliers@T+D,p=P,m=M`` (each frame jumps by ``M`` m in a random direction with
+probability ``P``), ``clockjump@T[+D],offset=S`` (the mocap clock is off by ``S`` s: both
+stamps of the frames move). Counts go to the statistics (``mocap_faults``).
+
 The vehicle starts at rest on its start pose: the first mocap frame (captured at ``t = 0``)
 is published before the first control instant, so the estimator starts initialised.
 ``--truth-state`` (diagnostic) publishes the ground-truth state at each control instant
 instead of leaving estimation to the estimator (run without it): the loop then sees what
 the in-process evaluation sees. Ground truth goes to ``<out>/truth.csv`` (the flight-log
-columns of design §5 plus ``ref_px, ref_py, ref_pz`` and ``released``), statistics to
+columns of design §5 plus ``ref_px, ref_py, ref_pz``, ``released`` and ``failsafe``), statistics to
 ``<out>/stats/sim.json``.
 """
 
@@ -37,8 +57,10 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +74,106 @@ FLIGHT_COLUMNS = ("t", "px", "py", "pz", "vx", "vy", "vz", "qw", "qx", "qy", "qz
 #: Position error [m] or height [m] at which a flight counts as crashed and stops.
 CRASH_ERROR_M = 2.0
 CRASH_HEIGHT_M = 0.02
+#: Failsafe position hold: PD gains [1/s^2, 1/s], horizontal acceleration limit [m/s^2],
+#: attitude gain [1/s] (tilt error -> body rates).
+HOLD_KP, HOLD_KD, HOLD_MAX_ACC, HOLD_K_ATT = 4.0, 3.0, 4.0, 6.0
+
+_FAULT = re.compile(r"(dropout|freeze|outliers|clockjump)@([0-9.]+)(?:\+([0-9.]+))?"
+                    r"((?:,\w+=[-0-9.e]+)*)")
+
+
+@dataclass(frozen=True)
+class MocapFault:
+    """One injected mocap fault over the mission-time window ``[start, start + duration)``."""
+
+    kind: str
+    start: float
+    duration: float = math.inf
+    p: float = 1.0  # outliers: probability per frame
+    m: float = 0.5  # outliers: jump [m]
+    offset: float = 0.0  # clockjump: clock offset [s]
+
+    @classmethod
+    def parse(cls, spec: str) -> MocapFault:
+        """``KIND@START[+DURATION][,key=value...]`` (see the module docstring)."""
+        m = _FAULT.fullmatch(spec.strip())
+        if m is None:
+            raise ValueError(f"bad mocap fault {spec!r}: KIND@START[+DURATION][,key=value...] "
+                             "with KIND dropout|freeze|outliers|clockjump")
+        kw = {k: float(v) for k, v in (item.split("=") for item in m[4].split(",") if item)}
+        unknown = set(kw) - {"p", "m", "offset"}
+        if unknown:
+            raise ValueError(f"bad mocap fault {spec!r}: unknown {sorted(unknown)}")
+        return cls(m[1], float(m[2]), float(m[3]) if m[3] else math.inf, **kw)
+
+    def active(self, t: float) -> bool:
+        return self.start <= t < self.start + self.duration
+
+
+class MocapFaults:
+    """Applies :class:`MocapFault` s to the frames of one mocap stream (seeded)."""
+
+    def __init__(self, faults: list[MocapFault], seed: int):
+        self.faults = faults
+        self.rng = np.random.default_rng(np.random.SeedSequence([seed, 0xFA]))
+        self.last = None  # last genuine frame (what a frozen tracker repeats)
+        self.counts = {k: 0 for k in ("dropout", "freeze", "outliers", "clockjump")}
+
+    def apply(self, frames, t_mission) -> list:
+        """The frames to publish; ``t_mission(capture_stamp)`` gives mission time."""
+        out = []
+        for f in frames:
+            t = t_mission(f.stamp)
+            active = [x for x in self.faults if x.active(t)]
+            kinds = {x.kind for x in active}
+            if "dropout" in kinds:
+                self.counts["dropout"] += 1
+                continue
+            if "freeze" in kinds and self.last is not None:
+                self.counts["freeze"] += 1
+                f = f._replace(position=self.last.position, quaternion=self.last.quaternion)
+            else:
+                self.last = f
+            for x in active:
+                if x.kind == "outliers" and self.rng.random() < x.p:
+                    self.counts["outliers"] += 1
+                    d = self.rng.normal(size=3)
+                    f = f._replace(position=f.position + x.m * d / np.linalg.norm(d))
+                elif x.kind == "clockjump":
+                    self.counts["clockjump"] += 1
+                    f = f._replace(stamp=f.stamp + x.offset, arrival=f.arrival + x.offset)
+            out.append(f)
+        return out
+
+
+def hold_setpoint(x: np.ndarray, p_hold: np.ndarray, hover_thrust: float,
+                  mass: float, max_thrust: float) -> np.ndarray:
+    """Position hold at ``p_hold`` on state ``x``: ``[thrust N, body rates rad/s]``.
+
+    Desired acceleration ``kp (p_hold - p) - kd v`` (horizontal part limited) plus
+    gravity; thrust is its projection on the body z axis; body rates turn the body z
+    axis towards the desired direction (small-angle attitude loop), yaw rate zero.
+    """
+    p, v, q = x[0:3], x[3:6], x[6:10] / np.linalg.norm(x[6:10])
+    g = hover_thrust / mass
+    acc = HOLD_KP * (p_hold - p) - HOLD_KD * v
+    n = np.linalg.norm(acc[:2])
+    if n > HOLD_MAX_ACC:
+        acc[:2] *= HOLD_MAX_ACC / n
+    acc[2] = np.clip(acc[2], -0.5 * g, g)
+    f_world = mass * (acc + np.array([0.0, 0.0, g]))
+    w, xq, yq, zq = q
+    R = np.array([
+        [1 - 2 * (yq * yq + zq * zq), 2 * (xq * yq - w * zq), 2 * (xq * zq + w * yq)],
+        [2 * (xq * yq + w * zq), 1 - 2 * (xq * xq + zq * zq), 2 * (yq * zq - w * xq)],
+        [2 * (xq * zq - w * yq), 2 * (yq * zq + w * xq), 1 - 2 * (xq * xq + yq * yq)],
+    ])
+    f_body = R.T @ f_world
+    thrust = float(np.clip(f_body[2], 0.0, max_thrust))
+    d = f_body / max(np.linalg.norm(f_body), 1e-6)  # desired thrust axis, body frame
+    # z_b x d = (-d_y, d_x, 0): rotate about body x by -d_y, about body y by d_x.
+    rates = HOLD_K_ATT * np.array([-d[1], d[0], 0.0])
+    return np.r_[thrust, rates]
 
 
 class SimNode(runtime.Service):
@@ -88,20 +210,30 @@ class SimNode(runtime.Service):
         self._answered: set[float] = set()
         self._s2a: list[tuple[float, float]] = []
         self._flight_stamp = -math.inf  # stamp of the first mission tick
-        self._release_cmd = False
+        self._release_at = math.inf  # stamp of a release_payload command
         self._gyro = np.zeros(3)
         self.rows: list[list[float]] = []
+        # Setpoint watchdog: arrival (wall) of the newest setpoint; failsafe hold state.
+        self._sp_wall = -math.inf
+        self._t_last_sp = 0.0  # lockstep: control instant of the newest setpoint
+        self._hold: np.ndarray | None = None  # hold position while in failsafe
+        self._answered_run = 0
+        self._mission0 = 0.0 if a.lockstep else math.inf  # sim time of the mission start
+        self.faults = MocapFaults([MocapFault.parse(f) for f in a.mocap_fault or []],
+                                  self.trial.sim_seed)
         self.stats.update(steps=0, timeouts=0, missed_deadlines=0, released_at=None,
                           crashed=False, mode="lockstep" if a.lockstep else "realtime",
-                          rate_hz=a.rate)
+                          rate_hz=a.rate, failsafes=[], mocap_faults=self.faults.counts)
         self.pub_mocap = bus.publisher("mocap")
         self.pub_imu = bus.publisher("imu")
         bus.subscribe("setpoint", self.on_setpoint)
+        bus.on_alive_change(self._on_alive)
 
     # -- inputs
     def on_setpoint(self, sp: Setpoint) -> None:
         now = self.now()
         with self._cond:
+            self._sp_wall = now
             self._setpoints[sp.stamp] = sp
             if self._latest is None or sp.stamp >= self._latest.stamp:
                 self._latest = sp
@@ -113,13 +245,45 @@ class SimNode(runtime.Service):
 
     def on_command(self, cmd: Command) -> None:
         if cmd.name == "release_payload" and cmd.target in ("", self.name):
-            self._release_cmd = True
+            self.log.info("release_payload command received (stamp %.3f)", cmd.stamp)
+            self._release_at = cmd.stamp
+
+    def _on_alive(self, service: str, up: bool) -> None:
+        """A controller that (re)joins after the mission started gets its clock again."""
+        if service == "controller" and up and math.isfinite(self._flight_stamp):
+            self.bus.put(Command(name="start", args={"t0": self._flight_stamp},
+                                 stamp=self.now()))
+
+    # -- failsafe
+    def _engage_failsafe(self, stamp: float, since: float) -> None:
+        x = self.sim.state()
+        self._hold = x[:3].copy()
+        self._answered_run = 0
+        rec = {"t": self.sim.time - self._mission0, "since_last_setpoint_s": since}
+        self.stats["failsafes"].append(rec)
+        self.event("failsafe", f"no setpoint for {since:.3f} s: holding position", "error",
+                   stamp=stamp, mode="hold", since_last_setpoint_s=float(since),
+                   sim_time=float(rec["t"]), px=float(x[0]), py=float(x[1]), pz=float(x[2]))
+
+    def _clear_failsafe(self, stamp: float) -> None:
+        self._hold = None
+        self.stats["failsafes"][-1]["cleared_t"] = self.sim.time - self._mission0
+        self.event("failsafe_cleared", "setpoints resumed: failsafe cleared", stamp=stamp,
+                   sim_time=float(self.sim.time - self._mission0))
+
+    def _hold_u(self) -> np.ndarray:
+        sim = self.sim
+        return self.sim.set_setpoint(hold_setpoint(
+            sim.state(), self._hold, sim.hover_thrust(), sim.carried_mass(),
+            4.0 * sim.max_thrust))
 
     # -- helpers
     def _ref(self, t: float) -> np.ndarray:
         return np.array([np.interp(t, self._ref_t, self._ref_p[:, i]) for i in range(3)])
 
     def _publish_frames(self, frames, to_stamp) -> None:
+        if self.faults.faults:
+            frames = self.faults.apply(frames, lambda t: t - self._mission0)
         for f in frames:
             self.pub_mocap.put(Mocap(position=f.position, quaternion=f.quaternion,
                                      capture_stamp=to_stamp(f.stamp),
@@ -137,8 +301,8 @@ class SimNode(runtime.Service):
             self.bus.put(State(x=x, meas_stamp=stamp, stamp=stamp))
 
     def _maybe_release(self, k: int, stamp: float) -> None:
-        if (k == self.k_release or self._release_cmd) and self.sim.payload_attached:
-            self._release_cmd = False
+        if (k == self.k_release or stamp >= self._release_at) and self.sim.payload_attached:
+            self._release_at = math.inf
             if self.sim.release_payload():
                 self.stats["released_at"] = self.sim.time
                 self.event("info", "payload released", stamp=stamp, sim_time=self.sim.time,
@@ -149,8 +313,11 @@ class SimNode(runtime.Service):
         x = self.sim.state()
         t = self.sim.time if t is None else t
         ref = self._ref(t)
-        self.rows.append([t, *x, *u, *ref, float(not self.sim.payload_attached)])
-        crashed = (np.linalg.norm(x[:3] - ref) > CRASH_ERROR_M or x[2] < CRASH_HEIGHT_M
+        self.rows.append([t, *x, *u, *ref, float(not self.sim.payload_attached),
+                          float(self._hold is not None)])
+        # In failsafe the vehicle holds its position instead of following the reference.
+        goal = ref if self._hold is None else self._hold
+        crashed = (np.linalg.norm(x[:3] - goal) > CRASH_ERROR_M or x[2] < CRASH_HEIGHT_M
                    or not np.all(np.isfinite(x)))
         if crashed:
             self.stats["crashed"] = True
@@ -201,15 +368,29 @@ class SimNode(runtime.Service):
                 self._setpoints = {s: v for s, v in self._setpoints.items() if s > t}
             if sp is not None:
                 u = sp.u
+                self._t_last_sp = t
+                self._answered_run += 1
+                if self._hold is not None and self._answered_run >= self.args.failsafe_resume:
+                    self._clear_failsafe(t)
             elif not self.stop.is_set():
                 self.stats["timeouts"] += 1
-                self.event("deadline_miss", f"no setpoint for t={t:.3f} within "
-                           f"{self.args.step_timeout} s: holding the last one", "warning",
-                           stamp=t, step=k, ok=bool(ok))
-            u_applied = sim.set_setpoint(u)
+                self._answered_run = 0
+                since = t - self._t_last_sp
+                if self._hold is None and since >= self.args.failsafe_after - 1e-9:
+                    self._engage_failsafe(t, since)
+                elif self._hold is None:
+                    self.event("deadline_miss", f"no setpoint for t={t:.3f} within "
+                               f"{self.args.step_timeout} s: holding the last one",
+                               "warning", stamp=t, step=k, ok=bool(ok))
+            u_applied = self._hold_u() if self._hold is not None else sim.set_setpoint(u)
             if not self._record(u_applied):
                 break
-            sim.step(self.period)
+            if self._hold is None:
+                sim.step(self.period)
+            else:  # the hold loop runs at the physics-chunk rate, like the realtime one
+                for _ in range(max(1, round(self.period / self.args.substep))):
+                    self._hold_u()
+                    sim.step(self.period / max(1, round(self.period / self.args.substep)))
             self.stats["steps"] += 1
 
     def _realtime(self) -> None:
@@ -241,6 +422,7 @@ class SimNode(runtime.Service):
                     # Setpoints stream (the loop is engaged, as PX4 requires before
                     # offboard control): start the mission clock at this instant.
                     k, t_start = 0, t_sim
+                    self._mission0 = t_start
                     self.bus.put(Command(name="start", args={"t0": stamp}, stamp=stamp))
                     self._flight_stamp = stamp
                     self.stats["preroll_s"] = t_sim
@@ -248,6 +430,11 @@ class SimNode(runtime.Service):
                     k += 1
                 if k >= 0:
                     self._maybe_release(k, stamp)
+                if self._hold is not None and prev_tick is not None:
+                    self._answered_run = 0 if missed else self._answered_run + 1
+                    if self._answered_run >= self.args.failsafe_resume:
+                        self._clear_failsafe(stamp)
+                        applied = None  # apply the newest setpoint again
                 self._tick(stamp, sim.gyro.read(math.inf) if n == 0 else sim.read_gyro())
                 self._last_stamp = stamp
                 prev_tick = stamp
@@ -258,8 +445,13 @@ class SimNode(runtime.Service):
                 n += 1
                 t_next += self.period
             with self._cond:
-                latest = self._latest
-            if latest is not None and latest is not applied:
+                latest, sp_wall = self._latest, self._sp_wall
+            now = self.now()
+            if self._hold is None and k >= 0 and now - sp_wall > self.args.failsafe_after:
+                self._engage_failsafe(now, now - sp_wall)
+            if self._hold is not None:
+                u = self._hold_u()
+            elif latest is not None and latest is not applied:
                 u = sim.set_setpoint(latest.u)
                 applied = latest
             sim.step(sub)
@@ -279,7 +471,8 @@ class SimNode(runtime.Service):
             path.parent.mkdir(parents=True, exist_ok=True)
             with path.open("w", newline="") as f:
                 w = csv.writer(f)
-                w.writerow([*FLIGHT_COLUMNS, "ref_px", "ref_py", "ref_pz", "released"])
+                w.writerow([*FLIGHT_COLUMNS, "ref_px", "ref_py", "ref_pz", "released",
+                            "failsafe"])
                 w.writerows(self.rows)
 
 
@@ -298,10 +491,19 @@ def _extra(p) -> None:
                         "estimator; this is what the in-process evaluation controls on)")
     p.add_argument("--ready-timeout", type=float, default=600.0,
                    help="longest wait for those services [s]")
+    p.add_argument("--failsafe-after", type=float, default=0.3,
+                   help="no fresh setpoint for this long -> position hold (realtime: wall "
+                        "clock; lockstep: simulated time) [s]")
+    p.add_argument("--failsafe-resume", type=int, default=3,
+                   help="consecutive answered control instants that end the failsafe")
+    p.add_argument("--mocap-fault", action="append", default=None, metavar="SPEC",
+                   help="inject a mocap fault: dropout@T+D, freeze@T+D, "
+                        "outliers@T+D,p=P,m=M, clockjump@T[+D],offset=S (mission time)")
 
 
 def main(argv: list[str] | None = None) -> int:
     return runtime.main_for(SimNode, argv, _extra)
 
 
-__all__ = ["FLIGHT_COLUMNS", "Event", "SimNode", "main"]
+__all__ = ["FLIGHT_COLUMNS", "Event", "MocapFault", "MocapFaults", "SimNode", "hold_setpoint",
+           "main"]

@@ -78,6 +78,10 @@ class QuadrotorSim:
         timestep: float = 0.001,
     ):
         self.vehicle = vehicle if isinstance(vehicle, dict) else load_vehicle(vehicle)
+        #: Motors follow the rate loop only while enabled (an autopilot's armed state).
+        self.motors_enabled = True
+        #: Hold the rate integrators at zero (an autopilot does this while landed).
+        self.hold_integrators = False
         if not 1e-4 <= timestep <= 0.005:
             raise ValueError(f"timestep must be in [1e-4, 5e-3] s, got {timestep}")
         self.effects = load_effects(self.vehicle.get("effects")).merged(load_effects(effects))
@@ -243,7 +247,21 @@ class QuadrotorSim:
             self._physics_step()
         return self.state()
 
+    def stop_motors(self) -> None:
+        """Disable the motors and spin them down at once (a disarmed vehicle)."""
+        self.motors_enabled = False
+        self._thrust[:] = 0.0
+        self._thrust_cmd[:] = 0.0
+        self._saturation[:] = 0.0
+
     def _rate_tick(self) -> None:
+        if not self.motors_enabled:
+            self._thrust_cmd = np.zeros(4)
+            self._saturation = np.zeros(3)
+            self.rate_controller.reset(self.data.qvel[3:6])
+            return
+        if self.hold_integrators:  # on the ground: an autopilot keeps its integrators at zero
+            self.rate_controller.reset(self.data.qvel[3:6])
         omega_meas = self.gyro.measure(self.data.qvel[3:6])
         rate_sp = self._lag.update(self._setpoint[1:])
         torque = self.rate_controller.update(rate_sp, omega_meas, self._saturation)

@@ -38,9 +38,11 @@ def ref_cp_posterior(ll0, ll1, pi):
     return float(np.exp(a - np.logaddexp(a, b)))
 
 
-def brute_force(theta0, tau2, sigma2, pi, beta, Z, D):
+def brute_force(theta0, tau2, sigma2, pi, beta, Z, D, floor=0.0):
     """All 2^T changepoint paths: tempered recursion in information form + Algorithm 1 scores.
 
+    ``floor`` is the prior-precision floor ``rho``: a changepoint's prior precision is
+    ``beta^2 Sigma^-1 + rho (1 - beta^2) / tau^2 I`` with the mean kept.
     Returns a list of dicts with the raw score, posterior mean/covariance (d, l[, l]),
     number of changepoints and step of the last changepoint (-1: none) per path.
     """
@@ -54,12 +56,16 @@ def brute_force(theta0, tau2, sigma2, pi, beta, Z, D):
         for k, c in enumerate(path):
             cov = np.linalg.inv(prec)
             mu = np.einsum("dij,dj->di", cov, eta)
-            ll0, ll1 = ref_log_marginals(mu, cov, Z[k], D[k], sigma2, (1.0, beta**2))
+            (ll0,) = ref_log_marginals(mu, cov, Z[k], D[k], sigma2, (1.0,))
+            prec1 = beta**2 * prec + floor * (1.0 - beta**2) / tau2 * np.eye(l)
+            (ll1,) = ref_log_marginals(mu, np.linalg.inv(prec1), Z[k], D[k], sigma2, (1.0,))
             p1 = ref_cp_posterior(ll0, ll1, pi)
             score += (ll1 + np.log(p1)) if c else (ll0 + np.log(1.0 - p1))
-            g = beta**2 if c else 1.0
-            prec = g * prec + np.outer(Z[k], Z[k])[None] / sigma2[:, None, None]
-            eta = g * eta + D[k][:, None] * Z[k][None, :] / sigma2[:, None]
+            if c:  # tempered prior (Eq. 5), same mean
+                prec = prec1
+                eta = np.einsum("dij,dj->di", prec1, mu)
+            prec = prec + np.outer(Z[k], Z[k])[None] / sigma2[:, None, None]
+            eta = eta + D[k][:, None] * Z[k][None, :] / sigma2[:, None]
             if c:
                 last = k + 1
         cov = np.linalg.inv(prec)
@@ -112,6 +118,32 @@ def test_presets_match_appendix_d():
     q, c = A.quadrotor_config(), A.cartpole_config()
     assert (q.K, q.pi, q.beta, q.tau2, q.sigma2) == (15, 0.05, 0.997, 0.1, 0.1)
     assert (c.K, c.pi, c.beta, c.tau2, c.sigma2) == (5, 0.05, 0.9, 0.1, 0.1)
+    # Lemma 2's assumption (prior-precision floor) on the quadrotor; Eq. 5 as written else.
+    assert (q.prior_floor, c.prior_floor) == (1.0, 0.0)
+
+
+@pytest.mark.parametrize("floor", [0.0, 1.0])
+def test_repeated_changepoints_and_the_prior_precision_floor(floor):
+    """Lemma 2 assumes a tempered prior is never more diffuse than ``tau^2 I``.
+
+    Forced changepoints (``pi`` ~ 1) with features that only excite the first latent
+    direction: Eq. 5 alone inflates the unexcited directions by ``beta^-2`` per step;
+    with the floor every covariance stays below the prior, and the excited direction
+    still learns (its variance falls well below ``tau^2``).
+    """
+    d, l, tau2, beta, T = 2, 3, 0.1, 0.7, 30
+    cfg = A.AdaptationConfig(K=2, pi=1.0 - 1e-9, beta=beta, tau2=tau2, sigma2=0.1,
+                             prior_floor=floor)
+    z = np.array([1.0, 0.0, 0.0])
+    D = np.random.default_rng(0).normal(size=(T, d))
+    state, _ = run(A.init(np.zeros((d, l)), cfg), [z] * T, D, cfg)
+    assert int(state.num_changepoints[0]) == T  # every step was a changepoint
+    top = np.linalg.eigvalsh(np.asarray(state.covariances[0]))[:, -1]
+    if floor:
+        assert np.all(top <= tau2 * (1 + 1e-12))
+        assert float(state.covariances[0, 0, 0, 0]) < 0.5 * tau2
+    else:
+        np.testing.assert_allclose(top, tau2 * beta ** (-2 * T), rtol=1e-9)
 
 
 def test_init_has_one_hypothesis_and_prior():
@@ -186,17 +218,23 @@ def test_tempered_update_matches_information_form():
 
 
 @pytest.mark.parametrize(
-    ("T", "K", "pi", "beta", "sigma2"),
-    [(8, 256, 0.2, 0.5, np.array([0.05, 0.1, 0.2])), (5, 40, 0.05, 0.9, 0.1)],
+    ("T", "K", "pi", "beta", "sigma2", "floor"),
+    [
+        (8, 256, 0.2, 0.5, np.array([0.05, 0.1, 0.2]), 0.0),
+        (5, 40, 0.05, 0.9, 0.1, 0.0),
+        (6, 64, 0.3, 0.4, np.array([0.05, 0.1, 0.2]), 1.0),
+        (5, 32, 0.2, 0.6, 0.1, 0.5),
+    ],
 )
-def test_beam_equals_exhaustive_enumeration(T, K, pi, beta, sigma2):
-    """With K >= 2^T nothing is pruned: the beam is the set of all 2^T changepoint paths."""
+def test_beam_equals_exhaustive_enumeration(T, K, pi, beta, sigma2, floor):
+    """With K >= 2^T nothing is pruned: the beam is the set of all 2^T changepoint paths
+    (also with the prior-precision floor at changepoints)."""
     d, l, tau2 = 3, 2, 0.1
     theta0, Z, D = random_problem(1, d, l, T, switch=T // 2)
     s2 = np.broadcast_to(np.asarray(sigma2, float), (d,))
-    cfg = A.AdaptationConfig(K=K, pi=pi, beta=beta, tau2=tau2, sigma2=sigma2)
+    cfg = A.AdaptationConfig(K=K, pi=pi, beta=beta, tau2=tau2, sigma2=sigma2, prior_floor=floor)
     state, _ = run(A.init(theta0, cfg), Z, D, cfg)
-    ref = sorted(brute_force(theta0, tau2, s2, pi, beta, Z, D), key=lambda r: -r["score"])
+    ref = sorted(brute_force(theta0, tau2, s2, pi, beta, Z, D, floor), key=lambda r: -r["score"])
 
     n = 2**T
     raw = np.asarray(state.raw_log_scores)
@@ -345,12 +383,15 @@ def test_prediction_parts_and_marginal_decoder():
 def test_packed_step_equals_step():
     d, l, K = 3, 2, 4
     theta0, Z, D = random_problem(8, d, l, 12, switch=6)
-    cfg = A.AdaptationConfig(K=K, pi=0.2, beta=0.5, tau2=0.1, sigma2=np.array([0.1, 0.2, 0.3]))
+    cfg = A.AdaptationConfig(
+        K=K, pi=0.2, beta=0.5, tau2=0.1, sigma2=np.array([0.1, 0.2, 0.3]), prior_floor=1.0
+    )
     state = A.init(theta0, cfg)
     back, back_cfg = A.unpack(A.pack(state, cfg))
     for a, b in zip(back, state):
         np.testing.assert_array_equal(a, b)
     assert float(back_cfg.beta) == 0.5 and float(back_cfg.pi) == 0.2
+    assert float(back_cfg.prior_floor) == 1.0
     fast = A.make_packed_step()
     packed = A.pack(state, cfg)
     sz2 = np.array([0.01, 0.02])

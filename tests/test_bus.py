@@ -1,13 +1,12 @@
-"""Zenoh bus: real sessions on loopback, liveliness readiness, rejects, ACL and mTLS routers."""
+"""Zenoh bus: real sessions on loopback, liveliness readiness, rejects (routers, ACL, TLS:
+test_access_control.py)."""
 
 from __future__ import annotations
 
 import json
 import queue
 import socket
-import subprocess
 import threading
-from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -15,7 +14,7 @@ import pytest
 import zenoh
 
 from services import bus as zbus
-from services.bus import Bus, client_config, load_config, peer_config
+from services.bus import Bus, load_config, peer_config
 from services.messages import Event, Mocap, Reason, Setpoint, State, encode
 
 pytestmark = pytest.mark.integration
@@ -234,126 +233,7 @@ def test_wait_alive_times_out_with_missing_names():
             Bus("v", "closed").session  # noqa: B018
 
 
-# ------------------------------------------------------------------------ routers
-
-
-USERS = {"controller": "c-pw", "simulator": "s-pw", "recorder": "r-pw"}
-
-
-def test_acl_router_only_controller_puts_setpoint(tmp_path: Path):
-    users = tmp_path / "users.txt"
-    users.write_text("".join(f"{u}:{p}\n" for u, p in USERS.items()))
-    endpoint = hub()
-    router_cfg = load_config(
-        zbus.config_path("router-acl.json5"),
-        {"listen/endpoints": [endpoint], "transport/auth/usrpwd/dictionary_file": str(users)},
-    )
-    got: queue.Queue = queue.Queue()
-
-    def client(user: str, password: str | None = None) -> Bus:
-        cfg = client_config([endpoint], user=user, password=password or USERS[user])
-        return Bus("v", user, cfg)
-
-    with (
-        zenoh.open(router_cfg),
-        client("recorder") as rec,
-        client("controller") as ctl,
-        client("simulator") as sim,
-    ):
-        rec.subscribe("setpoint", got.put)
-        rec.subscribe("mocap", got.put)
-        rec.declare_alive()
-        ctl.wait_alive(["recorder"], TIMEOUT)
-        sim.wait_alive(["recorder"], TIMEOUT)
-        ctl.put(Setpoint(u=[1.0, 0, 0, 0], state_seq=1, stamp=0.0))
-        # Denied at the router; it would arrive before the mocap sample (same link, higher
-        # priority), which is allowed.
-        sim.put(Setpoint(u=[9.0, 0, 0, 0], state_seq=1, stamp=0.0))
-        sim.put(
-            Mocap(position=[0.0, 0.0, 0.0], quaternion=[1.0, 0, 0, 0], capture_stamp=0, stamp=0)
-        )
-        received = [get(got, "message"), get(got, "message")]
-        by_type = {type(m): m for m in received}
-        assert set(by_type) == {Setpoint, Mocap}
-        assert by_type[Setpoint].src == ctl.src and by_type[Setpoint].thrust == 1.0
-        assert by_type[Mocap].src == sim.src
-        assert got.empty() and rec.rejects.total == 0
-        with pytest.raises(zenoh.ZError):
-            client("simulator", "wrong-password").open()
-
-
-def _openssl(*args: str, cwd: Path) -> None:
-    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True, timeout=60)
-
-
-@pytest.fixture(scope="module")
-def certs(tmp_path_factory) -> Path:
-    """A CA, a router certificate for localhost and a client certificate (P-256)."""
-    d = tmp_path_factory.mktemp("certs")
-    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-days", "2"]
-    _openssl(
-        "req", "-x509", *ec, "-subj", "/CN=arcade-ca", "-keyout", "ca.key", "-out", "ca.pem", cwd=d
-    )
-    for name in ("router", "controller"):
-        san = ["-addext", "subjectAltName=DNS:localhost"]
-        _openssl(
-            "req",
-            *ec[:-2],
-            "-subj",
-            f"/CN={name}",
-            *san,
-            "-keyout",
-            f"{name}.key",
-            "-out",
-            f"{name}.csr",
-            cwd=d,
-        )
-        sign = ["-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-days", "2"]
-        _openssl(
-            "x509",
-            "-req",
-            "-in",
-            f"{name}.csr",
-            *sign,
-            "-copy_extensions",
-            "copy",
-            "-out",
-            f"{name}.pem",
-            cwd=d,
-        )
-    return d
-
-
-def test_mtls_router_carries_messages_and_refuses_clients_without_certificate(certs: Path):
-    port = free_port()
-    router_cfg = load_config(
-        zbus.config_path("router-tls.json5"),
-        {
-            "listen/endpoints": [f"tls/127.0.0.1:{port}"],
-            "transport/link/tls/listen_certificate": str(certs / "router.pem"),
-            "transport/link/tls/listen_private_key": str(certs / "router.key"),
-            "transport/link/tls/root_ca_certificate": str(certs / "ca.pem"),
-        },
-    )
-    endpoint = [f"tls/localhost:{port}"]
-    mtls = {
-        "root_ca": certs / "ca.pem",
-        "cert": certs / "controller.pem",
-        "key": certs / "controller.key",
-    }
-    got: queue.Queue = queue.Queue()
-    with (
-        zenoh.open(router_cfg),
-        Bus("v", "estimator", client_config(endpoint, **mtls)) as a,
-        Bus("v", "controller", client_config(endpoint, **mtls)) as b,
-    ):
-        b.subscribe("state", got.put)
-        b.declare_alive()
-        a.wait_alive(["controller"], TIMEOUT)
-        a.put(state(1.0))
-        assert get(got, "state over TLS").stamp == 1.0
-        with pytest.raises(zenoh.ZError):
-            Bus("v", "anon", client_config(endpoint, root_ca=certs / "ca.pem")).open()
+# ------------------------------------------------------------------- concurrency
 
 
 def test_bus_callbacks_may_run_concurrently_with_publishing():

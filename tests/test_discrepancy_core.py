@@ -15,12 +15,19 @@ from arcade.commands.discrepancy import quad_model_from_vehicle
 from arcade.vehicle import load_vehicle
 from arcade_core.discrepancy import cartpole as cp
 from arcade_core.discrepancy import quadrotor as qm
-from arcade_core.discrepancy.catalog import CARTPOLE_EFFECTS, EFFECTS, QUADROTOR_EFFECTS
+from arcade_core.discrepancy.catalog import (
+    CARTPOLE_EFFECTS,
+    DETECTABLE,
+    EFFECTS,
+    QUADROTOR_EFFECTS,
+    magnitude,
+)
 from arcade_core.discrepancy.identify import (
     Bounds,
     SelectionConfig,
     _solve_bounded,
     identify,
+    scaled_secants,
 )
 from arcade_core.discrepancy.localize import binned_rms, changepoints, segment_rms
 from arcade_core.dynamics.cartpole import cartpole_true_step
@@ -66,6 +73,22 @@ def test_library_names_units_ranges_and_simulator_share_one_table(capsys):
     drag = next(e for e in listed if e["name"] == "rotor_drag")
     assert drag["system"] == "quadrotor"
     assert drag["params"]["d"]["unit"] == "1/s" and drag["params"]["d"]["range"] == [0.0, 2.0]
+    assert drag["detectable_from"] == DETECTABLE["rotor_drag"]
+
+
+def test_every_quadrotor_effect_has_a_detectability_limit_inside_its_range():
+    vehicle = load_vehicle()
+    assert set(DETECTABLE) == set(QUADROTOR_EFFECTS)
+    for name, spec in QUADROTOR_EFFECTS.items():
+        p = next(iter(spec.params.values()))
+        top = {"thrust_scale": p.high - 1.0, "motor_lag": p.high - 0.025}.get(name, p.high)
+        if name in ("com_offset", "wind"):
+            top = p.high * 2**0.5  # horizontal length of a vector
+        assert 0.0 < DETECTABLE[name] < top, name
+    assert magnitude("thrust_scale", {"scale": 0.8}) == pytest.approx(0.2)
+    assert magnitude("motor_lag", {"time_constant_s": 0.1}, vehicle) == pytest.approx(0.075)
+    assert magnitude("com_offset", {"offset_m": [0.003, -0.004, 0.02]}) == pytest.approx(0.005)
+    assert magnitude("wind", {"velocity_mps": [3.0, 4.0, 0.0]}) == pytest.approx(5.0)
 
 
 def test_effect_tables_round_trip_through_theta():
@@ -214,6 +237,34 @@ def test_identify_says_nothing_when_there_is_nothing():
     )
     assert res.confident == () and np.all(res.theta == 0.0)
     assert np.all(res.confidence < 0.9)
+
+
+def test_a_long_delay_is_found_through_scaled_secants():
+    # A transport delay of 8 samples in a signal that decorrelates within 2: the tangent at
+    # zero delay (the signal's derivative) explains almost nothing of the gap, the secant
+    # over the whole range explains most of it; selection names the delay, the fit finds it.
+    rng = np.random.default_rng(2)
+    n, t = 1200, np.arange(1200.0)
+    sig = np.convolve(rng.normal(size=(n + 40)), np.ones(3) / 3.0, mode="same")[20:-20]
+    truth = 8.0
+
+    def shifted(delay):
+        return np.interp(t - delay, t, sig)
+
+    y = shifted(truth) + 0.05 * rng.normal(size=n)
+    other = rng.normal(size=n)
+
+    def residual_fn(theta):
+        th = np.asarray(theta)
+        return np.stack([y - shifted(th[0]) - other * th[1], other * 0.0], axis=1)
+
+    low, high = np.array([0.0, -1.0]), np.array([10.0, 1.0])
+    base = np.zeros(2)
+    jac = scaled_secants(residual_fn, base, low, high, residual_fn(base), (0.05, 0.25, 1.0))
+    np.testing.assert_allclose(jac[:, 0, 0], -(shifted(10.0) - sig) / 10.0)
+    res = identify(residual_fn, base, [(0,), (1,)], low, high, SelectionConfig(n_boot=50, block=50))
+    assert res.confident == (0,), res.confidence
+    assert res.theta[0] == pytest.approx(truth, abs=0.1)
 
 
 def test_bounded_solution_holds_unphysical_parameters_at_their_bound():

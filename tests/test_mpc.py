@@ -197,6 +197,27 @@ def test_non_finite_model_falls_back_to_warm_start(quad):
     np.testing.assert_allclose(sol.u[:, 1:], ur[:, 1:])
 
 
+def test_diverging_warm_start_falls_back_to_the_input_reference():
+    """A warm start the model rolls out to NaN (a diverged plan carried over by the shift)
+    is not handed out again: the finite input reference is the fallback of last resort."""
+
+    def fragile_step(x, u, bias):  # the learned term blows up above 15 N of thrust
+        return quadrotor_step(x, u, QUAD, DT) + bias + jnp.where(u[0] > 15.0, jnp.nan, 0.0)
+
+    ctrl = make_controller(fragile_step, quadrotor_mpc_config(max_thrust=16.0))
+    xr, ur = hover_problem(ctrl.config.N)
+    warm = ur.at[:, 0].set(15.5)
+    sol = ctrl.solve(hover_state(), xr, ur, warm, ur[0], jnp.zeros(13), jnp.zeros(13))
+    assert not bool(sol.converged)
+    np.testing.assert_allclose(sol.u, ur)
+    assert np.all(np.isfinite(np.asarray(sol.x_pred))) and np.isfinite(float(sol.cost))
+
+
+def test_thrust_bound_follows_the_vehicle():
+    assert float(quadrotor_mpc_config().u_max[0]) == 20.0  # Appendix D table
+    assert float(quadrotor_mpc_config(max_thrust=16.0).u_max[0]) == 16.0
+
+
 def test_soft_state_bound_limits_predicted_excursion(cart):
     free, base = cart, cart.config
     x_max = jnp.array([0.3, jnp.inf, jnp.inf, jnp.inf])  # cart position <= 0.3 m

@@ -105,3 +105,15 @@ def test_short_closed_loop_flight_of_ours(data):
     assert np.all(np.isfinite(flight.u))
     assert err.max() < 0.15, err.max()
     assert flight.metrics["rmse_m"] < 0.08
+
+
+def test_mpc_input_bounds_are_what_the_simulated_vehicle_executes():
+    """The MPC must not plan with thrust or body rates the vehicle clamps away."""
+    from simulator import QuadrotorSim
+
+    sim = QuadrotorSim(payload_mass=0.0)
+    cfg = cl.mpc_config(jnp.float64)
+    np.testing.assert_allclose(cfg.u_max, [4.0 * sim.max_thrust, *sim.max_rate])
+    np.testing.assert_allclose(cfg.u_min[1:], -sim.max_rate)
+    too_much = np.asarray(cfg.u_max) + np.array([1.0, 0.5, 0.5, 0.5])
+    np.testing.assert_allclose(sim.set_setpoint(too_much), cfg.u_max)

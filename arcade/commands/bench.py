@@ -1,4 +1,4 @@
-"""`arcade bench adapt|mpc|loop|report` — latency figures (design §7)."""
+"""`arcade bench adapt|mpc|loop|discrepancy|soak|fuzz|report` — figures of design §7."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import json
 import sys
 
 HELP = (
-    "latency benchmarks: adaptation step, MPC solve, bus loop; `report` regenerates BENCHMARKS.md"
+    "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
+    "fuzzing; `report` regenerates BENCHMARKS.md"
 )
 
 # name -> module in `benchmarks/` exposing run(**kwargs) -> dict
@@ -17,6 +18,8 @@ BENCHES = {
     "mpc": "benchmarks.mpc",
     "loop": "benchmarks.loop",
     "discrepancy": "benchmarks.discrepancy",
+    "soak": "benchmarks.soak",
+    "fuzz": "benchmarks.fuzz",
 }
 
 
@@ -25,6 +28,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke run)")
     p.add_argument("--out", default="BENCHMARKS.md", help="report: file to write")
+    g = p.add_argument_group("discrepancy")
+    g.add_argument("--sweep", action="store_true",
+                   help="sweep every quadrotor effect over its plausible range (a markdown "
+                        "table, or JSON with --json) instead of timing the workflow")
+    g.add_argument("--limits", action="store_true",
+                   help="measure the minimum detectable magnitude of every quadrotor effect")
+    g.add_argument("--effect", action="append", default=None,
+                   help="only this effect (repeatable)")
+    g.add_argument("--seed", type=int, default=0, help="flight seed of --sweep / --limits")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,6 +49,12 @@ def run(args: argparse.Namespace) -> int:
         path = write_report(args.out, quick=args.quick)
         print(f"wrote {path}")
         return 0
+    if args.which == "discrepancy" and (args.sweep or args.limits):
+        return _discrepancy_sweep(args)
+    if args.sweep or args.limits or args.effect:
+        print("--sweep, --limits and --effect belong to `arcade bench discrepancy`",
+              file=sys.stderr)
+        return 2
     module = importlib.import_module(BENCHES[args.which])
     result = module.run(quick=args.quick)
     if args.json:
@@ -44,4 +62,20 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(json.dumps(result, indent=2))
     sys.stdout.flush()
+    return 0
+
+
+def _discrepancy_sweep(args: argparse.Namespace) -> int:
+    from benchmarks import discrepancy
+
+    if args.limits:
+        print(json.dumps(discrepancy.detection_limits(seed=args.seed, effects=args.effect),
+                         indent=None if args.json else 2))
+        return 0
+
+    def progress(row: dict) -> None:  # one line per flight on stderr: long job
+        print(json.dumps(row), file=sys.stderr, flush=True)
+
+    result = discrepancy.sweep(args.effect, seed=args.seed, progress=progress)
+    print(json.dumps(result) if args.json else discrepancy.sweep_table(result["cases"]))
     return 0

@@ -13,7 +13,10 @@ The workflow of design §6 on one flight log (CSV, design §5 columns, any const
    (BIC among subsets in which every effect explains a relevant share) with a block
    bootstrap for confidence and parameter intervals
    (:mod:`arcade_core.discrepancy.identify`). Only effects with confidence at least
-   ``--confidence`` are added; otherwise the answer is "no confident effect".
+   ``--confidence`` are added; otherwise the answer is "no confident effect". A selected
+   effect whose signature in this log stays within the noise (it could not halve the
+   one-step gap, :func:`effect_visibility`) is reported as "below detectability" and not
+   added (quadrotor; the library states each effect's limit on the standard trajectory).
 4. **Add**: an updated vehicle/model file with the effects in its ``[effects]`` table,
    loadable by ``arcade.vehicle.load_vehicle``, the simulator and the JAX model.
 5. **Show**: the log is split in time into blocks of 2 s; a ``--heldout`` fraction of
@@ -56,6 +59,8 @@ CART_COMPONENTS = ("x", "xdot", "theta", "thetadot")
 #: Residual channels used for identification (indices into the state).
 QUAD_CHANNELS = (3, 4, 5, 10, 11, 12)
 CART_CHANNELS = (1, 3)
+#: Gap-to-noise ratio at which adding an effect halves the one-step RMSE (``sqrt(3)``).
+HALVING_RATIO = 3.0**0.5
 _PAD_SAMPLES = 4096
 _PAD_WINDOWS = 512
 
@@ -336,8 +341,19 @@ def run_workflow(
     )
     say(f"selected {[sysm.groups[j][0] for j in ident.selected]} in {ident.rounds} round(s)")
 
-    # ---- effects, parameters, intervals
+    # ---- detectability: could each selected effect halve the held-out gap at all? An
+    # effect the bootstrap selects but whose signature is within the noise is reported,
+    # not added (:func:`effect_visibility`).
     specs = effects_for(system)
+    ho = _block_windows(blocks, True, burn, H, 1)
+    visible = {}
+    if system == "quadrotor":
+        visible = _visibility(sysm, X, U, dt, fit_starts, H, ident)
+        below = [j for j in ident.confident if visible[j] < HALVING_RATIO]
+        if below:
+            ident = _without(ident, below, sysm.theta_base, [g for _, g in sysm.groups])
+
+    # ---- effects, parameters, intervals
     effects_out = []
     listed = sorted(
         set(ident.selected) | {j for j, c in enumerate(ident.confidence) if c >= 0.5},
@@ -350,8 +366,11 @@ def run_workflow(
         lo = sysm.effect_params(np.percentile(ident.samples, 5, axis=0), name)
         hi = sysm.effect_params(np.percentile(ident.samples, 95, axis=0), name)
         interval = {k: _interval(lo[k], hi[k]) for k in params} if j in ident.confident else {}
+        vis = visible.get(j)
         effects_out.append({
             "name": name,
+            "visibility": None if vis is None else float(vis),
+            "below_detectability": vis is not None and vis < HALVING_RATIO,
             "params": params,
             "interval": interval,
             "confidence": float(ident.confidence[j]),
@@ -362,7 +381,6 @@ def run_workflow(
     confident_names = [sysm.groups[j][0] for j in ident.confident]
 
     # ---- held-out before/after
-    ho = _block_windows(blocks, True, burn, H, 1)
     theta_b, theta_a = sysm.theta_base, ident.theta
     err_b = sysm.errors(X, sysm.predict(theta_b, X, U, ho, H, dt), ho, H)[:, -1]
     err_a = sysm.errors(X, sysm.predict(theta_a, X, U, ho, H, dt), ho, H)[:, -1]
@@ -409,6 +427,9 @@ def run_workflow(
         if confident_names
         else "no confident effect"
     )
+    below_names = [e["name"] for e in effects_out if e["below_detectability"]]
+    if below_names:
+        summary += "; below detectability: " + ", ".join(below_names)
     result: dict[str, Any] = {
         "system": system,
         "summary": summary,
@@ -416,6 +437,7 @@ def run_workflow(
         "effects": effects_out,
         "gap_before": gap_before,
         "gap_after": gap_after,
+        "below_detectability": below_names,
         "heldout_rmse_before": rmse_b,
         "heldout_rmse_after": rmse_a,
         "heldout_components": act,
@@ -444,6 +466,71 @@ def run_workflow(
         result.update(write_outputs(out, result, details))
         (out / "result.json").write_text(json.dumps(result, indent=2))
     return Outcome(result, details)
+
+
+def noise_levels(sysm, X, U, dt, starts, H, theta) -> np.ndarray:
+    """What is left per identification channel once ``theta`` models the log: the RMS
+    one-step residual over the windows ``starts`` (the floor a model can get down to)."""
+    pred = sysm.predict(theta, X, U, starts, H, dt)[:, -1]
+    ch = np.asarray(sysm.channels)
+    return _rms(X[np.asarray(starts) + H][:, ch] - pred[:, ch])
+
+
+def effect_visibility(sysm, X, U, dt, starts, H, theta, name, sigma, pred0=None) -> float:
+    """How far effect ``name`` at ``theta`` stands out of the noise in this log (quadrotor).
+
+    Mirrors the held-out metric: over the windows ``starts``, the RMS change ``g_c`` of the
+    one-step prediction that ``theta`` makes against the base model, per component ``c``
+    the effect acts on, against that component's noise level ``sigma_c`` (what the fitted
+    model leaves, :func:`noise_levels`); pooled over the components where the change is at
+    least half the noise (all of them when there is none), the ratio ``sqrt(sum g_c^2 / sum
+    sigma_c^2)``. A model that removes the gap takes the pooled RMSE from ``sqrt(sigma^2 +
+    g^2)`` to ``sigma`` at best: halving it takes a ratio of at least ``sqrt(3)``
+    (:data:`HALVING_RATIO`). Below that the effect is *below detectability* in this log.
+    """
+    from arcade_core.discrepancy.catalog import effects_for
+
+    comps = list(sysm.components)
+    # component name -> (state index, identification channel); all are v or omega.
+    chan = {comps[i if i < 6 else i - 1]: (i, k) for k, i in enumerate(sysm.channels)}
+    base = np.asarray(sysm.theta_base, float)
+    if pred0 is None:
+        pred0 = sysm.predict(base, X, U, starts, H, dt)[:, -1]
+    pred = sysm.predict(theta, X, U, starts, H, dt)[:, -1]
+    acts = [c for c in effects_for(sysm.name)[name].acts_on if c in chan]
+    g = np.array([float(_rms(pred[:, chan[c][0]] - pred0[:, chan[c][0]])) for c in acts])
+    sig = np.array([float(sigma[chan[c][1]]) for c in acts])
+    moved = g >= 0.5 * sig
+    if moved.any():
+        g, sig = g[moved], sig[moved]
+    return float(np.sqrt(np.sum(g**2) / max(float(np.sum(sig**2)), 1e-300)))
+
+
+def _visibility(sysm, X, U, dt, starts, H, ident) -> dict[int, float]:
+    """:func:`effect_visibility` of every selected effect at its estimate, alone, against
+    what the fit with all selected effects leaves (fitting windows)."""
+    # Windows the identification left out as gross outliers (floor contacts) stay out.
+    starts = np.asarray(starts)[~np.asarray(ident.outliers)]
+    sigma = noise_levels(sysm, X, U, dt, starts, H, ident.theta_selected)
+    base = np.asarray(sysm.theta_base, float)
+    pred0 = sysm.predict(base, X, U, starts, H, dt)[:, -1]
+    out = {}
+    for j in ident.selected:
+        name, idx = sysm.groups[j]
+        th = base.copy()
+        src = ident.theta if j in ident.confident else ident.theta_selected
+        th[list(idx)] = np.asarray(src)[list(idx)]
+        out[j] = effect_visibility(sysm, X, U, dt, starts, H, th, name, sigma, pred0)
+    return out
+
+
+def _without(ident, drop: list[int], theta_base: np.ndarray, groups) -> Any:
+    """``ident`` with the effects ``drop`` taken out of the confident (added) set."""
+    theta = np.asarray(ident.theta, float).copy()
+    for j in drop:
+        theta[list(groups[j])] = theta_base[list(groups[j])]
+    confident = tuple(j for j in ident.confident if j not in drop)
+    return ident._replace(confident=confident, theta=theta)
 
 
 def _interval(lo, hi):

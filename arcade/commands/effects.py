@@ -27,6 +27,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     for e in effects:
         print(f"{e['name']} ({e['system']}): {e['description']}")
+        if e["detectable_from"] is not None:
+            print(f"    detectable on the standard trajectory from {e['detectable_from']:g}")
         for k, p in e["params"].items():
             lo, hi = p["range"]
             default = "" if p["default"] is None else f", default {p['default']}"

@@ -19,7 +19,13 @@ with its low-pass setpoint excitation, following the datasets' random spline
 - **pace**: slow random paths are flown faster, towards :data:`TARGET_RMS_SPEED`, so that
   speed-dependent effects (drag) are excited in every flight;
 - a :data:`WARMUP_S` hover before the log starts (integrators settled, as in a log that
-  starts in flight).
+  starts in flight);
+- **a pilot tuned to the vehicle as it flies** (:func:`pilot_gains`), as a pilot tunes
+  after the first hover: it trims the actual hover throttle, limits its bank angle to the
+  thrust it has, and with a slow rate channel or slow motors lowers its loop bandwidths
+  (and the excitation, and keeps higher above the floor) to keep its phase margin, so
+  that every vehicle in the library's plausible ranges flies the trajectory. Without such
+  effects nothing changes.
 
 Sensor noise (``noise_scale`` 1, the default; 0 logs the ground truth). What a motion-capture
 based state estimate looks like: position white ``N(0, 0.3 mm)`` and attitude white
@@ -122,8 +128,12 @@ class GroundPassPath:
     the floor.
     """
 
-    def __init__(self, rng: np.random.Generator, duration: float):
+    def __init__(
+        self, rng: np.random.Generator, duration: float, ground_height: float = GROUND_HEIGHT_M
+    ):
         from benchmarks.quadrotor_data import RandomPath
+
+        self.ground_height = ground_height
 
         self.path = RandomPath(rng, MAX_PACE * duration)
         # Pace: as fast as needed for the target RMS speed, as slow as the pilot needs.
@@ -168,11 +178,76 @@ class GroundPassPath:
         p, v, a, yaw = self.path(tau)
         p, v, a = p.copy(), v * d1, a * d1 * d1 + v * d2
         z, vz, az = p[2], v[2], a[2]
-        gap, step = APPROACH_HEIGHT_M - z, GROUND_HEIGHT_M - APPROACH_HEIGHT_M
+        gap, step = APPROACH_HEIGHT_M - z, self.ground_height - APPROACH_HEIGHT_M
         p[2] = z + b * gap + c * step
         v[2] = vz + db * gap - b * vz + dc * step
         a[2] = az + ddb * gap - 2.0 * db * vz - b * az + ddc * step
         return p, v, a, yaw
+
+
+#: Largest phase lag [deg] the pilot's loops accept from the vehicle at their crossover
+#: (attitude: rate loop, rate-setpoint delay and filter, motors; vertical: motors).
+PILOT_MAX_PHASE_DEG = (35.0, 30.0)
+
+
+def _crossover(nominal: float, phase) -> float:
+    """Largest crossover ``<= nominal`` [rad/s] at which ``phase(w)`` [rad] is acceptable."""
+    lo, hi = 0.05 * nominal, nominal
+    if phase(hi) <= 0.0:
+        return hi
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if phase(mid) <= 0.0 else (lo, mid)
+    return lo
+
+
+def pilot_gains(vehicle: dict[str, Any], effects: dict[str, Any]) -> dict[str, Any]:
+    """Gains of the expert pilot for the vehicle as it actually flies (module docstring).
+
+    The pilot is tuned like a pilot tunes after the first hover: to the vehicle's lags and
+    thrust margin, not to its model (the workflow that reads the log is told nothing).
+    The attitude loop (default crossover ``k_att = 6 rad/s``) accepts at most
+    :data:`PILOT_MAX_PHASE_DEG` of phase lag from the rate loop, the rate-setpoint delay
+    and filter and the motors at its crossover; a slower vehicle gets a lower crossover,
+    and the horizontal position loop, which acts through the attitude, is scaled with it
+    (``s = k_att / 6``: ``kd ~ s``, ``kp ~ s^2``, ``ki ~ s^3`` keeps its damping). The
+    vertical loop acts through the thrust, which only the motors lag, and is scaled by
+    its own phase budget. On the default vehicle without lag effects nothing changes. The
+    tilt limit leaves 30 % of the thrust for manoeuvring vertically (a vehicle with half
+    its thrust must not be banked at 50 deg). ``slowdown`` is ``(s_horizontal,
+    s_vertical)``.
+    """
+    from arcade.vehicle import quadrotor_params
+
+    rl, rot = vehicle["rate_loop"], vehicle["rotors"]
+    tau_rate = float(rl["time_constant_s"])
+    tau_motor = float(effects.get("motor_lag", {}).get("time_constant_s", 0.0)) or float(
+        rot["motor_time_constant_s"]
+    )
+    lag = effects.get("rate_lag", {})
+    delay, tau_f = float(lag.get("delay_s", 0.0)), float(lag.get("time_constant_s", 0.0))
+    att_max, vert_max = np.deg2rad(PILOT_MAX_PHASE_DEG)
+
+    def att_phase(w):
+        lags = np.arctan(w * tau_rate) + np.arctan(w * tau_f) + np.arctan(w * tau_motor)
+        return lags + w * delay - att_max
+
+    s_h = _crossover(6.0, att_phase) / 6.0
+    s_v = _crossover(4.0, lambda w: np.arctan(w * tau_motor) - vert_max) / 4.0
+    s = np.array([s_h, s_h, s_v])
+    scale = float(effects.get("thrust_scale", {}).get("scale", 1.0))
+    par = quadrotor_params(vehicle)
+    weight = float(par.mass) * float(par.gravity)
+    thrust_to_weight = 4.0 * float(rot["max_thrust_n"]) * scale / weight
+    max_tilt = float(np.arccos(min(1.0, 1.3 / thrust_to_weight)))
+    return {
+        "kp": 6.0 * s * s,
+        "kd": 4.0 * s,
+        "ki": 2.0 * s**3,
+        "k_att": 6.0 * s_h,
+        "max_tilt": min(np.deg2rad(50.0), max_tilt),
+        "slowdown": (s_h, s_v),
+    }
 
 
 def fly_quadrotor(
@@ -207,11 +282,21 @@ def fly_quadrotor(
     ss = np.random.SeedSequence(seed)
     path_ss, exc_ss, sim_ss, noise_ss = ss.spawn(4)
     sim = QuadrotorSim(veh, effects=merged, seed=int(sim_ss.generate_state(1)[0]))
-    path = GroundPassPath(np.random.default_rng(path_ss), duration)
+    gains = pilot_gains(veh, merged)
+    s_h, s_v = gains.pop("slowdown")
+    # A slow pilot keeps farther from the floor (a sluggish attitude loop banks for longer),
+    # pulls up as hard as its loop allows and excites less (its position loop would let
+    # the excitation carry it away).
+    ground = min(GROUND_HEIGHT_M / min(s_h, s_v), APPROACH_HEIGHT_M)
+    path = GroundPassPath(np.random.default_rng(path_ss), duration, ground)
+    guard = FLOOR_GUARD_GAIN * s_v * s_v
+    excitation = EXCITATION_STD * np.array([s_v, s_h, s_h, s_h])
     rng_exc = np.random.default_rng(exc_ss)
-    pilot = ExpertPilot(float(params.mass), float(params.gravity))
+    pilot = ExpertPilot(float(params.mass), float(params.gravity), **gains)
     x = sim.reset(START)
-    pilot.trim(sim.hover_thrust())
+    # The pilot trims the hover *command* (what the throttle reads at hover), as a pilot
+    # does after take-off; with a thrust mismatch that is not the weight.
+    pilot.trim(sim.hover_thrust() / float(merged.get("thrust_scale", {}).get("scale", 1.0)))
     a = np.exp(-CONTROL_DT / EXCITATION_TAU_S)
     exc = np.zeros(4)
 
@@ -219,11 +304,11 @@ def fly_quadrotor(
         nonlocal exc
         p_ref, v_ref, a_ref, yaw = path(max(t, 0.0))
         # Like a pilot near the floor: pull up harder the closer the vehicle gets.
-        a_ref = a_ref + np.array([0.0, 0.0, FLOOR_GUARD_GAIN * max(0.0, FLOOR_GUARD_M - x[2])])
+        a_ref = a_ref + np.array([0.0, 0.0, guard * max(0.0, FLOOR_GUARD_M - x[2])])
         u = pilot(x, (p_ref, v_ref, a_ref, yaw), CONTROL_DT)
         w = np.clip(rng_exc.standard_normal(4), -2.0, 2.0)
         exc = a * exc + np.sqrt(1.0 - a * a) * w
-        return sim.set_setpoint(u + path.excitation_scale(t) * exc * EXCITATION_STD)
+        return sim.set_setpoint(u + path.excitation_scale(t) * exc * excitation)
 
     # Hover before the log starts (rate-loop integrator and pilot trim settle), like a log
     # that starts in flight.

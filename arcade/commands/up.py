@@ -15,6 +15,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "  arcade up --profile sim --lockstep          deterministic flight, as fast as it goes\n"
         "  arcade up --profile sim --rate 50           real time at 50 Hz (Ctrl-C stops)\n"
         "  arcade up --payload-g 125 --speed 1.5 --out runs/my-flight\n"
+        "  arcade up --profile px4 --connect serial:///dev/ttyACM0:921600\n"
+        "                                              a real PX4 (asks before arming)\n"
+        "  arcade up --profile px4 --simulate --arm   the same chain against a simulated PX4\n"
         "The run folder gets logs/<service>.log, stats/, events.jsonl, truth.csv,\n"
         "flight_log.csv and bus.mcap (open it in Foxglove Studio)."
     )
@@ -36,6 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="adapter posterior checkpoint (restored if present)")
     p.add_argument("--x64", action="store_true", help="compute in float64")
+    from deploy import px4_profile
+
+    px4_profile.add_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -70,12 +76,38 @@ def run(args: argparse.Namespace) -> int:
             print(f"\r  t = {t:7.2f} s", end="", file=sys.stderr, flush=True)
 
     try:
-        result = run_flight(cfg, progress=say, on_time=on_time if args.lockstep else None)
-    except StackError as err:
+        hooks = {}
+        if args.profile == "px4":
+            from deploy import px4_profile
+
+            cfg = px4_profile.config_from_args(args, cfg)
+            hooks = px4_profile.flight_hooks(args, cfg, say)
+        hooks["on_event"] = _show_faults(say, hooks.get("on_event"))
+        result = run_flight(cfg, progress=say, on_time=on_time if args.lockstep else None,
+                            **hooks)
+    except (StackError, ValueError) as err:
         say(f"\nerror: {err}")
         return 1
     say("")
+    restarts = result.get("restarts", {})
     for name, code in result["codes"].items():
-        say(f"  {name:10s} exit {code}")
+        extra = f"  ({restarts[name]} restart(s))" if restarts.get(name) else ""
+        say(f"  {name:10s} exit {code}{extra}")
     say(f"run folder: {out}")
     return 0 if all(c == 0 for c in result["codes"].values()) else 1
+
+
+#: Events worth a line on the console while flying (the rest is in events.jsonl).
+SHOWN = ("fault", "restart", "failsafe")
+
+
+def _show_faults(say, then=None):
+    """An ``on_event`` hook that prints crashes, restarts and failsafes as they happen."""
+
+    def on_event(rec: dict) -> None:
+        if rec["kind"] in SHOWN or (rec["kind"] == "info" and "failsafe" in rec["text"]):
+            say(f"\n  [{rec['src'].split('/')[0]}] {rec['kind']}: {rec['text']}")
+        if then is not None:
+            then(rec)
+
+    return on_event

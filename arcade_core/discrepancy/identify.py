@@ -8,8 +8,11 @@ short-horizon prediction residuals ``(n_windows, channels)`` of the log (measure
 predicted). Identification:
 
 1. **Linearise** at the base: ``r(theta) ~ r_0 - A (theta - theta_base)`` with ``A`` the
-   sensitivity of the prediction to every candidate parameter (forward differences). The
-   columns of ``A`` are the candidate regressors, all effects at once.
+   sensitivity of the prediction to every candidate parameter. The columns of ``A`` are
+   the candidate regressors, all effects at once. They are secants, not tangents: at the
+   base over the step (a share of the plausible range, :func:`scaled_secants`) that
+   explains the residual best, so that a lag of many log steps is seen for what it does;
+   later over a small fixed share of the range.
 2. **Whiten**: fit all candidates by least squares, estimate the channel covariance of
    what is left (trimming gross outliers such as floor contacts: windows whose whitened
    residual exceeds :data:`OUTLIER_CHI2`), and whiten rows with it, so that velocity and
@@ -62,6 +65,8 @@ class SelectionConfig(NamedTuple):
     must explain to be admissible; ``min_size``: smallest parameter change (largest over
     the effect's parameters, as a share of its plausible range). ``confidence``: bootstrap
     inclusion probability needed to add an effect. ``block``: windows per bootstrap block.
+    ``probe``: step of the secants of the linearisations, as a share of the ranges;
+    ``probe_scales``: the steps the first one chooses from (:func:`scaled_secants`).
     """
 
     min_explained: float = 0.02
@@ -72,6 +77,8 @@ class SelectionConfig(NamedTuple):
     seed: int = 0
     max_rounds: int = 3
     lm_iterations: int = 15
+    probe: float = 0.05
+    probe_scales: tuple[float, ...] = (0.05, 0.25, 1.0)
 
 
 class Linearisation(NamedTuple):
@@ -283,6 +290,47 @@ def fd_jacobian(
     return np.stack(cols, axis=-1)
 
 
+def scaled_secants(
+    residual_fn: Callable[[Array], Array],
+    theta: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    r0: np.ndarray,
+    scales: Sequence[float],
+) -> np.ndarray:
+    """Secant sensitivities ``(n, c, P)`` at the scale that explains the residual best.
+
+    Per parameter, secants over steps of ``scales`` times its plausible range, both signs,
+    within the range; kept is the one whose column alone explains most of ``r0`` (channels
+    weighed by their RMS). A lag far larger than a log step (a 0.1 s delay) changes the
+    one-step prediction in a way no tangent at zero extrapolates to; the secant over the
+    whole range reproduces it exactly, and for a parameter that acts linearly all secants
+    agree.
+    """
+    theta = np.asarray(theta, dtype=float)
+    r0 = np.nan_to_num(np.asarray(r0))
+    scale = 1.0 / np.maximum(np.sqrt(np.mean(r0**2, axis=0)), 1e-300)
+    y = (r0 * scale).reshape(-1)
+    span = high - low
+    cols = []
+    for j in range(theta.shape[0]):
+        best, best_score = None, -1.0
+        for k in scales:
+            for sign in (1.0, -1.0):
+                h = sign * k * span[j]
+                if not low[j] <= theta[j] + h <= high[j] or h == 0.0:
+                    continue
+                th = theta.copy()
+                th[j] += h
+                col = np.nan_to_num((np.asarray(residual_fn(jnp.asarray(th))) - r0) / h)
+                a = (col * scale).reshape(-1)
+                score = float((a @ y) ** 2 / max(float(a @ a), 1e-300))
+                if score > best_score:
+                    best, best_score = col, score
+        cols.append(best if best is not None else np.zeros_like(r0))
+    return np.stack(cols, axis=-1)
+
+
 def _whitening(e: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Whitening matrix from residuals ``e (n, c)`` and the windows kept.
 
@@ -422,7 +470,15 @@ def identify(
     n_win = r_base.shape[0]
     blocks = np.arange(n_win) // max(int(config.block), 1)
     n_blocks = int(blocks[-1]) + 1
-    jac = fd_jacobian(residual_fn, theta_base, all_idx, steps, r_base)
+
+    # Linearisations are secants over a probe step (a share of the plausible range), not
+    # tangents: lags (a transport delay, a motor time constant) act far from linearly; a
+    # tangent at zero delay under-predicts what a delay of a few log steps does, and a
+    # tangent elsewhere lets the linear model extrapolate one lag into another's role.
+    def secants(th: np.ndarray) -> np.ndarray:
+        return np.where(th + config.probe * span <= high, 1.0, -1.0) * config.probe * span
+
+    jac = scaled_secants(residual_fn, theta_base, low, high, r_base, config.probe_scales)
 
     # Whitening from what is left after all candidates (step 2).
     keep = np.isfinite(r_base).all(axis=1)
@@ -492,7 +548,7 @@ def identify(
             theta = theta_base.copy() if not kept else fit(kept, theta)
         selected = kept
         r = np.asarray(residual_fn(jnp.asarray(theta)))
-        J = fd_jacobian(residual_fn, theta, all_idx, steps, r)
+        J = fd_jacobian(residual_fn, theta, all_idx, secants(theta), r)
     theta_selected = theta
 
     # Confidence by block bootstrap at the final linearisation (step 5).
@@ -529,7 +585,7 @@ def identify(
                 residual_fn, theta_conf, free, low, high, W, keep, steps, config.lm_iterations
             )
             r = np.asarray(residual_fn(jnp.asarray(theta_conf)))
-            J = fd_jacobian(residual_fn, theta_conf, all_idx, steps, r)
+            J = fd_jacobian(residual_fn, theta_conf, all_idx, secants(theta_conf), r)
             y_base = r - np.einsum("ncp,p->nc", J, theta_conf - theta_base)
             lin, _, _ = linearise(y_base, J, W, keep, blocks, n_blocks, span)
     conf_mask = jnp.asarray(group_masks(groups, P)[sum(1 << j for j in confident)])

@@ -67,8 +67,8 @@ GROUPS: tuple[tuple[str, tuple[int, ...]], ...] = (
 )
 N_THETA = 17
 #: Internal bounds of ``theta`` (the library's plausible ranges; ``R^2`` from 0).
-THETA_LOW = (0.0,) * 6 + (0.0, 0.5, 0.002, 0.0, 0.0) + (-0.03,) * 3 + (-15.0,) * 3
-THETA_HIGH = (2.0,) * 3 + (0.2,) * 3 + (0.04, 1.5, 0.2, 0.1, 0.3) + (0.03,) * 3 + (15.0,) * 3
+THETA_LOW = (0.0,) * 6 + (0.0, 0.5, 0.002, 0.0, 0.0) + (-0.015,) * 3 + (-15.0,) * 3
+THETA_HIGH = (2.0,) * 3 + (0.2,) * 3 + (0.04, 1.5, 0.2, 0.1, 0.3) + (0.015,) * 3 + (15.0,) * 3
 _TINY_TAU = 1e-7
 #: Per-axis linear state: front filter (1), loop filter (4), com filter (4), omega (1).
 _NF = 9

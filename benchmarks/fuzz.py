@@ -1,0 +1,68 @@
+"""Full fuzz run: 10^4 payloads per message type and per service handler.
+
+``make test`` runs the decoder fuzzing at 10^4 payloads per type and the handler fuzzing
+at 2 000 per service; ``arcade bench fuzz`` runs both test modules at ``cases`` (10^4) each
+(``ARCADE_FUZZ_CASES`` / ``ARCADE_FUZZ_HANDLER_CASES``) in a pytest subprocess and reports
+the outcome and the time it took. Needs the source tree (the tests are not installed).
+
+    python -m benchmarks.fuzz [--quick] [--cases N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from benchmarks.common import machine
+
+TESTS = ("tests/test_fuzz_messages.py", "tests/test_fuzz_handlers.py")
+
+
+def run(quick: bool = False, cases: int | None = None) -> dict[str, Any]:
+    """Run the fuzz tests with ``cases`` payloads per type/handler (``quick``: 1 000)."""
+    n = cases if cases is not None else (1_000 if quick else 10_000)
+    root = Path(__file__).resolve().parents[1]
+    missing = [t for t in TESTS if not (root / t).is_file()]
+    if missing:
+        raise FileNotFoundError(f"fuzz tests not found (source tree needed): {missing}")
+    env = dict(os.environ, ARCADE_FUZZ_CASES=str(n), ARCADE_FUZZ_HANDLER_CASES=str(n))
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *TESTS],
+        cwd=root, env=env, capture_output=True, text=True, check=False,
+    )
+    wall = time.perf_counter() - t0
+    summary = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
+    counts = {k: int(v) for v, k in re.findall(r"(\d+) (passed|failed|error)", summary)}
+    failed = re.findall(r"^FAILED (\S+)", proc.stdout, flags=re.M)
+    return {
+        "machine": machine(),
+        "cases_per_type_and_handler": n,
+        "wall_s": wall,
+        "passed": counts.get("passed", 0),
+        "failed": counts.get("failed", 0) + counts.get("error", 0),
+        "failures": failed,
+        "ok": proc.returncode == 0,
+        "summary": summary,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--cases", type=int, default=None)
+    a = p.parse_args(argv)
+    r = run(quick=a.quick, cases=a.cases)
+    print(json.dumps(r, indent=2))
+    return 0 if r["ok"] else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

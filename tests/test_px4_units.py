@@ -1,0 +1,218 @@
+"""Pieces of the simulated PX4: thrust curve, frames, mode encoding, parameter encoding,
+and the commander's rules (arming, offboard entry, offboard loss) on simulated time."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from arcade.vehicle import load_vehicle
+from services.px4_frames import (
+    ThrustCurve,
+    enu_to_ned,
+    flu_to_frd,
+    frd_to_flu,
+    ned_to_enu,
+    quat_enu_flu_to_ned_frd,
+    quat_mul,
+    quat_ned_frd_to_enu_flu,
+    quat_to_euler_zyx,
+)
+from simulator.px4 import FlightMode, Px4Vehicle
+from simulator.px4.airframe import Px4Airframe
+from simulator.px4.link import parse_url
+from simulator.px4.mavlink_vehicle import _param_from_wire, _param_wire
+from simulator.px4.position_control import _rotation
+
+# ------------------------------------------------------------------ thrust curve
+
+
+def test_thrust_curve_of_the_default_vehicle():
+    curve = ThrustCurve.from_vehicle(load_vehicle())
+    assert curve.max_thrust_n == 16.0 and curve.fac == 0.3
+    assert curve.thrust(0.5) == pytest.approx(16.0 * (0.3 * 0.25 + 0.7 * 0.5))
+    assert curve.thrust(1.0) == pytest.approx(16.0)
+    assert curve.throttle(0.0) == 0.0
+    # Out-of-range requests saturate instead of extrapolating.
+    assert curve.throttle(40.0) == 1.0
+    assert curve.thrust(-0.2) == 0.0
+
+
+@settings(max_examples=200, deadline=None)
+@given(s=st.floats(0.0, 1.0), fac=st.floats(0.0, 1.0), fmax=st.floats(1.0, 100.0))
+def test_thrust_curve_inverse_pair(s, fac, fmax):
+    curve = ThrustCurve(fac=fac, max_thrust_n=fmax)
+    thrust = curve.thrust(s)
+    assert curve.throttle(thrust) == pytest.approx(s, abs=1e-9)
+    assert curve.thrust(curve.throttle(thrust)) == (
+        pytest.approx(thrust, rel=1e-9, abs=1e-9))
+
+
+def test_thrust_curve_is_monotonic():
+    curve = ThrustCurve(fac=0.3, max_thrust_n=16.0)
+    s = np.linspace(0.0, 1.0, 101)
+    assert np.all(np.diff(curve.thrust(s)) > 0.0)
+
+
+# ------------------------------------------------------------------ frames
+
+
+def test_vector_frames_by_example_and_both_ways():
+    assert np.allclose(enu_to_ned([1.0, 0.0, 0.0]), [0.0, 1.0, 0.0])  # east
+    assert np.allclose(enu_to_ned([0.0, 0.0, 2.0]), [0.0, 0.0, -2.0])  # up 2 m = down -2 m
+    assert np.allclose(flu_to_frd([0.0, 1.0, 0.0]), [0.0, -1.0, 0.0])  # left = -right
+    v = np.array([0.3, -1.2, 2.5])
+    assert np.allclose(ned_to_enu(enu_to_ned(v)), v)
+    assert np.allclose(frd_to_flu(flu_to_frd(v)), v)
+
+
+def test_level_vehicle_facing_east_has_ned_yaw_90_deg():
+    q = quat_enu_flu_to_ned_frd([1.0, 0.0, 0.0, 0.0])
+    assert np.allclose(quat_to_euler_zyx(q), [0.0, 0.0, math.pi / 2])
+
+
+@settings(max_examples=100, deadline=None)
+@given(q=st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4),
+       v=st.lists(st.floats(-5.0, 5.0), min_size=3, max_size=3))
+def test_quaternion_conversion_rotates_the_same_physical_vector(q, v):
+    q = np.asarray(q)
+    if np.linalg.norm(q) < 0.1:
+        q = np.array([1.0, 0.0, 0.0, 0.0])
+    q = q / np.linalg.norm(q)
+    v = np.asarray(v)
+    q_ned = quat_enu_flu_to_ned_frd(q)
+    # A body vector, mapped to the world in either convention, is the same vector.
+    assert np.allclose(_rotation(q_ned) @ flu_to_frd(v), enu_to_ned(_rotation(q) @ v), atol=1e-9)
+    back = quat_ned_frd_to_enu_flu(q_ned)
+    assert np.allclose(back, q, atol=1e-9) or np.allclose(back, -q, atol=1e-9)
+
+
+# ------------------------------------------------------------------ protocol encodings
+
+
+def test_px4_custom_mode_encoding():
+    assert FlightMode.OFFBOARD.custom_mode == 6 << 16
+    assert FlightMode.HOLD.custom_mode == (4 << 16) | (3 << 24)
+    assert FlightMode.LAND.custom_mode == (4 << 16) | (6 << 24)
+    for mode in FlightMode:
+        assert FlightMode.from_custom_mode(mode.custom_mode) is mode
+    assert FlightMode.from_px4(4, 4) is None  # Mission: not flown here
+    assert FlightMode.from_px4(6, 0) is FlightMode.OFFBOARD
+
+
+def test_int_params_travel_bytewise():
+    value, ptype = _param_wire(5)
+    assert ptype == 6  # MAV_PARAM_TYPE_INT32
+    assert _param_from_wire(value, ptype) == 5
+    value, ptype = _param_wire(0.75)
+    assert ptype == 9 and _param_from_wire(value, ptype) == pytest.approx(0.75)
+
+
+def test_link_urls():
+    assert parse_url("udpout://127.0.0.1:14540") == ("out", "127.0.0.1", 14540)
+    assert parse_url("udpin://0.0.0.0:14550") == ("in", "0.0.0.0", 14550)
+    assert parse_url("udp://:14550") == ("in", "0.0.0.0", 14550)
+    with pytest.raises(ValueError):
+        parse_url("serial:///dev/ttyACM0:57600")
+
+
+# ------------------------------------------------------------------ commander
+
+
+@pytest.fixture(scope="module")
+def airframe():
+    return Px4Airframe()
+
+
+def fly(v: Px4Vehicle, seconds: float, each=None) -> None:
+    for _ in range(round(seconds / 0.005)):
+        if each is not None:
+            each()
+        v.step(0.005)
+
+
+def test_arming_needs_fresh_vision_and_disarmed_motors_are_off(airframe):
+    v = Px4Vehicle(airframe, vision_required=True, vision_timeout_s=0.5)
+    assert v.landed and not v.armed
+    ok, why = v.arm()
+    assert not ok and "position" in why
+    assert v.set_vision(enu_to_ned(v.state()[0:3]))
+    assert v.position_ok() and v.arm()[0]
+    fly(v, 0.6)  # no more vision: stale after the timeout
+    assert not v.position_ok()
+    assert v.disarm()[0] and not v.armed
+    fly(v, 0.5)
+    assert np.allclose(airframe.rotor_thrusts(), 0.0, atol=1e-6)
+    assert v.state()[2] == pytest.approx(v.ground_z, abs=1e-3)  # still on the floor
+    assert not v.set_vision([math.nan, 0.0, 0.0]) and v.rejected == 1
+
+
+def test_offboard_needs_a_stream_and_loss_lands_with_land_action(airframe):
+    v = Px4Vehicle(airframe, vision_required=False,
+                   params={"COM_OF_LOSS_T": 0.4, "COM_OBL_RC_ACT": 4, "COM_DISARM_LAND": 1.0})
+    assert v.arm()[0]
+    assert not v.set_mode(FlightMode.OFFBOARD)[0] and v.mode is FlightMode.HOLD
+    hover = float(v.curve.throttle(airframe.hover_thrust()))
+
+    def stream(s):
+        return lambda: v.set_attitude_target(128, [1, 0, 0, 0], [0.0, 0.0, 0.0], s)
+
+    stream(hover + 0.05)()
+    assert v.set_mode(FlightMode.OFFBOARD)[0]
+    fly(v, 1.2, stream(hover + 0.05))
+    assert v.mode is FlightMode.OFFBOARD and v.state()[2] > v.ground_z + 0.5
+    assert not v.landed and v.landed_state == 2  # MAV_LANDED_STATE_IN_AIR
+    # Stream stops: after COM_OF_LOSS_T (simulated time) the vehicle lands.
+    t_last = v.time
+    while v.mode is FlightMode.OFFBOARD:
+        fly(v, 0.005)
+    assert v.time - t_last == pytest.approx(0.4, abs=0.011)
+    assert v.mode is FlightMode.LAND and v.failsafe
+    assert any("offboard signal lost" in text for _, text in v.texts)
+    fly(v, 8.0)
+    assert v.landed and not v.armed  # landed, then disarmed after COM_DISARM_LAND
+    assert v.state()[2] == pytest.approx(v.ground_z, abs=0.01)
+
+
+def test_parameters_are_checked(airframe):
+    with pytest.raises(ValueError, match="COM_OBL_RC_ACT"):
+        Px4Vehicle(airframe, params={"COM_OBL_RC_ACT": 3})  # Return: not flown here
+    with pytest.raises(ValueError, match="NOT_A_PARAM"):
+        Px4Vehicle(airframe, params={"NOT_A_PARAM": 1.0})
+    v = Px4Vehicle(airframe)
+    assert v.set_param("COM_OF_LOSS_T", 0.25) and v.params["COM_OF_LOSS_T"] == 0.25
+    assert not v.set_param("COM_OF_LOSS_T", math.nan)
+
+
+def test_takeoff_then_hold_keeps_the_height(airframe):
+    v = Px4Vehicle(airframe, vision_required=False, params={"MIS_TAKEOFF_ALT": 1.0})
+    assert not v.takeoff()[0]  # disarmed
+    v.arm()
+    assert v.takeoff()[0] and v.landed_state == 3  # MAV_LANDED_STATE_TAKEOFF
+    fly(v, 4.0)
+    assert v.mode is FlightMode.HOLD
+    assert v.state()[2] == pytest.approx(v.ground_z + 1.0, abs=0.1)
+    assert not v.disarm()[0]  # not in the air
+
+
+def test_offboard_attitude_setpoint_is_tracked_in_px4_frames(airframe):
+    """SET_ATTITUDE_TARGET with an attitude (NED/FRD): the vehicle takes that attitude."""
+    v = Px4Vehicle(airframe, start=(0.0, 0.0, 2.0), airborne=True, vision_required=False)
+    hover = float(v.curve.throttle(airframe.hover_thrust()))
+    roll, yaw_ned = math.radians(15.0), math.radians(90.0)  # right wing down, facing east
+    q_sp = quat_enu_flu_to_ned_frd([1.0, 0.0, 0.0, 0.0])  # level, facing east, in NED/FRD
+    q_roll = np.array([math.cos(roll / 2), math.sin(roll / 2), 0.0, 0.0])  # about body x
+
+    def stream():  # rates ignored (type_mask 1|2|4), attitude and thrust used
+        v.set_attitude_target(7, quat_mul(q_sp, q_roll), [0.0, 0.0, 0.0], hover)
+
+    stream()
+    assert v.set_mode(FlightMode.OFFBOARD)[0]
+    fly(v, 0.8, stream)
+    rpy = quat_to_euler_zyx(quat_enu_flu_to_ned_frd(v.state()[6:10]))
+    assert rpy[0] == pytest.approx(roll, abs=math.radians(2.0))
+    assert rpy[2] == pytest.approx(yaw_ned, abs=math.radians(2.0))
