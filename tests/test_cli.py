@@ -45,6 +45,8 @@ def test_bench_adapt_json_contract():
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert set(result) == {"machine", "d", "l", "results"}
     assert (result["d"], result["l"]) == (13, 8)
-    assert [r["K"] for r in result["results"]] == [5, 10, 15, 20, 30]
+    for floor in (1.0, 0.0):  # the preset's prior floor and Eq. 5 as written, side by side
+        ks = [r["K"] for r in result["results"] if r["prior_floor"] == floor]
+        assert ks == [5, 10, 15, 20, 30], (floor, ks)
     for r in result["results"]:
         assert 0 < r["median_us"] <= r["p99_us"]

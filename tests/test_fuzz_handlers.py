@@ -247,7 +247,7 @@ def test_adapter_handlers(tmp_path):
                   valid_every={"state": 8})
     fuzz.run()
     models = session.outputs("model")
-    assert 1 <= len(models) <= fuzz.delivered["state"]
+    assert 0 < len(models) <= fuzz.delivered["state"]
     for m in models:
         assert np.all(np.isfinite(m.theta)) and np.all(m.sigma_tot2 >= 0)
     session.outputs("residual")
