@@ -1,5 +1,6 @@
-"""Pieces of the simulated PX4: thrust curve, frames, mode encoding, parameter encoding,
-and the commander's rules (arming, offboard entry, offboard loss) on simulated time."""
+"""Pieces of the simulated PX4: the default vehicle's thrust curve, mode encoding, parameter
+encoding, and the commander's rules (arming, offboard entry, offboard loss) on simulated
+time. The frame and thrust-curve conversions themselves are tested in test_px4_frames."""
 
 from __future__ import annotations
 
@@ -7,26 +8,19 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from arcade.vehicle import load_vehicle
 from services.px4_frames import (
     ThrustCurve,
     enu_to_ned,
-    flu_to_frd,
-    frd_to_flu,
-    ned_to_enu,
     quat_enu_flu_to_ned_frd,
     quat_mul,
-    quat_ned_frd_to_enu_flu,
     quat_to_euler_zyx,
 )
 from simulator.px4 import FlightMode, Px4Vehicle
 from simulator.px4.airframe import Px4Airframe
 from simulator.px4.link import parse_url
 from simulator.px4.mavlink_vehicle import _param_from_wire, _param_wire
-from simulator.px4.position_control import _rotation
 
 # ------------------------------------------------------------------ thrust curve
 
@@ -40,55 +34,6 @@ def test_thrust_curve_of_the_default_vehicle():
     # Out-of-range requests saturate instead of extrapolating.
     assert curve.throttle(40.0) == 1.0
     assert curve.thrust(-0.2) == 0.0
-
-
-@settings(max_examples=200, deadline=None)
-@given(s=st.floats(0.0, 1.0), fac=st.floats(0.0, 1.0), fmax=st.floats(1.0, 100.0))
-def test_thrust_curve_inverse_pair(s, fac, fmax):
-    curve = ThrustCurve(fac=fac, max_thrust_n=fmax)
-    thrust = curve.thrust(s)
-    assert curve.throttle(thrust) == pytest.approx(s, abs=1e-9)
-    assert curve.thrust(curve.throttle(thrust)) == (
-        pytest.approx(thrust, rel=1e-9, abs=1e-9))
-
-
-def test_thrust_curve_is_monotonic():
-    curve = ThrustCurve(fac=0.3, max_thrust_n=16.0)
-    s = np.linspace(0.0, 1.0, 101)
-    assert np.all(np.diff(curve.thrust(s)) > 0.0)
-
-
-# ------------------------------------------------------------------ frames
-
-
-def test_vector_frames_by_example_and_both_ways():
-    assert np.allclose(enu_to_ned([1.0, 0.0, 0.0]), [0.0, 1.0, 0.0])  # east
-    assert np.allclose(enu_to_ned([0.0, 0.0, 2.0]), [0.0, 0.0, -2.0])  # up 2 m = down -2 m
-    assert np.allclose(flu_to_frd([0.0, 1.0, 0.0]), [0.0, -1.0, 0.0])  # left = -right
-    v = np.array([0.3, -1.2, 2.5])
-    assert np.allclose(ned_to_enu(enu_to_ned(v)), v)
-    assert np.allclose(frd_to_flu(flu_to_frd(v)), v)
-
-
-def test_level_vehicle_facing_east_has_ned_yaw_90_deg():
-    q = quat_enu_flu_to_ned_frd([1.0, 0.0, 0.0, 0.0])
-    assert np.allclose(quat_to_euler_zyx(q), [0.0, 0.0, math.pi / 2])
-
-
-@settings(max_examples=100, deadline=None)
-@given(q=st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4),
-       v=st.lists(st.floats(-5.0, 5.0), min_size=3, max_size=3))
-def test_quaternion_conversion_rotates_the_same_physical_vector(q, v):
-    q = np.asarray(q)
-    if np.linalg.norm(q) < 0.1:
-        q = np.array([1.0, 0.0, 0.0, 0.0])
-    q = q / np.linalg.norm(q)
-    v = np.asarray(v)
-    q_ned = quat_enu_flu_to_ned_frd(q)
-    # A body vector, mapped to the world in either convention, is the same vector.
-    assert np.allclose(_rotation(q_ned) @ flu_to_frd(v), enu_to_ned(_rotation(q) @ v), atol=1e-9)
-    back = quat_ned_frd_to_enu_flu(q_ned)
-    assert np.allclose(back, q, atol=1e-9) or np.allclose(back, -q, atol=1e-9)
 
 
 # ------------------------------------------------------------------ protocol encodings
