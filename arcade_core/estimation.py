@@ -197,7 +197,12 @@ def update(
     nu = position - pred.p
     S = pred.cov[0, 0] + r
     d2 = jnp.sum(nu * nu) / S
-    q_meas = jnp.where(jnp.dot(quaternion, q_pred) < 0.0, -quaternion, quaternion)
+    q_meas = quat.align(quaternion, q_pred)
+    # A first frame starts in the identity's hemisphere (q_pred of an uninitialised filter
+    # is the identity propagated over the whole stamp, i.e. arbitrary); a re-initialisation
+    # continues the hemisphere of the estimate it replaces.
+    q_first = jnp.where(state.initialised, q_meas,
+                        quat.align(quaternion, jnp.array([1.0, 0.0, 0.0, 0.0], dtype)))
     close = (d2 <= config.gate_chi2) | (jnp.sum(nu * nu) <= config.gate_floor_m**2)
     in_gate = close & (_angle_between(q_pred, q_meas) <= config.gate_angle_rad)
     in_order = stamp >= state.t
@@ -217,7 +222,7 @@ def update(
                       jnp.asarray(config.accel_std, dtype) ** 2])
     fresh = FilterState(
         t=stamp, p=position, v=jnp.where(state.initialised, pred.v, 0.0),
-        a=jnp.zeros(3, dtype), q=q_meas, cov=jnp.diag(var0),
+        a=jnp.zeros(3, dtype), q=q_first, cov=jnp.diag(var0),
         initialised=jnp.ones((), bool), rejects=jnp.zeros((), jnp.int32),
         accepted=state.accepted + 1, rejected=state.rejected,
     )

@@ -82,6 +82,7 @@ from jax import Array
 
 from arcade_core import adaptation, encoder, metrics, mpc
 from arcade_core.baselines import gp, l1, mlp
+from arcade_core.dynamics import quaternion as quat
 from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff, flat_state
 from benchmarks import quadrotor_data as qd
 from benchmarks.common import machine
@@ -487,9 +488,11 @@ def make_controller_step(method: Method, cfg: mpc.MPCConfig):
     N = cfg.N
 
     def step(carry: Carry, x, u_applied, k, x_ref_all, u_ref_all):
+        x_ref = jax.lax.dynamic_slice_in_dim(x_ref_all, k, N + 1)
+        # The quaternion in the reference's hemisphere: the cost and the model see R^4.
+        x = x.at[6:10].set(quat.align(x[6:10], x_ref[0, 6:10]))
         learned = method.learn(carry.learner, carry.x_prev, u_applied, x)
         learner = jax.tree.map(lambda a, b: jnp.where(carry.started, a, b), learned, carry.learner)
-        x_ref = jax.lax.dynamic_slice_in_dim(x_ref_all, k, N + 1)
         u_ref = jax.lax.dynamic_slice_in_dim(u_ref_all, k, N)
         sigma = method.sigma(learner, x, carry.u_warm[0])
         model = method.model(learner)

@@ -38,7 +38,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -279,6 +279,12 @@ class Stack:
         sim = self.procs.get(self.vehicle_process)
         if sim is not None and sim.poll() is not None and not self._stopping.is_set():
             raise StackError(f"vehicle process exited with code {sim.returncode}")
+
+    def wait_alive(self, services: Iterable[str], timeout: float) -> None:
+        """Block until each of ``services`` has a liveliness token on this vehicle."""
+        if self._bus is None:
+            raise StackError("the stack is not started")
+        self._bus.wait_alive(services, timeout)
 
     def wait_ready(self, timeout: float | None = None) -> float:
         """Block until every service declared its liveliness token; returns seconds."""

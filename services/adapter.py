@@ -22,6 +22,9 @@ controller only from the mission ``start`` command on (before it the simulator's
 PX4 holds the vehicle, while the controller already streams setpoints), and not while a
 ``failsafe`` holds it (until ``failsafe_cleared`` or a new ``start``). In lockstep every
 setpoint is applied from the first state on.
+Quaternions: ``q`` and ``-q`` are one attitude but far apart as the vectors the features
+and the residual use; each transition is taken with the first state's scalar part
+non-negative (as in training) and the second state in the same hemisphere.
 Estimation noise: the residual of two estimated states contains their errors; to first
 order (errors in variables) their variances (``State.cov_diag``, propagated through the
 Jacobian of ``f_nom``) add to the observation noise ``sigma_j^2`` of each output, in
@@ -283,7 +286,8 @@ class Adapter(runtime.Service):
             prev = None
         sp = self._input_for(prev) if prev is not None else None
         if sp is None:
-            theta, cov, sig = self._marginal(self.learner, s.x, self._u_hover())
+            theta, cov, sig = self._marginal(self.learner, _same_hemisphere(s.x, s.x)[0],
+                                             self._u_hover())
             self.stats["skipped"] += prev is not None
         else:
             learn = self._applied and not s.predicted_through_dropout
@@ -293,7 +297,8 @@ class Adapter(runtime.Service):
             zeros = np.zeros(13)
             var_p = prev.cov_diag if prev.cov_diag is not None else zeros
             var_x = s.cov_diag if s.cov_diag is not None else zeros
-            out = self._adapt(self.learner, prev.x, sp.u, s.x, h, learn, var_p, var_x)
+            xp, x = _same_hemisphere(prev.x, s.x)
+            out = self._adapt(self.learner, xp, sp.u, x, h, learn, var_p, var_x)
             self.learner, dn, pred, cp_prob, cp, theta, cov, sig = out
             self.stats["learned"] += learn
             pred_np = type(pred)(*(np.asarray(p, dtype=float) for p in pred))
@@ -336,6 +341,18 @@ class Adapter(runtime.Service):
         if self.learner is not None and self.args.checkpoint is not None:
             save_checkpoint(self.args.checkpoint, self.learner.beam, self.meta)
             self.stats["checkpoint_step"] = int(self.learner.beam.step)
+
+
+def _same_hemisphere(xp: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The transition's quaternions as the learned model saw them in training: ``xp``'s
+    with a non-negative scalar part, ``x``'s in the hemisphere of ``xp``'s (q and -q are
+    one rotation, but far apart as the vectors the features and the residual use)."""
+    xp, x = np.array(xp, dtype=float), np.array(x, dtype=float)
+    if xp[6] < 0.0:
+        xp[6:10] *= -1.0
+    if float(np.dot(x[6:10], xp[6:10])) < 0.0:
+        x[6:10] *= -1.0
+    return xp, x
 
 
 def _extra(p) -> None:

@@ -605,11 +605,12 @@ class Px4Bridge(runtime.Service):
         status_period = 1.0 / self.args.status_rate if self.args.status_rate > 0 else math.inf
         while not self.stop.is_set():
             now = time.monotonic()
+            tick = min(next_tick, now)  # the scheduled instant: periodic stamps, no jitter
             t = self._telemetry
             gyro = t.get("gyro_flu")
             if (self.args.imu == "px4" and gyro is not None
                     and now - t.get("gyro_rx", -math.inf) < self.args.max_gyro_age):
-                self.pub_imu.put(Imu(gyro=gyro, stamp=now))
+                self.pub_imu.put(Imu(gyro=gyro, stamp=tick))
                 self.stats["imu"] += 1
             if now >= next_status:
                 self._status(now)

@@ -14,8 +14,9 @@ disarmed on the floor below it). The MAVLink link is up from the start so that t
 can connect before the mission; the mission clock starts (``start`` command) at the first
 control instant after ``--preroll`` at which the vehicle is armed in Offboard. A flight
 control instant in Offboard without a new SET_ATTITUDE_TARGET since the previous one
-counts as a missed deadline. MAVLink carries no bus stamps, so sense-to-actuate latency is
-not measured here. PX4's offboard-loss failsafe (``--of-loss-s``) switches to Hold or Land and
+counts as a missed deadline. MAVLink carries no bus stamps; what is measured instead is
+the actuation delay: simulated time from a control instant to the first new
+SET_ATTITUDE_TARGET after it (``actuation_delay``, resolution one ``--substep``). PX4's offboard-loss failsafe (``--of-loss-s``) switches to Hold or Land and
 is reported as a ``failsafe`` event; while it lasts, crash detection measures the distance
 to the hold position instead of the reference. Realtime only (MAVLink runs on the wall
 clock): ``--lockstep`` is refused; ``--wait-for`` is not used (the mission waits for
@@ -100,9 +101,11 @@ class Px4SimNode(SimNode):
 
     def _realtime(self) -> None:
         px4, v, sim = self.px4, self.px4.vehicle, self.sim
-        epoch = self.now() - sim.time
+        epoch = self.now() - sim.time  # Px4Sim.run re-anchors only after an overrun
         self.stats["epoch"] = epoch
-        st = {"n": 0, "t_next": 0.0, "k": -1, "t_start": 0.0, "prev_sp": None}
+        st = {"n": 0, "t_next": 0.0, "k": -1, "t_start": 0.0, "prev_sp": None,
+              "t_tick": math.nan, "seen_sp": None}
+        delays: list[float] = []  # control instant -> first new SET_ATTITUDE_TARGET [s]
 
         def mono(t_sim: float) -> float:
             return epoch + t_sim
@@ -110,10 +113,17 @@ class Px4SimNode(SimNode):
         def on_chunk(_) -> bool:
             t_sim = sim.time
             first = st["n"] == 0
+            with px4.lock:
+                sp_now = v.offboard_sp
+            if sp_now is not st["seen_sp"]:
+                if st["k"] >= 0 and math.isfinite(st["t_tick"]):
+                    delays.append(sp_now.time - st["t_tick"])
+                    st["t_tick"] = math.nan  # the first one after an instant only
+                st["seen_sp"] = sp_now
             self._publish_frames(sim.mocap.read(math.inf) if first else sim.read_mocap(), mono)
             if t_sim < st["t_next"] - 1e-9:
                 return False
-            stamp = self.now()
+            stamp = mono(t_sim)  # the sample instant (see sim_node)
             with px4.lock:
                 engaged = v.armed and v.mode is FlightMode.OFFBOARD
                 sp = v.offboard_sp
@@ -131,13 +141,13 @@ class Px4SimNode(SimNode):
                 k += 1
                 if engaged and sp is st["prev_sp"]:
                     self.stats["missed_deadlines"] += 1
-            st["k"], st["prev_sp"] = k, sp
+            st["k"], st["prev_sp"], st["t_tick"] = k, sp, t_sim
             if k >= 0:
                 self._maybe_release(k, stamp)
             self._hold = hold
             gyro = sim.gyro.read(math.inf) if first else sim.read_gyro()
             if not self.args.no_imu:
-                self._tick(stamp, gyro)
+                self._tick(stamp, gyro, sampled=stamp)
             self._last_stamp = stamp
             st["n"] += 1
             st["t_next"] += self.period
@@ -149,6 +159,9 @@ class Px4SimNode(SimNode):
 
         px4.run(on_chunk=on_chunk)
         self.stats["overruns"] = px4.overruns
+        # Simulated time at the chunk that saw the setpoint: resolution one --substep.
+        self.stats["actuation_delay"] = runtime.percentiles_ms(delays)
+        self.stats["actuation_delay_samples_ms"] = [1e3 * d for d in delays]
 
     def teardown(self) -> None:
         super().teardown()

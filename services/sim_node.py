@@ -24,7 +24,10 @@ Clock modes (design §3):
   only on a setpoint stream); then a ``start`` command carries the stamp at which the
   mission clock starts. A flight control instant whose setpoint has not arrived before the
   next instant is a missed deadline (pre-roll instants are ``startup_ticks``). Stamps are
-  ``time.monotonic()``-based.
+  ``time.monotonic()``-based; a control instant is stamped with its sample instant (when
+  the physics was there), not with the moment the loop got round to publishing it, so
+  consecutive instants are exactly one period apart; sense-to-actuate latency counts from
+  the sample instant.
 
 Setpoint watchdog (the failsafe of a flight controller that loses its offboard link):
 when no fresh setpoint has arrived for ``--failsafe-after`` seconds (realtime: wall clock
@@ -289,11 +292,13 @@ class SimNode(runtime.Service):
                                      capture_stamp=to_stamp(f.stamp),
                                      stamp=to_stamp(f.arrival)))
 
-    def _tick(self, stamp: float, gyro_samples) -> None:
+    def _tick(self, stamp: float, gyro_samples, sampled: float | None = None) -> None:
+        """Publish the control instant ``stamp``; sense-to-actuate latency counts from
+        ``sampled`` (the wall-clock sample instant; default: now)."""
         if gyro_samples:
             self._gyro = np.clip(gyro_samples[-1].omega, -MAX_GYRO, MAX_GYRO)
         with self._cond:
-            self._tick_wall[stamp] = self.now()
+            self._tick_wall[stamp] = self.now() if sampled is None else sampled
         self.pub_imu.put(Imu(gyro=self._gyro, stamp=stamp))
         if self.args.truth_state:
             x = self.sim.state()
@@ -417,7 +422,10 @@ class SimNode(runtime.Service):
                     self.stats["missed_deadlines"] += 1
                 elif missed:
                     self.stats["startup_ticks"] = self.stats.get("startup_ticks", 0) + 1
-                stamp = self.now()
+                # The sample instant, not the (later, jittered) moment this loop gets
+                # here: states are stamped when the vehicle was there, so consecutive
+                # control instants are exactly one period apart, as the physics is.
+                stamp = mono(t_sim)
                 if k < 0 and engaged and t_sim >= self.args.preroll:
                     # Setpoints stream (the loop is engaged, as PX4 requires before
                     # offboard control): start the mission clock at this instant.
@@ -435,7 +443,8 @@ class SimNode(runtime.Service):
                     if self._answered_run >= self.args.failsafe_resume:
                         self._clear_failsafe(stamp)
                         applied = None  # apply the newest setpoint again
-                self._tick(stamp, sim.gyro.read(math.inf) if n == 0 else sim.read_gyro())
+                self._tick(stamp, sim.gyro.read(math.inf) if n == 0 else sim.read_gyro(),
+                           sampled=stamp)
                 self._last_stamp = stamp
                 prev_tick = stamp
                 if k >= 0:

@@ -195,6 +195,15 @@ def test_quaternion_error():
     np.testing.assert_allclose(err, [0.0, 0.0, 0.01], atol=1e-6)
 
 
+def test_quaternion_align_picks_the_reference_hemisphere():
+    q_ref = quaternion.from_rpy(0.1, -0.2, 0.3)
+    q = quaternion.from_rpy(0.15, -0.1, 0.25)
+    np.testing.assert_array_equal(quaternion.align(q, q_ref), q)
+    np.testing.assert_array_equal(quaternion.align(-q, q_ref), q)
+    batch = jnp.stack([q, -q, -q_ref])
+    assert np.all(np.asarray(jnp.sum(quaternion.align(batch, q_ref) * q_ref, axis=-1)) > 0)
+
+
 def test_figure_eight_speed_and_shape():
     path = FigureEight(center=(1.0, 2.0, 1.5), half_length=2.0, half_width=1.0, speed=2.5)
     period = float(path.period())

@@ -145,3 +145,26 @@ def test_propagate_attitude_matches_closed_form():
     q0 = yaw_quat(0.3)
     q = est.propagate_attitude(jnp.asarray(q0), jnp.array([0.0, 0.0, 2.0]), 0.1)
     np.testing.assert_allclose(np.asarray(q), yaw_quat(0.5), atol=1e-12)
+
+
+def test_first_frame_starts_in_the_identity_hemisphere_at_any_clock():
+    # Realtime stamps are host-monotonic (hours of uptime): the uninitialised filter's
+    # prediction is the identity rotated by the gyro over the whole stamp, i.e. arbitrary.
+    # The first frame must not inherit that hemisphere: -q is the same attitude but far
+    # away for the model and the MPC cost, which see q as a vector.
+    q = yaw_quat(0.05)
+    omega = jnp.array([0.007, -0.0015, 0.0144])
+    signs = set()
+    for stamp in (0.0, 20.0, 2_000.0, 20_071.3, 86_400.0):
+        for sign in (1.0, -1.0):
+            state, ok = est.update(est.init(), stamp, jnp.array([0.0, 0.0, 1.5]), sign * q,
+                                   omega, CFG)
+            assert bool(ok)
+            signs.add(float(np.sign(state.q[0])))
+    assert signs == {1.0}
+
+    # Afterwards the hemisphere is continuous: a frame sent as -q is fused, not flipped.
+    state, _ = est.update(est.init(), 100.0, jnp.array([0.0, 0.0, 1.5]), q, omega, CFG)
+    state, ok = est.update(state, 100.01, jnp.array([0.0, 0.0, 1.5]), -q, omega, CFG)
+    assert bool(ok) and float(state.q[0]) > 0.99
+

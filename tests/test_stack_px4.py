@@ -5,7 +5,8 @@ MuJoCo quadrotor as PX4 (``px4sim``) <-> MAVLink over UDP loopback <-> MAVSDK <-
 (profile ``px4 --simulate``), on the wall clock.
 
 1. The figure-eight with a payload release tracks as well through the PX4 chain as the
-   ``sim`` profile does with the same seed and plan (RMSE within 15 %).
+   ``sim`` profile does with the same seed and plan (median RMSE of three flights each
+   within 15 %).
 2. Failsafes: the bridge killed -> the simulated PX4's own ``COM_OF_LOSS_T`` failsafe
    fires; after the supervisor restarted the bridge and offboard is engaged again, the
    controller killed -> the bridge leaves offboard within 0.3 s (+ one PX4 heartbeat for
@@ -34,6 +35,7 @@ from deploy.px4_profile import EventWaiter, Px4StackConfig, arm
 pytestmark = pytest.mark.integration
 
 PLAN = {"speed": 1.0, "duration": 14.0, "release": 0.3, "seed": 0, "rate": 20.0}
+FLIGHTS = 3
 COM_OF_LOSS_T = 1.0
 HEARTBEAT_S = 1.0
 
@@ -57,34 +59,44 @@ def _rmse(truth: dict[str, np.ndarray], t_max: float) -> float:
     return float(np.sqrt(np.mean(np.sum(err**2, axis=0))))
 
 
-def test_figure_eight_through_px4_tracks_like_the_sim_profile(tmp_path):
-    sim_out, px4_out = tmp_path / "sim", tmp_path / "px4"
-    result = run_flight(StackConfig(out=sim_out, hub=free_hub(), **PLAN),
-                        timeout=120.0)
+def _fly_sim_profile(out: Path) -> float:
+    result = run_flight(StackConfig(out=out, hub=free_hub(), **PLAN), timeout=120.0)
     assert all(c == 0 for c in result["codes"].values()), result["codes"]
-    sim_stats = json.loads((sim_out / "stats" / "sim.json").read_text())
+    sim_stats = json.loads((out / "stats" / "sim.json").read_text())
     assert not sim_stats["crashed"] and sim_stats["released_at"] is not None
+    return _rmse(_truth(out / "truth.csv"), PLAN["duration"])
 
-    cfg = Px4StackConfig(out=px4_out, hub=free_hub(), simulate=True,
-                         connect=_udp_url(), **PLAN)
+
+def _fly_through_px4(out: Path) -> float:
+    cfg = Px4StackConfig(out=out, hub=free_hub(), simulate=True, connect=_udp_url(), **PLAN)
     events = EventWaiter()
     armed: list[bool] = []
     result = run_flight(cfg, on_event=events, timeout=120.0,
                         on_ready=lambda stack: armed.append(arm(events, cfg)))
     assert armed == [True]
     assert all(c == 0 for c in result["codes"].values()), result["codes"]
-    px4 = json.loads((px4_out / "stats" / "px4sim.json").read_text())
-    bridge = json.loads((px4_out / "stats" / "bridge.json").read_text())
+    px4 = json.loads((out / "stats" / "px4sim.json").read_text())
+    bridge = json.loads((out / "stats" / "bridge.json").read_text())
     assert not px4["crashed"] and px4["released_at"] is not None
     assert px4["px4_failsafes"] == []
     assert px4["mavlink_rx"]["SET_ATTITUDE_TARGET"] >= 0.9 * PLAN["rate"] * PLAN["duration"]
     assert px4["vision_received"] and bridge["mocap_forwarded"] > 0
     assert bridge["rejects"] == {} and bridge["send_errors"] == 0
+    return _rmse(_truth(out / "truth.csv"), PLAN["duration"])
 
-    rmse_sim = _rmse(_truth(sim_out / "truth.csv"), PLAN["duration"])
-    rmse_px4 = _rmse(_truth(px4_out / "truth.csv"), PLAN["duration"])
-    print(f"tracking RMSE: sim profile {rmse_sim:.3f} m, through PX4 {rmse_px4:.3f} m "
-          f"({100 * (rmse_px4 / rmse_sim - 1):+.1f} %)")
+
+def test_figure_eight_through_px4_tracks_like_the_sim_profile(tmp_path):
+    # Realtime flights differ from run to run (scheduling): how fast the model adapts after
+    # the release varies, and one flight in several tracks the rest of the lap a few cm
+    # worse in either profile. Each profile's tracking is the median of FLIGHTS flights.
+    sim, px4 = [], []
+    for i in range(FLIGHTS):
+        sim.append(_fly_sim_profile(tmp_path / f"sim{i}"))
+        px4.append(_fly_through_px4(tmp_path / f"px4{i}"))
+    rmse_sim, rmse_px4 = float(np.median(sim)), float(np.median(px4))
+    print(f"tracking RMSE (median of {FLIGHTS}): sim profile {rmse_sim:.3f} m "
+          f"{np.round(sim, 3).tolist()}, through PX4 {rmse_px4:.3f} m "
+          f"{np.round(px4, 3).tolist()} ({100 * (rmse_px4 / rmse_sim - 1):+.1f} %)")
     assert rmse_px4 <= 1.15 * rmse_sim
 
 

@@ -37,6 +37,15 @@ def normalize(q: Array) -> Array:
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
+def align(q: Array, q_ref: Array) -> Array:
+    """``q`` or ``-q`` (the same rotation), whichever lies in ``q_ref``'s hemisphere.
+
+    The model, the MPC cost and the learned features treat ``q`` as a vector of R^4, so
+    the double cover must be resolved before they see it: ``-q`` is far from ``q``.
+    """
+    return jnp.where(jnp.sum(q * q_ref, axis=-1, keepdims=True) < 0, -q, q)
+
+
 def to_rotation_matrix(q: Array) -> Array:
     """Rotation matrix ``R(q)`` (body -> world) of a unit quaternion, shape (..., 3, 3)."""
     w, x, y, z = jnp.moveaxis(q, -1, 0)

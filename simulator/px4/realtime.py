@@ -71,16 +71,18 @@ class Px4Sim:
             with self.lock:
                 v.step(self.substep)
                 self.mavlink.send_due()
-            if on_chunk is not None and on_chunk(self):
-                break
-            if duration is not None and v.time >= duration:
-                break
             delay = epoch + v.time - time.monotonic()
             if delay > 0.0:
                 self.stop.wait(delay)  # pacing to the wall clock
             elif delay < -OVERRUN_S:
                 self.overruns += 1
                 epoch = time.monotonic() - v.time  # re-anchor instead of racing to catch up
+            # After pacing: the chunk's end is now, so what on_chunk publishes is not
+            # ahead of the wall clock.
+            if on_chunk is not None and on_chunk(self):
+                break
+            if duration is not None and v.time >= duration:
+                break
 
     def start(self, **kwargs) -> Px4Sim:
         """Run in a background thread (tests, embedding)."""
