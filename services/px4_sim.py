@@ -16,9 +16,10 @@ control instant after ``--preroll`` at which the vehicle is armed in Offboard. A
 control instant in Offboard without a new SET_ATTITUDE_TARGET since the previous one
 counts as a missed deadline. MAVLink carries no bus stamps; what is measured instead is
 the actuation delay: simulated time from a control instant to the first new
-SET_ATTITUDE_TARGET after it (``actuation_delay``, resolution one ``--substep``). PX4's offboard-loss failsafe (``--of-loss-s``) switches to Hold or Land and
-is reported as a ``failsafe`` event; while it lasts, crash detection measures the distance
-to the hold position instead of the reference. Realtime only (MAVLink runs on the wall
+SET_ATTITUDE_TARGET after it (``actuation_delay``, resolution one ``--substep``). PX4's
+offboard-loss failsafe (``--of-loss-s``) switches to Hold or Land and is reported as a
+``failsafe`` event; while it lasts, crash detection measures the distance to the hold
+position instead of the reference. Realtime only (MAVLink runs on the wall
 clock): ``--lockstep`` is refused; ``--wait-for`` is not used (the mission waits for
 offboard instead).
 
