@@ -33,6 +33,10 @@ normalised units. With exact states (``cov_diag`` absent) the update is the pape
 Without a weights file the adapter cannot adapt: it says so in a ``degraded`` event and
 publishes an empty (zero) model per state so that the controller runs the nominal MPC.
 
+Scheduling (realtime): the update for a state starts once the controller's setpoint for
+that state is out (or half a period later): the controller solves with the newest model it
+has, which is never this state's, so the adapter only takes CPU from it otherwise.
+
 Checkpoints: the beam is written atomically to ``--checkpoint`` every
 ``--checkpoint-every`` steps and at shutdown, and restored at start when it matches the
 weights (``restart`` event).
@@ -273,6 +277,13 @@ class Adapter(runtime.Service):
             return self._setpoints.get(prev.stamp, self._latest_sp)
 
     def on_state(self, s: State) -> None:
+        if not self.args.lockstep and self._controller_alive():
+            # The controller solves on this state with the newest model it has (this
+            # state's comes too late for it either way): let it have the CPU first and
+            # update once its setpoint is out (bounded: half a period).
+            with self._cond:
+                self._cond.wait_for(lambda: s.stamp in self._setpoints or self.stop.is_set(),
+                                    0.5 / self.args.rate)
         t0 = self.now()
         prev, self._prev = self._prev, s
         if self.learner is None:

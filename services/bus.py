@@ -18,6 +18,12 @@ they link directly (peers do not route for each other). If the hub owner exits, 
 peer to start binds the hub port and the others reconnect to it. Several independent stacks
 on one machine need different hub ports.
 
+Bus latency: every ``put`` carries its ``time.monotonic()`` as an 8-byte Zenoh
+attachment (outside the message, so the schemas stay as they are); each subscription
+records the transit time of what it receives (:attr:`Subscription.transit_s`), one bus hop
+measured on its own, independent of what a message's ``stamp`` means. Meaningful between
+processes of one host (one monotonic clock).
+
 Multi-host deployments use a router (``mode: "router"`` in a Python session, see
 :func:`router_config`; ``zenohd`` is not on PyPI) and clients (:func:`client_config`) so
 that the router's access control applies: ``deploy/zenoh/router-acl.json5`` lets only
@@ -28,8 +34,12 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import re
+import struct
 import threading
+import time
+from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib import resources
@@ -295,18 +305,38 @@ class Publisher(Generic[M]):
             payload = msgpack.packb(wire, use_bin_type=True)
             if len(payload) > self.type.MAX_BYTES:
                 raise MessageError(Reason.OVERSIZE, f"{len(payload)} > {self.type.MAX_BYTES}")
-            self._pub.put(payload)
+            self._pub.put(payload, attachment=_PUT_TIME.pack(time.monotonic()))
             return self._seq
 
     def close(self) -> None:
         self._pub.undeclare()
 
 
-class Subscription:
-    """A validated subscription; ``receiver.checker`` holds per-publisher order stats."""
+#: The put time a publisher attaches to each sample (little-endian float64 seconds).
+_PUT_TIME = struct.Struct("<d")
+#: Transit times a subscription keeps (the newest ones).
+TRANSIT_SAMPLES = 100_000
 
-    def __init__(self, sub: Any, topic: str, receiver: Receiver):
+
+def transit_time(sample: zenoh.Sample) -> float | None:
+    """Seconds from the publisher's ``put`` to now, from the attachment (None if absent)."""
+    now = time.monotonic()
+    att = getattr(sample, "attachment", None)
+    raw = att.to_bytes() if att is not None else b""
+    if len(raw) != _PUT_TIME.size:
+        return None
+    hop = now - _PUT_TIME.unpack(raw)[0]
+    return hop if math.isfinite(hop) else None  # any sender may attach anything
+
+
+class Subscription:
+    """A validated subscription; ``receiver.checker`` holds per-publisher order stats and
+    :attr:`transit_s` the bus transit time of each sample received (newest
+    :data:`TRANSIT_SAMPLES`)."""
+
+    def __init__(self, sub: Any, topic: str, receiver: Receiver, transit: deque[float]):
         self._sub, self.topic, self.receiver = sub, topic, receiver
+        self.transit_s = transit
 
     def close(self) -> None:
         self._sub.undeclare()
@@ -434,14 +464,18 @@ class Bus:
         exceptions of ``callback`` are counted in :attr:`rejects` instead.
         """
         receiver = Receiver(topic, check_order=check_order, max_age=max_age, clock=clock)
-        handler = safe_handler(
-            lambda sample: receiver(sample.payload.to_bytes()),
-            callback,
-            self.rejects,
-            topic=topic,
-        )
+        transit: deque[float] = deque(maxlen=TRANSIT_SAMPLES)
+
+        def decode(sample: zenoh.Sample) -> Any:
+            hop = transit_time(sample)
+            if hop is not None:
+                transit.append(hop)
+            return receiver(sample.payload.to_bytes())
+
+        handler = safe_handler(decode, callback, self.rejects, topic=topic)
         sub = Subscription(
-            self.session.declare_subscriber(self.key(topic), handler), topic, receiver
+            self.session.declare_subscriber(self.key(topic), handler), topic, receiver,
+            transit,
         )
         self._subscriptions.append(sub)
         return sub

@@ -108,8 +108,8 @@ def _seq_only(receiver: Any) -> Any:
     return decode
 
 
-def subscribe_ordered(bus: Bus, topics: dict[str, Any],
-                      seq_only: tuple[str, ...] = ()) -> list[Any]:
+def subscribe_ordered(bus: Bus, topics: dict[str, Any], seq_only: tuple[str, ...] = (),
+                      transit: dict[str, Any] | None = None) -> list[Any]:
     """Subscribe ``{topic: callback}`` with callbacks run on Zenoh's receiving thread.
 
     :meth:`Bus.subscribe` runs each subscription's callback on its own thread, so two
@@ -119,19 +119,30 @@ def subscribe_ordered(bus: Bus, topics: dict[str, Any],
     Validation and reject counting are those of :meth:`Bus.subscribe`, except that the
     topics in ``seq_only`` are order-checked on ``seq`` alone: their stamps are judged by
     the service (a jumped sensor clock must reach the estimator, which re-stamps it).
+    With ``transit``, each topic's bus transit times (see :mod:`services.bus`) are appended
+    to ``transit[topic]`` (a bounded deque).
     """
+    from collections import deque
+
     import zenoh
 
+    from services.bus import TRANSIT_SAMPLES, transit_time
     from services.messages import Receiver, safe_handler
 
     subs = []
     for topic, callback in topics.items():
         receiver = (_seq_only(Receiver(topic, check_order=False)) if topic in seq_only
                     else Receiver(topic))
-        handler = safe_handler(
-            lambda sample, r=receiver: r(sample.payload.to_bytes()), callback, bus.rejects,
-            topic=topic,
-        )
+        hops = None
+        if transit is not None:
+            hops = transit.setdefault(topic, deque(maxlen=TRANSIT_SAMPLES))
+
+        def decode(sample, r=receiver, hops=hops):
+            if hops is not None and (hop := transit_time(sample)) is not None:
+                hops.append(hop)
+            return r(sample.payload.to_bytes())
+
+        handler = safe_handler(decode, callback, bus.rejects, topic=topic)
         subs.append(bus.session.declare_subscriber(
             bus.key(topic), zenoh.handlers.Callback(handler, indirect=False)))
     return subs

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import queue
 import socket
+import struct
 import threading
 
 import msgpack
@@ -194,6 +195,29 @@ def test_malformed_payloads_are_counted_not_raised():
             Reason.CALLBACK_ERROR: 1,
         }
         assert states.empty()
+
+
+def test_every_sample_carries_its_put_time_and_transit_is_recorded():
+    h = hub()
+    states: queue.Queue = queue.Queue()
+    with Bus("v", "est", peer_config(h)) as sub, Bus("v", "sim", peer_config(h)) as pub:
+        subscription = sub.subscribe("state", states.put)
+        sub.declare_alive()
+        pub.wait_alive(["est"], TIMEOUT)
+        for k in range(5):
+            pub.put(state(float(k)))
+            get(states, "state")
+        # A foreign sender's attachment (garbage, NaN) is no transit time and no reject.
+        key = pub.key("state")
+        pub.session.put(key, encode(state(10.0).replace(src="x/1", seq=1)), attachment=b"abc")
+        pub.session.put(key, encode(state(11.0).replace(src="x/1", seq=2)),
+                        attachment=struct.pack("<d", float("nan")))
+        get(states, "state")
+        get(states, "state")
+        hops = list(subscription.transit_s)
+        assert len(hops) == 5, hops
+        assert all(0.0 <= h < TIMEOUT for h in hops), hops
+        assert sub.rejects.total == 0
 
 
 def test_three_peers_find_each_other_through_the_hub():

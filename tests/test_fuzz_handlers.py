@@ -63,7 +63,7 @@ class _Declared:
     def __init__(self, on_put: Callable[[bytes], None] | None = None):
         self._on_put = on_put
 
-    def put(self, payload: bytes) -> None:
+    def put(self, payload: bytes, attachment: Any = None) -> None:
         assert self._on_put is not None
         self._on_put(bytes(payload))
 

@@ -125,6 +125,9 @@ def test_adapter_checkpoint_round_trip(tmp_path):
     rng = np.random.default_rng(0)
     with Bus("default", "estimator", peer_config(hub)) as bus:
         bus.subscribe("model", models.put)
+        # This test plays the controller too: while one is alive, the lockstep adapter
+        # waits for the setpoint answering the previous state (sent after its model).
+        bus.declare_alive("controller")
 
         proc = start("adapter", hub, tmp_path, *args)
         try:
