@@ -102,14 +102,13 @@ class Px4SimNode(SimNode):
 
     def _realtime(self) -> None:
         px4, v, sim = self.px4, self.px4.vehicle, self.sim
-        epoch = self.now() - sim.time  # Px4Sim.run re-anchors only after an overrun
-        self.stats["epoch"] = epoch
+        self.stats["epoch"] = px4.epoch
         st = {"n": 0, "t_next": 0.0, "k": -1, "t_start": 0.0, "prev_sp": None,
               "t_tick": math.nan, "seen_sp": None}
         delays: list[float] = []  # control instant -> first new SET_ATTITUDE_TARGET [s]
 
         def mono(t_sim: float) -> float:
-            return epoch + t_sim
+            return px4.epoch + t_sim  # the vehicle's wall clock, re-anchored after a stall
 
         def on_chunk(_) -> bool:
             t_sim = sim.time

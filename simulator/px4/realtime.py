@@ -48,6 +48,9 @@ class Px4Sim:
         self.substep = float(substep)
         self.stop = threading.Event()
         self.overruns = 0
+        #: ``time.monotonic()`` at simulated time 0 while :meth:`run` runs (moved forward
+        #: by an overrun: the vehicle does not race to catch up).
+        self.epoch = time.monotonic() - self.vehicle.time
         self._thread: threading.Thread | None = None
 
     @property
@@ -66,7 +69,7 @@ class Px4Sim:
         if self.mavlink._thread is None:
             self.mavlink.start()
         v = self.vehicle
-        epoch = time.monotonic() - v.time
+        self.epoch = epoch = time.monotonic() - v.time
         while not self.stop.is_set():
             with self.lock:
                 v.step(self.substep)
@@ -77,6 +80,7 @@ class Px4Sim:
             elif delay < -OVERRUN_S:
                 self.overruns += 1
                 epoch = time.monotonic() - v.time  # re-anchor instead of racing to catch up
+                self.epoch = epoch
             # After pacing: the chunk's end is now, so what on_chunk publishes is not
             # ahead of the wall clock.
             if on_chunk is not None and on_chunk(self):
