@@ -8,7 +8,8 @@ thetadot, u``. Extra columns are allowed and ignored; the order of columns is fr
 :func:`read_log` checks what the workflow relies on and says precisely what is wrong:
 missing columns, too few rows, non-numeric or non-finite values (with the first bad row),
 time not strictly increasing or a rate that is not constant (1 % tolerance on every
-step, as logs written with float timestamps jitter in the last digits).
+step, as logs written with float timestamps jitter in the last digits). Quadrotor
+quaternions are made continuous in sign (:func:`continuous_quaternions`).
 """
 
 from __future__ import annotations
@@ -168,4 +169,21 @@ def _validated(system: str, data: np.ndarray, name: str) -> FlightLog:
         # Renormalise logs written with few digits; exact unit quaternions stay untouched.
         off = np.abs(norm - 1.0) > 1e-12
         X[off, 6:10] /= norm[off, None]
+        X[:, 6:10] = continuous_quaternions(X[:, 6:10])
     return FlightLog(system, t.copy(), X, U)
+
+
+def continuous_quaternions(q: np.ndarray) -> np.ndarray:
+    """``q`` (n, 4) with signs chosen so that neighbouring rows lie in one hemisphere and the
+    first has a non-negative scalar part.
+
+    ``q`` and ``-q`` are one attitude and trackers output either (many keep ``w >= 0`` and
+    so flip when the attitude crosses it), but the models take ``q`` as a vector: a flip
+    between two rows would read as a 360-degree rotation in one step.
+    """
+    q = np.asarray(q, dtype=float)
+    if len(q) == 0:
+        return q.copy()
+    turns = np.concatenate([[q[0, 0] < 0.0], np.sum(q[1:] * q[:-1], axis=1) < 0.0])
+    sign = np.where(np.cumsum(turns) % 2 == 1, -1.0, 1.0)
+    return q * sign[:, None]

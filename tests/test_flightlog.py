@@ -79,3 +79,22 @@ def test_too_short_and_bad_quaternion():
         from_arrays("quadrotor", log.t, X, log.U)
     with pytest.raises(ValueError, match="unknown system"):
         columns("boat")
+
+
+def test_quaternion_sign_flips_are_removed():
+    # A tracker that keeps w >= 0 flips the sign when a yaw turn passes 180 degrees; another
+    # sends -q at random. Both must read as the continuous attitude the models expect.
+    n = 200
+    yaw = np.linspace(0.0, 1.5 * 2 * np.pi, n)
+    q = np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], axis=1)
+    canonical = q * np.where(q[:, :1] < 0, -1.0, 1.0)
+    rng = np.random.default_rng(1)
+    scrambled = q * rng.choice([-1.0, 1.0], size=(n, 1))
+    X = np.zeros((n, 13))
+    U = np.zeros((n, 4))
+    for source in (canonical, scrambled):
+        X[:, 6:10] = source
+        log = from_arrays("quadrotor", np.arange(n) * 0.01, X, U)
+        np.testing.assert_allclose(log.X[:, 6:10], q, atol=1e-15)
+        assert np.all(np.sum(log.X[1:, 6:10] * log.X[:-1, 6:10], axis=1) > 0)
+
