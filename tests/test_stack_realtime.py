@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from arcade.demo_stack import free_hub
 from deploy.launcher import StackConfig, run_flight
@@ -30,3 +32,18 @@ def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
     for log in (tmp_path / "logs").glob("*.log"):
         text = log.read_text()
         assert " ERROR " not in text and "Traceback" not in text, log.name
+    # Control instants carry their sample instants (they were the jittered publishing
+    # moments once): physics instants, whole 5 ms substeps apart, the first at or after
+    # each period's instant; and the estimate starts level, w > 0 (the sign of the first
+    # quaternion once depended on the host's uptime).
+    states = [json.loads(m.data) for _, ch, m in make_reader(
+        (tmp_path / "bus.mcap").open("rb")).iter_messages() if ch.topic.endswith("/state")]
+    steps = np.diff([s["stamp"] for s in states])
+    substep = 0.005
+    np.testing.assert_allclose(steps / substep, np.round(steps / substep), atol=1e-6)
+    assert np.all(np.abs(steps - 1.0 / 30.0) < substep), steps
+    assert np.mean(steps) == pytest.approx(1.0 / 30.0, abs=1e-3)
+    assert states[0]["x"][6] > 0.99
+    # The bus measured the simulator -> estimator hop of every control instant.
+    est = json.loads((tmp_path / "stats" / "estimator.json").read_text())
+    assert est["hop_imu"]["n"] >= ticks and 0.0 < est["hop_imu"]["p50_ms"] < 50.0
