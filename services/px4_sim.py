@@ -102,7 +102,6 @@ class Px4SimNode(SimNode):
 
     def _realtime(self) -> None:
         px4, v, sim = self.px4, self.px4.vehicle, self.sim
-        self.stats["epoch"] = px4.epoch
         st = {"n": 0, "t_next": 0.0, "k": -1, "t_start": 0.0, "prev_sp": None,
               "t_tick": math.nan, "seen_sp": None}
         delays: list[float] = []  # control instant -> first new SET_ATTITUDE_TARGET [s]
@@ -158,6 +157,7 @@ class Px4SimNode(SimNode):
             return k >= self.n_steps - 1
 
         px4.run(on_chunk=on_chunk)
+        self.stats["epoch"] = px4.epoch  # the last anchor (moved by overruns)
         self.stats["overruns"] = px4.overruns
         # Simulated time at the chunk that saw the setpoint: resolution one --substep.
         self.stats["actuation_delay"] = runtime.percentiles_ms(delays)
