@@ -13,7 +13,11 @@ private loopback Zenoh hub) on the wall clock at 50 Hz and reports:
   3 ms;
 - ``rate_hz``: achieved control rate over the mission; ``missed_deadlines``: mission
   instants whose setpoint had not arrived by the next instant (target: 0 over 120 s);
-- ``mpc_p99_ms``: the controller's solve time in the same run.
+- ``mpc_p99_ms``: the controller's solve time in the same run;
+- ``stages_ms``: sense-to-actuate stage by stage (p50, p99): the simulator's sample instant
+  to its imu put, the hop to the estimator, the estimator's work, the hop to the
+  controller, the controller from the state's arrival to the setpoint's put (solve
+  included), the hop back; ``gc_pause_max_ms``: the longest collector pause of any service.
 
 ``quick`` flies 20 s instead of 120 s. The flight plan is the demo's (175 g payload,
 figure-eight at 2.5 m/s, released before the second lap; beyond two laps the figure-eight
@@ -58,6 +62,16 @@ def run(quick: bool = False, out: Path | None = None, rate: float = RATE_HZ,
         "mpc_p50_ms": ctl["solve"]["p50_ms"],
         "mpc_p99_ms": mpc_p99,
         "adapt_p99_ms": stats["adapter"]["update"]["p99_ms"],
+        # Where sense-to-actuate goes, stage by stage in path order (p50/p99 each).
+        "stages_ms": {name: [round(st[key]["p50_ms"], 3), round(st[key]["p99_ms"], 3)]
+                      for name, st, key in (("sim_publish", sim, "publish_lag"),
+                                            ("hop_imu", est, "hop_imu"),
+                                            ("estimator", est, "process"),
+                                            ("hop_state", ctl, "hop_state"),
+                                            ("controller", ctl, "react"),
+                                            ("hop_setpoint", sim, "hop_setpoint"))},
+        "gc_pause_max_ms": max(st.get("gc_pauses", {}).get(f"gen{g}", {}).get("max_ms", 0.0)
+                               for st in stats.values() for g in range(3)),
         "rate_hz": (steps - 1) / wall if wall > 0 else 0.0,
         "target_rate_hz": rate,
         "missed_deadlines": sim["missed_deadlines"],

@@ -77,6 +77,13 @@ def _loop_section(r: dict[str, Any]) -> list[str]:
         f"| {r['hop_p50_ms']:.2f} | {r['hop_p99_ms']:.2f} | {r['sense_to_actuate_p99_ms']:.2f} "
         f"| {r['rate_hz']:.2f} | {r['missed_deadlines']} | {r['duration_s']:.0f} |",
         "",
+        f"Sense-to-actuate stage by stage (MPC solve p50/p99 {r['mpc_p50_ms']:.2f}/"
+        f"{r['mpc_p99_ms']:.2f} ms, inside the controller's stage):",
+        "",
+        "| stage | p50 (ms) | p99 (ms) |",
+        "|---|---|---|",
+        *(f"| {name} | {v[0]:.2f} | {v[1]:.2f} |" for name, v in r["stages_ms"].items()),
+        "",
         f"All fields: {', '.join(f'{k} = {v}' for k, v in r.items() if k != 'machine')}",
         "",
     ]

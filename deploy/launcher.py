@@ -48,10 +48,11 @@ REPO = Path(__file__).resolve().parents[1]
 SERVICES = ("recorder", "estimator", "adapter", "controller", "sim")
 STOP_ORDER = ("sim", "controller", "adapter", "estimator", "recorder")
 PROFILES = ("sim", "px4")
-#: Realtime scheduling: the sense-to-actuate path (vehicle link, estimator, controller)
-#: ahead of the adapter, the recorder last (``nice`` offsets; raising a priority needs
-#: privileges and is skipped with a warning without them).
-PRIORITY = {"sim": -5, "estimator": -5, "controller": -5, "recorder": 5}
+#: Realtime scheduling (realtime clock only): the sense-to-actuate path (vehicle link,
+#: estimator, controller) under SCHED_FIFO at these priorities, ahead of the adapter; the
+#: recorder niced last. Without the privilege a service warns and keeps the normal policy.
+REALTIME_PRIORITY = {"sim": 30, "estimator": 25, "controller": 20}
+NICE = {"recorder": 5}
 
 
 @dataclass
@@ -73,6 +74,8 @@ class StackConfig:
     hover_s: float | None = None
     origin: tuple[float, float] = (0.0, 0.0)
     x64: bool = False
+    #: Realtime clock: SCHED_FIFO for the sense-to-actuate path (``REALTIME_PRIORITY``).
+    realtime_priority: bool = True
     weights: Path | None = None
     checkpoint: Path | None = None
     ready_timeout: float = 600.0
@@ -127,8 +130,10 @@ class StackConfig:
             own += ["--wait-for", ",".join(consumers)]
             if self.truth_state:
                 own.append("--truth-state")
-        if not self.lockstep and service in PRIORITY:
-            own += ["--nice", str(PRIORITY[service])]
+        if not self.lockstep and self.realtime_priority and service in REALTIME_PRIORITY:
+            own += ["--realtime-priority", str(REALTIME_PRIORITY[service])]
+        if not self.lockstep and service in NICE:
+            own += ["--nice", str(NICE[service])]
         return [*common, *own, *self.extra.get(service, [])]
 
 

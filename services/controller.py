@@ -89,6 +89,19 @@ def moment_matched(method):
     return method._replace(sigma=sigma)
 
 
+def with_finite_flag(step):
+    """``step`` with its input returned as ``[u, all(isfinite(solution))]``: the service
+    checks the solution without a second device-to-host copy on the control path."""
+    import jax.numpy as jnp
+
+    def flagged(*args):
+        new, u, diag = step(*args)
+        ok = jnp.all(jnp.isfinite(new.u_warm)) & jnp.all(jnp.isfinite(u))
+        return new, jnp.append(u, ok.astype(u.dtype)), diag
+
+    return flagged
+
+
 def with_learner(carry, learner):
     """``carry`` of the in-process loop with its adaptive state (first field) replaced."""
     return carry._replace(**{carry._fields[0]: learner})
@@ -126,8 +139,8 @@ class Controller(runtime.Service):
         self.learner0 = None
         # The in-process per-step update, with learning left to the adapter.
         no_learn = {"learn": lambda learner, x_prev, u_prev, x: learner}
-        self._step_nominal = cl.make_controller_step(
-            cl.make_method("nominal")._replace(**no_learn), cfg)
+        self._step_nominal = jax.jit(with_finite_flag(cl.make_controller_step(
+            cl.make_method("nominal")._replace(**no_learn), cfg)))
         self._learner_nominal = jnp.zeros((), dtype)
         if weights.is_file():
             self.learner0, method = load_learner(weights, dtype)
@@ -139,7 +152,7 @@ class Controller(runtime.Service):
                 carry = with_learner(carry, learner._replace(beam=beam))
                 return step(carry, x, carry.u_mpc, k, x_ref_all, u_ref_all)
 
-            self._step_learned = jax.jit(learned)
+            self._step_learned = jax.jit(with_finite_flag(learned))
             d, l = self.learner0.vld.theta0.shape
             self._theta0 = np.asarray(adaptation.marginal_decoder(self.learner0.beam)[0])
             self._cov0 = np.broadcast_to(np.asarray(self.learner0.beam.covariances[0]),
@@ -151,7 +164,7 @@ class Controller(runtime.Service):
         self.t0: float | None = None
         self._model: Model | None = None
         self._cond = threading.Condition()
-        self._queue: queue.Queue[State] = queue.Queue()
+        self._queue: queue.Queue[tuple[State, float]] = queue.Queue()
         self._mode = "track"
         self._stale_model = False
         self._thrust_hover = float(self.u_hover[0])  # learned while tracking
@@ -159,7 +172,8 @@ class Controller(runtime.Service):
         self.stats.update(setpoints=0, deadline_misses=0, hover=0, nominal_model=0,
                           solver_failures=0)
         bus.subscribe("model", self.on_model)
-        bus.subscribe("state", self.on_state)
+        self._state_sub = bus.subscribe("state", self.on_state)
+        self._react_s: list[float] = []  # state received -> setpoint put
         self.pub = bus.publisher("setpoint")
 
     def warmup(self) -> None:
@@ -174,7 +188,8 @@ class Controller(runtime.Service):
             self.event("degraded", f"no weights file at {self.weights}: nominal MPC", "warning")
 
     def _solve(self, x: np.ndarray, k: int, posterior: tuple | None) -> np.ndarray:
-        """One step of the in-process controller; returns the input to apply (4,)."""
+        """One step of the in-process controller; returns the input to apply and whether
+        the whole solution (input and warm start) is finite, as one vector (5,)."""
         # NumPy arrays of the right dtype straight into the jitted steps (their C++ fast
         # path converts them; jnp.asarray costs tenths of a millisecond per array).
         dt = np.dtype(self.dtype)
@@ -190,7 +205,7 @@ class Controller(runtime.Service):
             new, u, _ = self._step_learned(carry, x, k, theta, cov, self.x_ref_all,
                                            self.u_ref_all)
         self._new_carry = new
-        return np.asarray(u, dtype=float)
+        return np.asarray(u, dtype=float)  # (5,): the input and the finite-solution flag
 
     # -- inputs
     def on_command(self, cmd) -> None:
@@ -212,23 +227,24 @@ class Controller(runtime.Service):
         return self.bus is None or "adapter" in self.bus.alive
 
     def on_state(self, s: State) -> None:
-        self._queue.put(s)
+        self._queue.put((s, time.perf_counter()))
 
     # -- loop
     def main(self) -> None:
         while not self.stop.is_set():
             try:
-                s = self._queue.get(timeout=0.2)
+                s, t_in = self._queue.get(timeout=0.2)
             except queue.Empty:
                 continue
             if not self.args.lockstep:  # only the newest state matters in real time
                 while True:
                     try:
-                        s = self._queue.get_nowait()
+                        s, t_in = self._queue.get_nowait()
                     except queue.Empty:
                         break
             try:
                 self.handle(s)
+                self._react_s.append(time.perf_counter() - t_in)
             except Exception:
                 self.log.exception("control step failed: hover setpoint")
                 self.publish(s, self.hover(s), "hover", 0.0)
@@ -309,8 +325,8 @@ class Controller(runtime.Service):
             u = self._solve(s.x, k, (m.theta, cov))
         solve_s = time.perf_counter() - t0
         self._solve_s.append(solve_s)
-        if not np.all(np.isfinite(u)) or not np.all(np.isfinite(
-                np.asarray(self._new_carry.u_warm))):
+        u, finite = u[:4], u[4] == 1.0
+        if not finite or not np.all(np.isfinite(u)):
             self.stats["solver_failures"] += 1
             self._set_mode("hover", "non-finite MPC solution", s.stamp)
             self.publish(s, self.hover(s), "hover", solve_s)
@@ -347,6 +363,10 @@ class Controller(runtime.Service):
     def teardown(self) -> None:
         self.stats["solve"] = runtime.percentiles_ms(self._solve_s[1:])
         self.stats["solve_samples_ms"] = [1e3 * v for v in self._solve_s[1:]]
+        # The controller's share of sense-to-actuate: the state's bus hop, and from its
+        # arrival to the setpoint's put (queue hand-over, solve, encode).
+        self.stats["hop_state"] = runtime.percentiles_ms(list(self._state_sub.transit_s))
+        self.stats["react"] = runtime.percentiles_ms(self._react_s[1:])
 
 
 def _extra(p) -> None:

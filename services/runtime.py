@@ -11,6 +11,7 @@ report (latencies, counters) go to ``<out>/stats/<name>.json`` at exit.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import logging
 import os
@@ -43,6 +44,10 @@ def common_parser(name: str, description: str) -> argparse.ArgumentParser:
     p.add_argument("--nice", type=int, default=0,
                    help="scheduling priority change (negative: higher; needs privileges, "
                         "ignored with a warning otherwise)")
+    p.add_argument("--realtime-priority", type=int, default=0, metavar="P",
+                   help="after warm-up, run every thread of the process under SCHED_FIFO at "
+                        "priority P (1-99; 0: the normal policy). Needs CAP_SYS_NICE or an "
+                        "rtprio limit; without, a warning and the normal policy")
     p.add_argument("--incarnation", type=int, default=0,
                    help="restart count given by the supervisor (0: first start)")
     return p
@@ -148,6 +153,30 @@ def subscribe_ordered(bus: Bus, topics: dict[str, Any], seq_only: tuple[str, ...
     return subs
 
 
+class GcPauses:
+    """Durations of the garbage collector's pauses, per generation, from construction to
+    :meth:`close` (a pause stalls the whole process, hence its control path)."""
+
+    def __init__(self) -> None:
+        self._t0 = 0.0
+        self.pauses: dict[int, list[float]] = {0: [], 1: [], 2: []}
+        gc.callbacks.append(self._callback)
+
+    def _callback(self, phase: str, info: dict[str, Any]) -> None:
+        if phase == "start":
+            self._t0 = time.perf_counter()
+        else:
+            self.pauses[info["generation"]].append(time.perf_counter() - self._t0)
+
+    def close(self) -> None:
+        if self._callback in gc.callbacks:
+            gc.callbacks.remove(self._callback)
+
+    def summary(self) -> dict[str, Any]:
+        return {f"gen{g}": {"n": len(v), "max_ms": 1e3 * max(v, default=0.0),
+                            "total_ms": 1e3 * sum(v)} for g, v in self.pauses.items()}
+
+
 class Service:
     """Base of a service process: subclasses implement :meth:`setup` and may override
     :meth:`warmup`, :meth:`main` (default: wait for the stop signal) and :meth:`teardown`.
@@ -162,6 +191,7 @@ class Service:
         self.stats: dict[str, Any] = {}
         self.log = logging.getLogger(f"arcade.{self.name}")
         self.bus: Bus | None = None
+        self._gc: GcPauses | None = None
 
     # -- hooks
     def setup(self, bus: Bus) -> None:
@@ -218,6 +248,8 @@ class Service:
     def write_stats(self) -> None:
         if self.out is None:
             return
+        if self._gc is not None:
+            self.stats["gc_pauses"] = self._gc.summary()
         path = Path(self.out) / "stats" / f"{self.name}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         stats = dict(self.stats)
@@ -241,6 +273,16 @@ class Service:
                 bus.publisher("event")  # declared now, not on the first (timed) event
                 self.setup(bus)
                 self.warmup()
+                # Everything imported and compiled so far (JAX, Zenoh, MuJoCo: millions of
+                # objects) lives as long as the process: out of the collector's sight, a
+                # full collection takes a few milliseconds instead of ~100 ms (a stall of
+                # five control periods at 50 Hz).
+                gc.collect()
+                gc.freeze()
+                self._gc = GcPauses()  # the pauses while serving
+                if getattr(self.args, "realtime_priority", 0):
+                    self.stats["scheduling"] = realtime_scheduling(self.args.realtime_priority,
+                                                                   self.log)
                 bus.declare_alive()
                 self.log.info("ready after %.1f s", time.perf_counter() - t0)
                 self.ready()
@@ -250,6 +292,8 @@ class Service:
                     self.stop.set()
                     self.teardown()
                     self.write_stats()
+                    if self._gc is not None:
+                        self._gc.close()
                     self.log.info("stopped; rejects %s", bus.rejects.counts)
         except Exception:
             self.log.exception("%s failed", self.name)
@@ -257,6 +301,37 @@ class Service:
         finally:
             logging.shutdown()
         return code
+
+
+def realtime_scheduling(priority: int, log: logging.Logger = log) -> dict[str, Any]:
+    """Put every thread of this process (main, Zenoh's, XLA's) under ``SCHED_FIFO`` at
+    ``priority``; threads started later inherit it. Returns what was applied.
+
+    Why: on a host shared with the adapter's updates, the recorder and the rest of the
+    machine, a sense-to-actuate path under the fair scheduler waits behind them for CPU; under
+    SCHED_FIFO it preempts them. Only the sleeping/blocking services of that path get it
+    (none of them spins), and the kernel's RT throttling keeps 5 % for everything else.
+    Applied after warm-up, so that XLA's compilation does not starve the other services.
+    """
+    param = os.sched_param(priority)
+    tids = [int(t) for t in os.listdir("/proc/self/task")] if os.path.isdir(
+        "/proc/self/task") else [0]
+    done, errors = 0, []
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, param)
+            done += 1
+        except ProcessLookupError:
+            continue  # a thread that ended meanwhile
+        except (OSError, AttributeError) as err:
+            errors.append(str(err))
+    if errors:
+        log.warning("SCHED_FIFO %d refused for %d of %d threads (%s): normal scheduling, "
+                    "expect more latency jitter", priority, len(errors), len(tids), errors[0])
+    else:
+        log.info("SCHED_FIFO priority %d on %d threads", priority, done)
+    return {"policy": "fifo" if not errors else "partial" if done else "normal",
+            "priority": priority, "threads": done, "refused": len(errors)}
 
 
 def main_for(cls: type[Service], argv: list[str] | None = None,

@@ -229,7 +229,8 @@ class SimNode(runtime.Service):
                           rate_hz=a.rate, failsafes=[], mocap_faults=self.faults.counts)
         self.pub_mocap = bus.publisher("mocap")
         self.pub_imu = bus.publisher("imu")
-        bus.subscribe("setpoint", self.on_setpoint)
+        self._sp_sub = bus.subscribe("setpoint", self.on_setpoint)
+        self._publish_lag: list[float] = []  # sample instant -> imu put (realtime)
         bus.on_alive_change(self._on_alive)
 
     # -- inputs
@@ -300,6 +301,8 @@ class SimNode(runtime.Service):
         with self._cond:
             self._tick_wall[stamp] = self.now() if sampled is None else sampled
         self.pub_imu.put(Imu(gyro=self._gyro, stamp=stamp))
+        if sampled is not None:
+            self._publish_lag.append(self.now() - sampled)
         if self.args.truth_state:
             x = self.sim.state()
             x[6:10] /= np.linalg.norm(x[6:10])
@@ -474,6 +477,10 @@ class SimNode(runtime.Service):
         s2a = [v for stamp, v in self._s2a if stamp >= self._flight_stamp]
         self.stats["sense_to_actuate"] = runtime.percentiles_ms(s2a)
         self.stats["s2a_samples_ms"] = [1e3 * v for v in s2a]
+        # Shares of sense-to-actuate at the vehicle: sample instant -> imu put, and the
+        # setpoint's bus hop back.
+        self.stats["publish_lag"] = runtime.percentiles_ms(self._publish_lag)
+        self.stats["hop_setpoint"] = runtime.percentiles_ms(list(self._sp_sub.transit_s))
         self.stats["k_release"] = self.k_release
         if self.out is not None:
             path = Path(self.out) / "truth.csv"

@@ -39,6 +39,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="adapter posterior checkpoint (restored if present)")
     p.add_argument("--x64", action="store_true", help="compute in float64")
+    p.add_argument("--no-realtime-priority", dest="realtime_priority", action="store_false",
+                   help="realtime clock: keep the normal scheduling policy (default: the "
+                        "vehicle link, estimator and controller run under SCHED_FIFO after "
+                        "warm-up, which needs root or an rtprio limit; without, they warn)")
     from deploy import px4_profile
 
     px4_profile.add_arguments(p)
@@ -58,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
         hub=args.hub or free_hub(), rate=args.rate, duration=args.duration,
         payload_g=args.payload_g, speed=args.speed, seed=args.seed, x64=args.x64,
         weights=args.weights, checkpoint=args.checkpoint,
+        realtime_priority=args.realtime_priority,
     )
 
     def say(msg: str) -> None:

@@ -1,0 +1,62 @@
+"""Process-level helpers of the services: realtime scheduling and garbage-collector pauses."""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import logging
+import os
+import threading
+
+from services import runtime
+
+
+def _policies() -> dict[int, int]:
+    out = {}
+    for t in os.listdir("/proc/self/task"):
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+            out[int(t)] = os.sched_getscheduler(int(t))
+    return out
+
+
+def test_realtime_scheduling_covers_every_thread_or_says_it_did_not(caplog):
+    """Every thread (those started before the call too) runs under SCHED_FIFO, or the call
+    reports and logs what was refused: never a silent fallback."""
+    release = threading.Event()
+    worker = threading.Thread(target=release.wait, daemon=True)
+    worker.start()
+    before = _policies()
+    try:
+        with caplog.at_level(logging.INFO, logger=runtime.log.name):
+            result = runtime.realtime_scheduling(1)
+        after = _policies()
+        assert result["priority"] == 1
+        if result["refused"] == 0:
+            assert result["policy"] == "fifo" and result["threads"] == len(after)
+            assert all(p == os.SCHED_FIFO for p in after.values()), after
+            assert worker.native_id in after and after[worker.native_id] == os.SCHED_FIFO
+        else:  # unprivileged: the normal policy stays and a warning says so
+            assert result["policy"] in ("normal", "partial")
+            assert any(r.levelno == logging.WARNING and "SCHED_FIFO" in r.getMessage()
+                       for r in caplog.records)
+    finally:
+        for tid, policy in before.items():
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.sched_setscheduler(tid, policy, os.sched_param(0))
+        release.set()
+        worker.join()
+    assert all(p == os.SCHED_OTHER for p in _policies().values())
+
+
+def test_gc_pauses_are_measured_per_generation():
+    pauses = runtime.GcPauses()
+    try:
+        gc.collect(2)
+        gc.collect(0)
+        summary = pauses.summary()
+    finally:
+        pauses.close()
+    assert summary["gen2"]["n"] >= 1 and summary["gen0"]["n"] >= 1
+    assert summary["gen2"]["max_ms"] > 0.0
+    assert summary["gen2"]["total_ms"] >= summary["gen2"]["max_ms"]
+    assert pauses._callback not in gc.callbacks
