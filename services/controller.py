@@ -331,6 +331,7 @@ class Controller(runtime.Service):
             self._set_mode("hover", "non-finite MPC solution", s.stamp)
             self.publish(s, self.hover(s), "hover", solve_s)
             return
+        self.publish(s, u, mode, solve_s)  # first: the bookkeeping below can wait
         self.carry = self._new_carry
         # Hover thrust for the hover mode: what tracking on measured states needed,
         # level-equivalent (a slow mean: a few seconds).
@@ -340,7 +341,6 @@ class Controller(runtime.Service):
             self._thrust_hover += 0.02 * (float(u[0]) * max(tilt, 0.5) - self._thrust_hover)
         self._set_mode(mode, "model available" if m is not None else "no current model",
                        s.stamp)
-        self.publish(s, u, mode, solve_s)
         if not a.lockstep and self.now() - t_recv > 1.0 / a.rate:
             self.stats["deadline_misses"] += 1
 
