@@ -1,8 +1,10 @@
 """Regenerates BENCHMARKS.md from measurements taken now, on this machine.
 
-`arcade bench report` (or `make benchmarks`) runs every benchmark and evaluation, writes the
-figures under ``benchmarks/results/`` and the tables into BENCHMARKS.md. The file is never
-edited by hand.
+`arcade bench report` (or `make benchmarks`) runs every benchmark and the cartpole
+evaluation, writes the figures under ``benchmarks/results/`` and the tables into
+BENCHMARKS.md; the quadrotor evaluation (about an hour on 2 cores) has its own command
+(``QUADROTOR_COMMAND``) and the report renders its stored results. The file is never edited
+by hand.
 """
 
 from __future__ import annotations
@@ -194,6 +196,92 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
     return [*lines, ""]
 
 
+QUADROTOR_DIR = RESULTS / "quadrotor"
+QUADROTOR_COMMAND = f"arcade eval quadrotor --out {QUADROTOR_DIR.as_posix()}"
+METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
+
+
+def _cell_table(cells: list[dict[str, Any]], key: str, fmt: str, best=min) -> list[str]:
+    """One row per (payload, speed), one column per method; the best value in bold."""
+    by_cell: dict[tuple[float, float], dict[str, float]] = {}
+    for c in cells:
+        by_cell.setdefault((c["payload_g"], c["speed_mps"]), {})[c["method"]] = c[key]
+    methods = [m for m in METHODS if any(m in v for v in by_cell.values())]
+    lines = ["| payload (g) | speed (m/s) | " + " | ".join(methods) + " |",
+             "|---|---|" + "---|" * len(methods)]
+    for (pay, speed), vals in sorted(by_cell.items()):
+        top = best(vals.values())
+        row = [(f"**{vals[m]:{fmt}}**" if vals[m] == top else f"{vals[m]:{fmt}}")
+               if m in vals else "-" for m in methods]
+        lines.append(f"| {pay:g} | {speed:g} | " + " | ".join(row) + " |")
+    return lines
+
+
+def _quadrotor_section(path: Path) -> list[str]:
+    """Tables of the stored quadrotor evaluation (its own command: ~1 h on 2 cores)."""
+    head = ["## Quadrotor (`arcade eval quadrotor --json`; paper Sec. V-B, Tables II, III, V)", ""]
+    if not path.is_file():
+        return [*head, f"No results yet: run `{QUADROTOR_COMMAND}` (about an hour on 2 "
+                "cores), then `make benchmarks`.", ""]
+    r = json.loads(path.read_text())
+    when = r.get("generated") or time.strftime(
+        "%Y-%m-%d %H:%M", time.localtime(path.stat().st_mtime))
+    s = r.get("settings", {})
+    lines = [
+        *head,
+        f"From `{path.as_posix()}`, written {when} by `{QUADROTOR_COMMAND}`"
+        + (f" on {r['machine']}" if r.get("machine") else "") + " (not re-run by "
+        "`make benchmarks`: it takes about an hour here).",
+        "",
+        f"Closed loop, figure-eight with a swinging payload released before the second lap; "
+        f"mean over {s.get('trials', '?')} seeded trials per cell; best in bold.",
+        "",
+        "Tracking RMSE (m):",
+        "",
+        *_cell_table(r["cells"], "rmse_m", ".3f"),
+        "",
+        "z-RMSE (m):",
+        "",
+        *_cell_table(r["cells"], "rmse_z_m", ".3f"),
+        "",
+        "Shift magnitude at the release (m):",
+        "",
+        *_cell_table(r["cells"], "shift_m", ".3f"),
+        "",
+        "Settling time after the release, 0.05 m band (s; mean over the trials, `inf` when "
+        "one of them never settled):",
+        "",
+        *_cell_table(r["cells"], "settling_s", ".2f"),
+        "",
+    ]
+    for imp in r.get("improvement_over_nominal", []):
+        lines.append(f"- RMSE improvement over nominal MPC at {imp['payload_g']:g} g, "
+                     f"{imp['speed_mps']:g} m/s: " + ", ".join(
+                         f"{m} {v:.0f} %" for m, v in imp.items()
+                         if m not in ("payload_g", "speed_mps")))
+    ol = r.get("openloop")
+    if ol:
+        lines += ["", "Open loop with online updates (Table II analogue), CRMSE on the "
+                  "validation flights:", "", "| method | CRMSE |", "|---|---|"]
+        lines += [f"| {m} | {ol['table'][m]['crmse']:.4f} |" for m in ol["order"]]
+        g = ol.get("gramian")
+        if g:
+            lines += ["", "Gramian diagnostics (Fig. 4): " + ", ".join(
+                f"{k} = {v:.4g}" if isinstance(v, float) else f"{k} = {v}"
+                for k, v in g.items() if not isinstance(v, dict | list))]
+    ab = r.get("beam_ablation")
+    if ab:
+        lines += ["", f"Beam ablation (Table V) at {ab['payload_g']:g} g, "
+                  f"{ab['speed_mps']:g} m/s, beta = {ab['beta']:g}:", "",
+                  "| K | RMSE (m) | adaptation (ms/step) |", "|---|---|---|"]
+        lines += [f"| {row['K']} | {row['rmse_m']:.3f} | {row['adapt_ms_per_step']:.3f} |"
+                  for row in ab["rows"]]
+    figs = sorted(path.parent.glob("*.png"))
+    if figs:
+        lines += ["", "Figures:", ""] + [f"- [{p.stem}]({p.as_posix()})" for p in figs]
+    return [*lines, ""]
+
+
 def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path:
     from benchmarks import adapt, cartpole_eval, loop, mpc
 
@@ -215,6 +303,7 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
     result = cartpole_eval.evaluate(settings, fig_dir, progress=_log)
     (fig_dir / "results.json").write_text(json.dumps(result, indent=2))
     sections += _cartpole_section(result, fig_dir)
+    sections += _quadrotor_section(QUADROTOR_DIR / "results.json")
 
     header = [
         "# ARCADE benchmarks",

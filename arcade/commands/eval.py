@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 HELP = (
@@ -47,6 +48,10 @@ def run(args: argparse.Namespace) -> int:
         result, table = _quadrotor(args, out, progress)
     else:
         result, table = _cartpole(args, out, progress)
+    from benchmarks.common import machine
+
+    result["generated"] = time.strftime("%Y-%m-%d %H:%M")
+    result["machine"] = machine()
     (out / "results.json").write_text(json.dumps(result, indent=2))
     if args.json:
         print(json.dumps(result))
