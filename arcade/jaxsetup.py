@@ -6,7 +6,9 @@ lives in ``$ARCADE_JAX_CACHE`` (default ``~/.cache/arcade/jax``).
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -29,3 +31,18 @@ def configure(*, x64: bool = False) -> None:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     if x64:
         jax.config.update("jax_enable_x64", True)
+
+
+@contextlib.contextmanager
+def x64(enabled: bool = True) -> Iterator[None]:
+    """Float64 on (or off) inside the block, the previous setting restored after it: a
+    benchmark that needs float64 must not change the dtype of the ones run after it in
+    the same process."""
+    import jax
+
+    previous = bool(jax.config.jax_enable_x64)
+    jax.config.update("jax_enable_x64", enabled)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_x64", previous)

@@ -300,7 +300,10 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
     _log("cartpole evaluation (minutes)")
     fig_dir = RESULTS / "cartpole"
     settings = cartpole_eval.EvalSettings.quick() if quick else cartpole_eval.EvalSettings()
-    result = cartpole_eval.evaluate(settings, fig_dir, progress=_log)
+    from arcade import jaxsetup
+
+    with jaxsetup.x64(False):  # as `arcade eval cartpole` runs it, whatever ran before
+        result = cartpole_eval.evaluate(settings, fig_dir, progress=_log)
     (fig_dir / "results.json").write_text(json.dumps(result, indent=2))
     sections += _cartpole_section(result, fig_dir)
     sections += _quadrotor_section(QUADROTOR_DIR / "results.json")

@@ -311,13 +311,14 @@ def run(quick: bool = False, steps: int | None = None,
     from arcade import jaxsetup
     from arcade_core import adaptation as A
 
-    jaxsetup.configure(x64=True)  # float64 runs need it; float32 arrays stay float32
+    jaxsetup.configure()
     n = steps if steps is not None else (20_000 if quick else 1_000_000)
     chunk = 2_000 if n <= 50_000 else 10_000
     floors: list[float | None] = [None]
     if _floor(A.quadrotor_config()) > 0:
         floors.append(0.0)
-    results = [soak(n, dt, chunk=chunk, prior_floor=f) for f in floors for dt in dtypes]
+    with jaxsetup.x64():  # float64 runs need it; float32 arrays stay float32
+        results = [soak(n, dt, chunk=chunk, prior_floor=f) for f in floors for dt in dtypes]
     return {"machine": machine(), "steps": n, "results": results,
             "ok": all(r["ok"] for r in results)}
 

@@ -139,3 +139,16 @@ def test_lemma2_first_term_fails_after_tempering_in_unexcited_directions():
         mean, w = A.posterior_update(mean, w, z1, jnp.array([0.3]), sigma2, beta**2)
         q = float(jnp.sum(jnp.square(w[0].T @ z2)))
         assert q == pytest.approx(tau2 * R**2 * beta ** (-2 * m), rel=1e-12)
+
+
+def test_soak_leaves_the_float64_setting_as_it_found_it():
+    """`arcade bench report` runs the soak before the cartpole evaluation in one process:
+    the soak's float64 must not leak into it (it changed the cartpole numbers)."""
+    from arcade import jaxsetup
+
+    before = bool(jax.config.jax_enable_x64)
+    with jaxsetup.x64(False):
+        r = soak.run(steps=400, dtypes=("float32", "float64"))
+        assert not jax.config.jax_enable_x64
+    assert bool(jax.config.jax_enable_x64) == before
+    assert r["ok"] and {x["dtype"] for x in r["results"]} == {"float32", "float64"}
