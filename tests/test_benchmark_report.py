@@ -1,0 +1,36 @@
+"""BENCHMARKS.md's quadrotor section, rendered from a stored evaluation."""
+
+from __future__ import annotations
+
+import json
+
+from benchmarks import report
+
+
+def _cell(pay, speed, method, rmse, settling):
+    return {"payload_g": pay, "speed_mps": speed, "method": method, "rmse_m": rmse,
+            "rmse_z_m": rmse / 2, "shift_m": 0.01, "settling_s": settling}
+
+
+def test_quadrotor_section_marks_the_best_method_per_cell(tmp_path):
+    cells = [_cell(75, 0.5, "nominal", 0.3, 1.3), _cell(75, 0.5, "l1", 0.02, 0.0),
+             _cell(75, 0.5, "ours", 0.03, float("inf")),
+             _cell(175, 2.5, "nominal", 0.7, 1.6), _cell(175, 2.5, "l1", 0.08, 0.3),
+             _cell(175, 2.5, "ours", 0.05, 2.3)]
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({
+        "cells": cells, "settings": {"trials": 10}, "generated": "2026-01-01 00:00",
+        "machine": "test machine",
+        "improvement_over_nominal": [{"payload_g": 75, "speed_mps": 0.5, "ours": 90.0}],
+    }))
+    text = "\n".join(report._quadrotor_section(path))
+    assert "written 2026-01-01 00:00" in text and "test machine" in text
+    assert "| 75 | 0.5 | 0.300 | **0.020** | 0.030 |" in text
+    assert "| 175 | 2.5 | 0.700 | 0.080 | **0.050** |" in text
+    assert "| 75 | 0.5 | 1.30 | **0.00** | inf |" in text  # a trial that never settled
+    assert "ours 90 %" in text
+
+
+def test_quadrotor_section_says_how_to_produce_missing_results(tmp_path):
+    text = "\n".join(report._quadrotor_section(tmp_path / "results.json"))
+    assert "No results yet" in text and report.QUADROTOR_COMMAND in text
