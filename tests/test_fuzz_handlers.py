@@ -222,7 +222,7 @@ def test_controller_handlers(tmp_path):
 
     def loop_body() -> None:  # Controller.main without the blocking wait
         while not svc._queue.empty():
-            s = svc._queue.get_nowait()
+            s, _arrival = svc._queue.get_nowait()
             svc.handle(s)  # main would turn an exception into a hover setpoint: none here
             answered.append(s)
 
@@ -324,7 +324,7 @@ def test_controller_extreme_but_valid_inputs(tmp_path):
             now = time.monotonic()
             session.deliver("state", wm.encode(wm.State(x=x, stamp=now, meas_stamp=now,
                                                         seq=seq, src="estimator/1")))
-            svc.handle(svc._queue.get_nowait())  # must not raise
+            svc.handle(svc._queue.get_nowait()[0])  # must not raise
     setpoints = session.outputs("setpoint")
     assert len(setpoints) == 5 * len(states)
     assert_setpoints_safe(setpoints, svc.u_min, svc.u_max)

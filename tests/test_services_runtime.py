@@ -12,10 +12,15 @@ from services import runtime
 
 
 def _policies() -> dict[int, int]:
+    return {tid: policy for tid, (policy, _) in _scheduling().items()}
+
+
+def _scheduling() -> dict[int, tuple[int, int]]:
+    """Policy and priority of every thread of this process."""
     out = {}
     for t in os.listdir("/proc/self/task"):
         with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
-            out[int(t)] = os.sched_getscheduler(int(t))
+            out[int(t)] = (os.sched_getscheduler(int(t)), os.sched_getparam(int(t)).sched_priority)
     return out
 
 
@@ -25,7 +30,7 @@ def test_realtime_scheduling_covers_every_thread_or_says_it_did_not(caplog):
     release = threading.Event()
     worker = threading.Thread(target=release.wait, daemon=True)
     worker.start()
-    before = _policies()
+    before = _scheduling()
     try:
         with caplog.at_level(logging.INFO, logger=runtime.log.name):
             result = runtime.realtime_scheduling(1)
@@ -40,12 +45,13 @@ def test_realtime_scheduling_covers_every_thread_or_says_it_did_not(caplog):
             assert any(r.levelno == logging.WARNING and "SCHED_FIFO" in r.getMessage()
                        for r in caplog.records)
     finally:
-        for tid, policy in before.items():
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.sched_setscheduler(tid, policy, os.sched_param(0))
+        for tid, (policy, priority) in before.items():
+            with contextlib.suppress(OSError):  # ended meanwhile: checked below
+                os.sched_setscheduler(tid, policy, os.sched_param(priority))
         release.set()
         worker.join()
-    assert all(p == os.SCHED_OTHER for p in _policies().values())
+    after = _scheduling()
+    assert all(after[t] == before[t] for t in before if t in after), (before, after)
 
 
 def test_gc_pauses_are_measured_per_generation():
