@@ -53,6 +53,8 @@ PROFILES = ("sim", "px4")
 #: recorder niced last. Without the privilege a service warns and keeps the normal policy.
 REALTIME_PRIORITY = {"sim": 30, "estimator": 25, "controller": 20}
 NICE = {"recorder": 5}
+#: ... and idle CPUs that poll instead of sleeping (PM QoS; ``runtime.cpu_wakeup_latency``).
+CPU_WAKEUP_LATENCY_US = 0
 
 
 @dataclass
@@ -74,7 +76,8 @@ class StackConfig:
     hover_s: float | None = None
     origin: tuple[float, float] = (0.0, 0.0)
     x64: bool = False
-    #: Realtime clock: SCHED_FIFO for the sense-to-actuate path (``REALTIME_PRIORITY``).
+    #: Realtime clock: SCHED_FIFO for the sense-to-actuate path (``REALTIME_PRIORITY``)
+    #: and a CPU wake-up latency request (``CPU_WAKEUP_LATENCY_US``).
     realtime_priority: bool = True
     weights: Path | None = None
     checkpoint: Path | None = None
@@ -131,7 +134,8 @@ class StackConfig:
             if self.truth_state:
                 own.append("--truth-state")
         if not self.lockstep and self.realtime_priority and service in REALTIME_PRIORITY:
-            own += ["--realtime-priority", str(REALTIME_PRIORITY[service])]
+            own += ["--realtime-priority", str(REALTIME_PRIORITY[service]),
+                    "--cpu-wakeup-latency-us", str(CPU_WAKEUP_LATENCY_US)]
         if not self.lockstep and service in NICE:
             own += ["--nice", str(NICE[service])]
         return [*common, *own, *self.extra.get(service, [])]

@@ -29,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from deploy.launcher import REALTIME_PRIORITY, StackConfig
+from deploy.launcher import CPU_WAKEUP_LATENCY_US, REALTIME_PRIORITY, StackConfig
 
 #: Start order; stop order: the bridge first (it leaves offboard -> Hold), recorder last.
 PX4_SERVICES = ("recorder", "estimator", "adapter", "controller", "bridge")
@@ -84,7 +84,8 @@ class Px4StackConfig(StackConfig):
         if self.simulate:  # the simulator clocks the estimator and the mission itself
             common += ["--imu", "off", "--no-start-mission"]
         if not self.lockstep and self.realtime_priority:
-            common += ["--realtime-priority", str(REALTIME_PRIORITY["sim"])]
+            common += ["--realtime-priority", str(REALTIME_PRIORITY["sim"]),
+                       "--cpu-wakeup-latency-us", str(CPU_WAKEUP_LATENCY_US)]
         return [*common, *self.bridge_args, *self.extra.get("bridge", [])]
 
 

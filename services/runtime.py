@@ -16,6 +16,7 @@ import json
 import logging
 import os
 import signal
+import struct
 import sys
 import threading
 import time
@@ -48,6 +49,11 @@ def common_parser(name: str, description: str) -> argparse.ArgumentParser:
                    help="after warm-up, run every thread of the process under SCHED_FIFO at "
                         "priority P (1-99; 0: the normal policy). Needs CAP_SYS_NICE or an "
                         "rtprio limit; without, a warning and the normal policy")
+    p.add_argument("--cpu-wakeup-latency-us", type=int, default=None, metavar="US",
+                   help="after warm-up, ask the kernel (PM QoS, /dev/cpu_dma_latency) to keep "
+                        "every CPU's wake-up latency <= US microseconds while this process "
+                        "runs (0: idle CPUs poll instead of sleeping; costs power). Needs "
+                        "root; without, a warning")
     p.add_argument("--incarnation", type=int, default=0,
                    help="restart count given by the supervisor (0: first start)")
     return p
@@ -192,6 +198,7 @@ class Service:
         self.log = logging.getLogger(f"arcade.{self.name}")
         self.bus: Bus | None = None
         self._gc: GcPauses | None = None
+        self._pm_qos: int | None = None  # the CPU wake-up latency request, while open
 
     # -- hooks
     def setup(self, bus: Bus) -> None:
@@ -283,6 +290,9 @@ class Service:
                 if getattr(self.args, "realtime_priority", 0):
                     self.stats["scheduling"] = realtime_scheduling(self.args.realtime_priority,
                                                                    self.log)
+                if getattr(self.args, "cpu_wakeup_latency_us", None) is not None:
+                    self._pm_qos, self.stats["cpu_wakeup_latency"] = cpu_wakeup_latency(
+                        self.args.cpu_wakeup_latency_us, self.log)
                 bus.declare_alive()
                 self.log.info("ready after %.1f s", time.perf_counter() - t0)
                 self.ready()
@@ -294,6 +304,9 @@ class Service:
                     self.write_stats()
                     if self._gc is not None:
                         self._gc.close()
+                    if self._pm_qos is not None:
+                        os.close(self._pm_qos)  # withdraws the request
+                        self._pm_qos = None
                     self.log.info("stopped; rejects %s", bus.rejects.counts)
         except Exception:
             self.log.exception("%s failed", self.name)
@@ -332,6 +345,33 @@ def realtime_scheduling(priority: int, log: logging.Logger = log) -> dict[str, A
         log.info("SCHED_FIFO priority %d on %d threads", priority, done)
     return {"policy": "fifo" if not errors else "partial" if done else "normal",
             "priority": priority, "threads": done, "refused": len(errors)}
+
+
+def cpu_wakeup_latency(us: int, log: logging.Logger = log,
+                       device: str = "/dev/cpu_dma_latency") -> tuple[int | None, dict[str, Any]]:
+    """Request a CPU wake-up latency of at most ``us`` microseconds (Linux PM QoS); returns
+    the descriptor that holds the request (close it to withdraw) and what was applied.
+
+    Why: between two control periods the CPUs fall idle, and waking an idle CPU (on a
+    virtual machine a halted vCPU) adds a few hundred microseconds, at random, to every
+    bus hop and cold step of the sense-to-actuate path. With ``0`` idle CPUs poll instead
+    (the usual setting of a realtime host); the kernel keeps the request as long as the
+    descriptor is open, the strictest request of all processes applies.
+    """
+    try:
+        fd = os.open(device, os.O_WRONLY)
+    except OSError as err:
+        log.warning("CPU wake-up latency request refused (%s): idle CPUs may sleep deeply, "
+                    "expect more latency jitter", err)
+        return None, {"requested_us": us, "applied": False, "error": str(err)}
+    try:
+        os.write(fd, struct.pack("i", us))
+    except OSError as err:
+        os.close(fd)
+        log.warning("CPU wake-up latency request of %d us refused (%s)", us, err)
+        return None, {"requested_us": us, "applied": False, "error": str(err)}
+    log.info("CPU wake-up latency <= %d us requested (PM QoS)", us)
+    return fd, {"requested_us": us, "applied": True}
 
 
 def main_for(cls: type[Service], argv: list[str] | None = None,

@@ -1,4 +1,5 @@
-"""Process-level helpers of the services: realtime scheduling and garbage-collector pauses."""
+"""Process-level helpers of the services: realtime scheduling, CPU wake-up latency and
+garbage-collector pauses."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import contextlib
 import gc
 import logging
 import os
+import struct
 import threading
 
 from services import runtime
@@ -66,3 +68,22 @@ def test_gc_pauses_are_measured_per_generation():
     assert summary["gen2"]["max_ms"] > 0.0
     assert summary["gen2"]["total_ms"] >= summary["gen2"]["max_ms"]
     assert pauses._callback not in gc.callbacks
+
+
+def test_cpu_wakeup_latency_request_is_held_until_closed_or_refused_aloud(tmp_path, caplog):
+    """The PM QoS request writes the latency as the kernel's binary int32 and stays in
+    force while the returned descriptor is open; a device that cannot be opened gives a
+    warning and ``applied: False``, never a silent fallback."""
+    device = tmp_path / "cpu_dma_latency"
+    device.write_bytes(b"")
+    fd, result = runtime.cpu_wakeup_latency(0, device=str(device))
+    try:
+        assert fd is not None and result == {"requested_us": 0, "applied": True}
+        assert os.fstat(fd).st_ino == device.stat().st_ino  # the request lives with this fd
+    finally:
+        os.close(fd)
+    assert device.read_bytes() == struct.pack("i", 0)
+    with caplog.at_level(logging.WARNING, logger=runtime.log.name):
+        fd, result = runtime.cpu_wakeup_latency(5, device=str(tmp_path / "missing"))
+    assert fd is None and result["applied"] is False and result["requested_us"] == 5
+    assert any("wake-up latency" in r.getMessage() for r in caplog.records)

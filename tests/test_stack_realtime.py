@@ -9,7 +9,7 @@ import pytest
 from mcap.reader import make_reader
 
 from arcade.demo_stack import free_hub
-from deploy.launcher import REALTIME_PRIORITY, StackConfig, run_flight
+from deploy.launcher import CPU_WAKEUP_LATENCY_US, REALTIME_PRIORITY, StackConfig, run_flight
 
 pytestmark = pytest.mark.integration
 
@@ -38,6 +38,9 @@ def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
         sched = stats["scheduling"]
         assert sched["priority"] == priority and sched["threads"] + sched["refused"] > 0
         assert sched["policy"] == "fifo" or sched["refused"] > 0, (name, sched)
+        wake = stats["cpu_wakeup_latency"]  # idle CPUs poll, or the service says why not
+        assert wake["requested_us"] == CPU_WAKEUP_LATENCY_US, (name, wake)
+        assert wake["applied"] or "error" in wake, (name, wake)
     for log in (tmp_path / "logs").glob("*.log"):
         text = log.read_text()
         assert " ERROR " not in text and "Traceback" not in text, log.name

@@ -40,9 +40,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="adapter posterior checkpoint (restored if present)")
     p.add_argument("--x64", action="store_true", help="compute in float64")
     p.add_argument("--no-realtime-priority", dest="realtime_priority", action="store_false",
-                   help="realtime clock: keep the normal scheduling policy (default: the "
-                        "vehicle link, estimator and controller run under SCHED_FIFO after "
-                        "warm-up, which needs root or an rtprio limit; without, they warn)")
+                   help="realtime clock: keep the normal scheduling policy and let idle CPUs "
+                        "sleep (default: the vehicle link, estimator and controller run under "
+                        "SCHED_FIFO after warm-up and request a CPU wake-up latency of 0 us, "
+                        "which needs root or an rtprio limit; without, they warn)")
     from deploy import px4_profile
 
     px4_profile.add_arguments(p)
