@@ -10,17 +10,20 @@ before the second lap), seed 0, float64:
    ``model`` message carries);
 2. the full stack with the estimator in the loop: the estimate must track the ground truth.
 
-Both: no changepoint event in the steady take-off and hover, no rejected message, no error
-in any service log, every process exits cleanly.
+Both: no changepoint event in the steady take-off and hover, a changepoint event within
+1 s of the release, far fewer events once the payload is gone than while it swung, no
+rejected message, no error in any service log, every process exits cleanly.
 
-Changepoint events and the release: with the shipped quadrotor weights the MAP history
-gains changepoints several times a second throughout the figure-eight with the swinging
-payload (seed 0, estimator in the loop: about 7/s before the release and 9 in the second
-after it with the paper preset; 4.5/s before and none in the second after with the prior
-precision floor at changepoints), and a release in steady hover is a ~2 sigma innovation
-that raises none (``test_stack_release``). An event within 1 s of the release therefore
-says nothing about the release, and is not asserted; the steady phase without any event
-is what the event criterion is checked on.
+Changepoint events and the release: with the shipped quadrotor weights and the tuned
+temperature the swinging payload's pull, which the features of the vehicle state cannot
+explain, makes the MAP history gain changepoints about 7-10 times a second during the
+figure-eight (seed 0: 55 events in the 5.75 s before the release with the ground-truth
+state, 40 with the estimator). The release is one more jump, its size set by the swing's
+phase at that instant: event 0.45 s after it (ground truth) and 0.05 s after it
+(estimator). Afterwards the events nearly stop (2 and 4 in the remaining ~5 s): the rate
+drop, not the single event, is what says the detector follows the payload. A release in
+steady hover is a ~3 sigma innovation for one step that the posterior absorbs within a few
+steps, and raises no event (``test_stack_release``).
 """
 
 from __future__ import annotations
@@ -56,6 +59,13 @@ def check_clean_run(out: Path, summary: dict) -> None:
     t_figure = Scenario().t_figure
     assert np.sum(cps < t_figure) == 0, cps
     assert np.sum(cps >= t_figure) > 0
+    # An event within 1 s of the release, and the events nearly stop with the payload gone:
+    # their rate after that second at most a quarter of the rate while the payload swung.
+    t_rel, t_end = summary["t_release_s"], Scenario().t_end
+    assert np.any((cps >= t_rel) & (cps <= t_rel + 1.0)), (t_rel, cps)
+    rate_swinging = np.sum((cps >= t_figure) & (cps < t_rel)) / (t_rel - t_figure)
+    rate_released = np.sum(cps > t_rel + 1.0) / (t_end - t_rel - 1.0)
+    assert rate_released <= 0.25 * rate_swinging, (rate_released, rate_swinging)
     # The recorder's flight log and MCAP exist and are complete.
     rows = (out / "flight_log.csv").read_text().splitlines()
     truth = read_truth(out / "truth.csv")
