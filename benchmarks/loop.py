@@ -17,7 +17,9 @@ private loopback Zenoh hub) on the wall clock at 50 Hz and reports:
 - ``stages_ms``: sense-to-actuate stage by stage (p50, p99): the simulator's sample instant
   to its imu put, the hop to the estimator, the estimator's work, the hop to the
   controller, the controller from the state's arrival to the setpoint's put (solve
-  included), the hop back; ``gc_pause_max_ms``: the longest collector pause of any service.
+  included), the hop back; ``gc_pause_max_ms``: the longest collector pause of any service;
+- ``realtime``: per service of that path, the scheduling policy it got and the CPU wake-up
+  latency it held (``services.runtime``): the conditions of the numbers above.
 
 ``quick`` flies 20 s instead of 120 s. The flight plan is the demo's (175 g payload,
 figure-eight at 2.5 m/s, released before the second lap; beyond two laps the figure-eight
@@ -32,6 +34,13 @@ from pathlib import Path
 from typing import Any
 
 RATE_HZ = 50.0
+
+
+def _wakeup(stats: dict[str, Any]) -> int | None:
+    """The CPU wake-up latency a service held (µs), ``None`` if it requested none or was
+    refused."""
+    req = stats.get("cpu_wakeup_latency", {})
+    return req.get("requested_us") if req.get("applied") else None
 
 
 def run(quick: bool = False, out: Path | None = None, rate: float = RATE_HZ,
@@ -70,6 +79,11 @@ def run(quick: bool = False, out: Path | None = None, rate: float = RATE_HZ,
                                             ("hop_state", ctl, "hop_state"),
                                             ("controller", ctl, "react"),
                                             ("hop_setpoint", sim, "hop_setpoint"))},
+        # The conditions the numbers were taken under (a service without the privilege
+        # runs under the normal policy and lets idle CPUs sleep: expect longer tails).
+        "realtime": {name: {"policy": stats[name].get("scheduling", {}).get("policy", "normal"),
+                            "cpu_wakeup_latency_us": _wakeup(stats[name])}
+                     for name in ("sim", "estimator", "controller")},
         "gc_pause_max_ms": max(st.get("gc_pauses", {}).get(f"gen{g}", {}).get("max_ms", 0.0)
                                for st in stats.values() for g in range(3)),
         "rate_hz": (steps - 1) / wall if wall > 0 else 0.0,

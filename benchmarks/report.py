@@ -79,6 +79,12 @@ def _loop_section(r: dict[str, Any]) -> list[str]:
         f"| {r['hop_p50_ms']:.2f} | {r['hop_p99_ms']:.2f} | {r['sense_to_actuate_p99_ms']:.2f} "
         f"| {r['rate_hz']:.2f} | {r['missed_deadlines']} | {r['duration_s']:.0f} |",
         "",
+        "Conditions: " + ", ".join(
+            f"{name} {c['policy']}"
+            + (f" + CPU wake-up latency {c['cpu_wakeup_latency_us']} µs"
+               if c["cpu_wakeup_latency_us"] is not None else " (idle CPUs may sleep)")
+            for name, c in r["realtime"].items()) + ".",
+        "",
         f"Sense-to-actuate stage by stage (MPC solve p50/p99 {r['mpc_p50_ms']:.2f}/"
         f"{r['mpc_p99_ms']:.2f} ms, inside the controller's stage):",
         "",

@@ -1,4 +1,4 @@
-"""BENCHMARKS.md's quadrotor section, rendered from a stored evaluation."""
+"""BENCHMARKS.md sections rendered from results: the quadrotor evaluation, the service loop."""
 
 from __future__ import annotations
 
@@ -34,3 +34,17 @@ def test_quadrotor_section_marks_the_best_method_per_cell(tmp_path):
 def test_quadrotor_section_says_how_to_produce_missing_results(tmp_path):
     text = "\n".join(report._quadrotor_section(tmp_path / "results.json"))
     assert "No results yet" in text and report.QUADROTOR_COMMAND in text
+
+
+def test_loop_section_states_the_realtime_conditions_of_its_numbers():
+    """A service that ran without the realtime privileges shows in the report: its tails are
+    not comparable with those taken under SCHED_FIFO and polling idle CPUs."""
+    r = {"hop_p50_ms": 0.2, "hop_p99_ms": 0.4, "sense_to_actuate_p99_ms": 9.5,
+         "mpc_p50_ms": 5.4, "mpc_p99_ms": 7.0, "rate_hz": 50.0, "missed_deadlines": 0,
+         "duration_s": 120.0, "stages_ms": {"hop_imu": [0.2, 0.4]},
+         "realtime": {"sim": {"policy": "fifo", "cpu_wakeup_latency_us": 0},
+                      "controller": {"policy": "normal", "cpu_wakeup_latency_us": None}}}
+    text = "\n".join(report._loop_section(r))
+    assert "sim fifo + CPU wake-up latency 0 µs" in text
+    assert "controller normal (idle CPUs may sleep)" in text
+    assert "| 0.20 | 0.40 | 9.50 | 50.00 | 0 | 120 |" in text
