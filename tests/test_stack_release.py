@@ -8,11 +8,11 @@ adapter raises no changepoint event in the steady hover.
 
 Changepoint events with the shipped quadrotor weights (seed 0, lockstep): none in steady
 hover, none after a 175 g release in hover either. The release is a ~3 sigma innovation of
-the vertical velocity for one step against the normalised noise variance 0.1 (the
-Appendix D value; the hover residuals themselves are far smaller), and the posterior
-without a changepoint absorbs it within a few steps. In the demo's figure-eight the
-swinging payload raises events several times a second until the release and hardly any
-after it, which ``test_stack_lockstep`` checks.
+the vertical velocity for one step (in process, ground-truth state) against the normalised
+noise variance 0.1 (the Appendix D value; the hover residuals themselves are far smaller),
+and the posterior without a changepoint absorbs it within a few steps. In the demo's
+figure-eight the swinging payload raises events several times a second until the release
+and hardly any after it, which ``test_stack_lockstep`` checks.
 """
 
 from __future__ import annotations
