@@ -14,10 +14,12 @@ Eq. 9 changepoint posterior, Eq. 10 beam predictive. One step of Algorithm 1:
    to the survivors only. The update of a candidate depends on its parent and branch
    alone, so pruning before updating gives the same beam at half the work.
 
-Optionally (``AdaptationConfig.prior_floor``) a changepoint's tempered prior keeps at
-least the offline prior precision ``tau^-2 I``, the assumption in the proof of Lemma 2:
-Eq. 5 alone multiplies the covariance by ``beta^-2`` in every direction the data do not
-excite, at every changepoint.
+Optionally (``AdaptationConfig.prior_floor``) a changepoint re-injects the offline prior
+``N(theta_0, tau^2 I)``: the tempered prior is ``p(theta | D)^gamma p_0(theta)^(rho (1 -
+gamma))``, so it keeps at least the offline prior precision ``tau^-2 I`` (the assumption
+in the proof of Lemma 2, where Eq. 5 alone multiplies the covariance by ``beta^-2`` in
+every direction the data do not excite, at every changepoint) and its mean moves towards
+``theta_0`` by as much as the posterior is forgotten.
 
 Numerics. Each covariance is carried as a square root ``W`` with ``Sigma = W W^T``
 (``BeamState.sqrt_covariances``) and updated with Potter's rank-one square-root form
@@ -64,13 +66,17 @@ class AdaptationConfig(NamedTuple):
     ``(d,)`` observation-noise variance.
 
     ``prior_floor`` (``rho`` in ``[0, 1]``, default ``0``: Eq. 5 as written) re-injects
-    part of the offline prior precision at a changepoint: the tempered precision is
-    ``gamma Sigma^{-1} + rho (1 - gamma) tau^{-2} I`` (mean kept). With ``rho = 1`` a
+    part of the offline prior ``p_0 = N(theta_0, tau^2 I)`` at a changepoint: the tempered
+    prior is the normalised product ``p(theta | D)^gamma p_0(theta)^(rho (1 - gamma))``
+    (a power prior, App. "tempered priors", combined geometrically with the offline
+    prior), i.e. precision ``P = gamma Sigma^{-1} + c I`` and mean ``P^{-1} (gamma
+    Sigma^{-1} mu + c theta_0)`` with ``c = rho (1 - gamma) / tau^2``. With ``rho = 1`` a
     tempered prior is never more diffuse than the offline prior ``tau^2 I`` (every
     posterior then satisfies ``Sigma <= tau^2 I``), which is what the proof of Lemma 2
     assumes; without it, repeated changepoints inflate the covariance geometrically
-    (``beta^-2`` per changepoint) in directions the data do not excite. Needs
-    ``tau2 > 0``.
+    (``beta^-2`` per changepoint) in directions the data do not excite. As ``beta -> 0``
+    the changepoint prior becomes the offline prior itself (a full reset, as in
+    run-length changepoint detection). Needs ``tau2 > 0``.
     """
 
     K: int
@@ -82,10 +88,11 @@ class AdaptationConfig(NamedTuple):
 
 
 def quadrotor_config() -> AdaptationConfig:
-    """Quadrotor preset (Appendix D, quadrotor "Online Inference" table), with the prior
-    precision floor at changepoints that Lemma 2's proof assumes (``prior_floor = 1``):
-    the swinging payload makes changepoints frequent, and repeated tempering would
-    otherwise inflate the covariance beyond the prior in weakly excited directions."""
+    """Quadrotor preset (Appendix D, quadrotor "Online Inference" table), with the offline
+    prior re-injected at changepoints (``prior_floor = 1``), which keeps every tempered
+    prior at least as precise as the offline prior, as Lemma 2's proof assumes: the
+    swinging payload makes changepoints frequent, and repeated tempering would otherwise
+    inflate the covariance beyond the prior in weakly excited directions."""
     return AdaptationConfig(K=15, pi=0.05, beta=0.997, tau2=0.1, sigma2=0.1, prior_floor=1.0)
 
 
@@ -112,6 +119,8 @@ class BeamState(NamedTuple):
         sigma2: ``(d,)`` observation-noise variances ``sigma_j^2`` of the latest update
             (set by :func:`init`, refreshed from ``config`` by :func:`update`), so that
             :func:`predict` needs only the state.
+        prior_mean: ``(d, l)`` the offline decoder ``theta_0`` (mean of the offline prior),
+            which a changepoint re-injects when ``AdaptationConfig.prior_floor > 0``.
     """
 
     means: Array
@@ -123,6 +132,7 @@ class BeamState(NamedTuple):
     is_changepoint: Array
     step: Array
     sigma2: Array
+    prior_mean: Array
 
     @property
     def covariances(self) -> Array:
@@ -221,6 +231,7 @@ def init(theta0: ArrayLike, config: AdaptationConfig) -> BeamState:
         is_changepoint=jnp.zeros((K,), bool),
         step=jnp.zeros((), jnp.int32),
         sigma2=_noise(config.sigma2, d, dtype),
+        prior_mean=theta0,
     )
 
 
@@ -399,15 +410,17 @@ def _log_marginal(q: Array, r: Array, sigma2: Array, gamma: ArrayLike) -> Array:
 
 def _tempered(
     state: BeamState, z: Array, proj: _Projections, beta2: Array, config: AdaptationConfig
-) -> tuple[Array, Array, Array, Array, Array]:
-    """Prior of the changepoint branch of every hypothesis: ``(W1, a1, b1, q1, g1)`` such
-    that the tempered covariance is ``W1 W1^T / g1`` and ``a1, b1, q1`` are the projections
-    of ``W1`` onto ``z`` (as in :class:`_Projections`).
+) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """Prior of the changepoint branch of every hypothesis: ``(mu1, W1, a1, b1, q1, g1)``
+    such that the tempered prior is ``N(mu1, W1 W1^T / g1)`` and ``a1, b1, q1`` are the
+    projections of ``W1`` onto ``z`` (as in :class:`_Projections`).
 
-    Eq. 5 as written (``prior_floor = 0``): ``W1 = W``, ``g1 = beta^2``. With the precision
-    floor ``c = rho (1 - beta^2) / tau^2 > 0`` (:class:`AdaptationConfig`): the tempered
-    precision ``beta^2 W^-T W^-1 + c I`` has the square root ``W1 = W L^-T`` with ``L L^T
-    = beta^2 I + c W^T W`` (no inverse of ``W`` needed), and ``g1 = 1``.
+    Eq. 5 as written (``prior_floor = 0``): ``mu1 = mu``, ``W1 = W``, ``g1 = beta^2``.
+    With the offline prior re-injected (``c = rho (1 - beta^2) / tau^2 > 0``,
+    :class:`AdaptationConfig`): the tempered precision ``P = beta^2 W^-T W^-1 + c I`` has
+    the square root ``W1 = W L^-T`` with ``L L^T = beta^2 I + c W^T W`` (no inverse of
+    ``W`` needed), ``g1 = 1``, and ``mu1 = P^-1 (beta^2 Sigma^-1 mu + c theta_0) = mu + c
+    W1 W1^T (theta_0 - mu)``.
     """
     dtype = state.means.dtype
     rho = jnp.asarray(config.prior_floor, dtype)
@@ -415,7 +428,7 @@ def _tempered(
     w = state.sqrt_covariances
 
     def eq5(_):
-        return w, proj.a, proj.b, proj.q, beta2
+        return state.means, w, proj.a, proj.b, proj.q, beta2
 
     def floored(_):
         l = w.shape[-1]
@@ -428,7 +441,11 @@ def _tempered(
         zb = jnp.broadcast_to(z, w1.shape[:-1])
         a1 = jnp.einsum("kdji,kdj->kdi", w1, zb)
         b1 = jnp.einsum("kdij,kdj->kdi", w1, a1)
-        return w1, a1, b1, jnp.sum(a1 * a1, axis=-1), jnp.ones((), dtype)
+        # (K, d_c, l, l) against (K, d, l): matmul broadcasts a shared covariance (d_c = 1).
+        gap = (state.prior_mean - state.means)[..., None]
+        pull = w1 @ (jnp.swapaxes(w1, -1, -2) @ gap)
+        mean1 = state.means + c * pull[..., 0]
+        return mean1, w1, a1, b1, jnp.sum(a1 * a1, axis=-1), jnp.ones((), dtype)
 
     return jax.lax.cond(c > 0, floored, eq5, None)
 
@@ -449,10 +466,12 @@ def _update(
         )
 
     r = delta - proj.m  # (K, d) innovation under each parent
-    # Changepoint branch: tempered prior (Eq. 5), optionally floored at the prior precision.
-    w1, a1, b1, q1, g1 = _tempered(state, z, proj, beta2, config)
+    # Changepoint branch: tempered prior (Eq. 5), optionally with the offline prior
+    # re-injected; its mean (and so its innovation) differs from the parent's then.
+    mean1, w1, a1, b1, q1, g1 = _tempered(state, z, proj, beta2, config)
+    r1 = delta - jnp.sum(mean1 * z, axis=-1)
     ll0 = _log_marginal(proj.q, r, sigma2, 1.0)
-    ll1 = _log_marginal(q1, r, sigma2, g1)
+    ll1 = _log_marginal(q1, r1, sigma2, g1)
     # Eq. 9 in log-odds form: logit p(c=1|.) = log Lambda + log(pi / (1 - pi)).
     logit = ll1 - ll0 + jnp.log(pi) - jnp.log1p(-pi)
     logp1 = jax.nn.log_sigmoid(logit)
@@ -468,7 +487,7 @@ def _update(
 
     # One gather of everything the survivors need from their parents (and branch).
     parts = (state.means, state.sqrt_covariances, proj.a, proj.b, proj.q, r)
-    parts1 = (state.means, w1, a1, b1, q1, r)
+    parts1 = (mean1, w1, a1, b1, q1, r1)
     rows = jnp.concatenate(
         [
             jnp.concatenate([x.reshape(K, -1) for x in parts], axis=1),
@@ -495,6 +514,7 @@ def _update(
         is_changepoint=branch,
         step=k,
         sigma2=sigma2,
+        prior_mean=state.prior_mean,
     )
 
     w_prev = jax.nn.softmax(prev)
@@ -568,23 +588,25 @@ def step(
 
 
 class PackedBeam(NamedTuple):
-    """A :class:`BeamState` plus ``pi, beta, tau2, prior_floor`` in four arrays, for the
+    """A :class:`BeamState` plus ``pi, beta, tau2, prior_floor`` in five arrays, for the
     real-time loop.
 
     At this problem size a jitted call costs about as much per argument and result leaf
-    as the arithmetic of a whole step, so the loop passes the two large arrays as they are
-    and everything small in one float and one int buffer:
+    as the arithmetic of a whole step, so the loop passes the two large arrays and the
+    constant prior mean as they are and everything small in one float and one int buffer:
     ``floats = [log_scores (K), log_offset, sigma2 (d), pi, beta, tau2, prior_floor]``
     (state dtype),
     ``ints = [num_changepoints (K), last_changepoint (K), is_changepoint (K), step]``.
-    (Flattening the large arrays into the float buffer too would save two leaves but makes
-    XLA fuse the update into one slow concatenation kernel.) See :func:`make_packed_step`.
+    (Flattening the arrays into the float buffer too would save leaves but makes XLA fuse
+    the update into one slow concatenation kernel: with the ``(d, l)`` prior mean in it a
+    step took three times as long.) See :func:`make_packed_step`.
     """
 
     means: Array
     sqrt_covariances: Array
     floats: Array
     ints: Array
+    prior_mean: Array
 
 
 def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
@@ -606,7 +628,13 @@ def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
         ]
     )
     # Copies, so that donating the packed beam never invalidates ``state``.
-    return PackedBeam(jnp.copy(state.means), jnp.copy(state.sqrt_covariances), floats, ints)
+    return PackedBeam(
+        jnp.copy(state.means),
+        jnp.copy(state.sqrt_covariances),
+        floats,
+        ints,
+        jnp.copy(state.prior_mean),
+    )
 
 
 def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
@@ -625,6 +653,7 @@ def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
         is_changepoint=n[2 * K : 3 * K] != 0,
         step=n[3 * K],
         sigma2=sigma2,
+        prior_mean=packed.prior_mean,
     )
     shared = packed.sqrt_covariances.shape[1] == 1
     noise = sigma2[0] if shared else sigma2  # keeps the shared-covariance contract

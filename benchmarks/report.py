@@ -31,7 +31,7 @@ def _adapt_section(r: dict[str, Any]) -> list[str]:
         f"One step = predict (Eq. 9) + update of both branches (Eqs. 5-8) + top-K prune, "
         f"d = {r['d']}, l = {r['l']}, float32, CPU. Paper: ~7.6 ms per step on a GPU host.",
         "",
-        "Side by side: the quadrotor preset with its prior-precision floor at changepoints "
+        "Side by side: the quadrotor preset with the offline prior re-injected at changepoints "
         "(`prior_floor = 1`, one l x l Cholesky factorisation per hypothesis and step) and "
         "Eq. 5 as written (`prior_floor = 0`).",
         "",

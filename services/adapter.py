@@ -88,6 +88,8 @@ def load_checkpoint(path: Path, template: Any, meta: dict[str, Any]) -> Any | No
         fields = {}
         for f in template._fields:
             ref = np.asarray(getattr(template, f))
+            if f not in data:  # written by a version whose beam had other fields
+                return None
             a = data[f]
             if a.shape != ref.shape:
                 return None
@@ -209,6 +211,10 @@ class Adapter(runtime.Service):
                 if restored is not None:
                     self.learner = self.learner._replace(beam=restored)
                     self._restored = int(restored.step)
+                elif Path(a.checkpoint).is_file():
+                    self.log.warning(
+                        "checkpoint %s does not match this learner (weights, preset or "
+                        "beam layout): starting from the prior", a.checkpoint)
         self._cond = threading.Condition()
         self._setpoints: dict[float, Setpoint] = {}
         self._latest_sp: Setpoint | None = None

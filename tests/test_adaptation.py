@@ -41,8 +41,9 @@ def ref_cp_posterior(ll0, ll1, pi):
 def brute_force(theta0, tau2, sigma2, pi, beta, Z, D, floor=0.0):
     """All 2^T changepoint paths: tempered recursion in information form + Algorithm 1 scores.
 
-    ``floor`` is the prior-precision floor ``rho``: a changepoint's prior precision is
-    ``beta^2 Sigma^-1 + rho (1 - beta^2) / tau^2 I`` with the mean kept.
+    ``floor`` is ``rho``, the share of the offline prior ``N(theta0, tau^2 I)`` a changepoint
+    re-injects: in information form the changepoint prior is ``beta^2 (P, eta) + rho (1 -
+    beta^2) (I / tau^2, theta0 / tau^2)`` (``floor = 0``: Eq. 5, the mean kept).
     Returns a list of dicts with the raw score, posterior mean/covariance (d, l[, l]),
     number of changepoints and step of the last changepoint (-1: none) per path.
     """
@@ -57,13 +58,15 @@ def brute_force(theta0, tau2, sigma2, pi, beta, Z, D, floor=0.0):
             cov = np.linalg.inv(prec)
             mu = np.einsum("dij,dj->di", cov, eta)
             (ll0,) = ref_log_marginals(mu, cov, Z[k], D[k], sigma2, (1.0,))
-            prec1 = beta**2 * prec + floor * (1.0 - beta**2) / tau2 * np.eye(l)
-            (ll1,) = ref_log_marginals(mu, np.linalg.inv(prec1), Z[k], D[k], sigma2, (1.0,))
+            c0 = floor * (1.0 - beta**2) / tau2
+            prec1 = beta**2 * prec + c0 * np.eye(l)
+            eta1 = beta**2 * np.einsum("dij,dj->di", prec, mu) + c0 * theta0
+            mu1 = np.einsum("dij,dj->di", np.linalg.inv(prec1), eta1)
+            (ll1,) = ref_log_marginals(mu1, np.linalg.inv(prec1), Z[k], D[k], sigma2, (1.0,))
             p1 = ref_cp_posterior(ll0, ll1, pi)
             score += (ll1 + np.log(p1)) if c else (ll0 + np.log(1.0 - p1))
-            if c:  # tempered prior (Eq. 5), same mean
-                prec = prec1
-                eta = np.einsum("dij,dj->di", prec1, mu)
+            if c:  # tempered prior (Eq. 5), with the offline prior re-injected if floor
+                prec, eta = prec1, eta1
             prec = prec + np.outer(Z[k], Z[k])[None] / sigma2[:, None, None]
             eta = eta + D[k][:, None] * Z[k][None, :] / sigma2[:, None]
             if c:
@@ -118,7 +121,7 @@ def test_presets_match_appendix_d():
     q, c = A.quadrotor_config(), A.cartpole_config()
     assert (q.K, q.pi, q.beta, q.tau2, q.sigma2) == (15, 0.05, 0.997, 0.1, 0.1)
     assert (c.K, c.pi, c.beta, c.tau2, c.sigma2) == (5, 0.05, 0.9, 0.1, 0.1)
-    # Lemma 2's assumption (prior-precision floor) on the quadrotor; Eq. 5 as written else.
+    # Lemma 2's assumption (offline prior re-injected) on the quadrotor; Eq. 5 as written else.
     assert (q.prior_floor, c.prior_floor) == (1.0, 0.0)
 
 
@@ -144,6 +147,25 @@ def test_repeated_changepoints_and_the_prior_precision_floor(floor):
         assert float(state.covariances[0, 0, 0, 0]) < 0.5 * tau2
     else:
         np.testing.assert_allclose(top, tau2 * beta ** (-2 * T), rtol=1e-9)
+
+
+def test_a_full_reset_restarts_from_the_offline_prior():
+    """With the offline prior re-injected (``prior_floor = 1``) and ``beta -> 0`` a
+    changepoint's prior is ``N(theta0, tau^2 I)`` itself, mean included: after forced
+    changepoints the posterior is the one-observation posterior from the offline prior,
+    whatever the earlier segments learned. (Keeping the stale mean instead would leave it
+    near the previous segment's decoder.)"""
+    d, l, tau2, sigma2 = 2, 3, 0.1, 0.1
+    theta0, Z, D = random_problem(3, d, l, T=12, tau2=tau2, sigma2=sigma2, switch=6)
+    D = D + 5.0  # earlier segments far from theta0
+    cfg = A.AdaptationConfig(K=2, pi=1.0, beta=1e-6, tau2=tau2, sigma2=sigma2,
+                             prior_floor=1.0)
+    state, _ = run(A.init(theta0, cfg), Z, D, cfg)
+    assert int(state.num_changepoints[0]) == len(Z)
+    mean, w = A.posterior_update(jnp.asarray(theta0), np.sqrt(tau2) * jnp.eye(l)[None],
+                                 Z[-1], D[-1], sigma2)
+    np.testing.assert_allclose(state.means[0], mean, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(state.covariances[0, 0], w[0] @ w[0].T, rtol=1e-6, atol=1e-12)
 
 
 def test_init_has_one_hypothesis_and_prior():
@@ -228,7 +250,7 @@ def test_tempered_update_matches_information_form():
 )
 def test_beam_equals_exhaustive_enumeration(T, K, pi, beta, sigma2, floor):
     """With K >= 2^T nothing is pruned: the beam is the set of all 2^T changepoint paths
-    (also with the prior-precision floor at changepoints)."""
+    (also with the offline prior re-injected at changepoints)."""
     d, l, tau2 = 3, 2, 0.1
     theta0, Z, D = random_problem(1, d, l, T, switch=T // 2)
     s2 = np.broadcast_to(np.asarray(sigma2, float), (d,))

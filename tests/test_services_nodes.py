@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import queue
@@ -16,7 +17,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from services.adapter import DEFAULT_WEIGHTS, adapter_learner, load_checkpoint
+from services.adapter import DEFAULT_WEIGHTS, adapter_learner, load_checkpoint, save_checkpoint
 from services.bus import Bus, peer_config
 from services.messages import Setpoint, State
 
@@ -114,6 +115,19 @@ def test_controller_degrades_on_stale_state_and_rejects_garbage(tmp_path):
     stats = json.loads((tmp_path / "stats" / "controller.json").read_text())
     assert stats["rejects"] == {"non_finite": 1}
     assert stats["setpoints"] == 3 and stats["hover"] == 1
+
+
+def test_a_checkpoint_of_another_beam_layout_is_not_restored(tmp_path):
+    """A checkpoint whose beam lacks a field of the current one (written by a version
+    without the offline prior mean in the state) is refused, not half-loaded."""
+    learner, _ = adapter_learner(DEFAULT_WEIGHTS, np.float64)
+    beam = learner.beam
+    old = collections.namedtuple("OldBeam", [f for f in beam._fields if f != "prior_mean"])
+    save_checkpoint(tmp_path / "old.npz", old(*(getattr(beam, f) for f in old._fields)), {})
+    assert load_checkpoint(tmp_path / "old.npz", beam, {}) is None
+    save_checkpoint(tmp_path / "new.npz", beam, {})
+    back = load_checkpoint(tmp_path / "new.npz", beam, {})
+    np.testing.assert_array_equal(back.prior_mean, beam.prior_mean)
 
 
 def test_adapter_checkpoint_round_trip(tmp_path):
