@@ -172,6 +172,7 @@ class Stack:
         self._events_lock = threading.Lock()
         self._on_event_cb = on_event
         self._bus: Any = None
+        self._seen: set[str] = set()  # services whose token appeared at least once
         self._env: dict[str, str] = {}
         self._stopping = threading.Event()
         self._changed = threading.Condition()  # a process ended or the supervisor gave up
@@ -188,6 +189,7 @@ class Stack:
         if self.config.checkpoint is None:  # the run's own checkpoint: for restarts only
             self.config.checkpoint_path().unlink(missing_ok=True)
         self._bus = Bus(self.config.vehicle, "launcher", peer_config(self.config.hub)).open()
+        self._bus.on_alive_change(self._on_alive_change)
         self._bus.subscribe("event", self._on_event, check_order=False)
         self._bus.subscribe("state", self._on_state, check_order=False)
         self._bus.publisher("event")
@@ -200,6 +202,7 @@ class Stack:
         return self
 
     def _spawn(self, name: str) -> None:
+        self._seen.discard(name)  # ready again only once this incarnation says so
         n = self.restarts[name]
         cmd = [sys.executable, "-m", "services", name, *self.config.args(name)]
         if n:
@@ -295,19 +298,30 @@ class Stack:
             raise StackError("the stack is not started")
         self._bus.wait_alive(services, timeout)
 
+    def _on_alive_change(self, service: str, up: bool) -> None:
+        if up:
+            self._seen.add(service)
+
     def wait_ready(self, timeout: float | None = None) -> float:
-        """Block until every service declared its liveliness token; returns seconds."""
+        """Block until every service declared its liveliness token; returns seconds.
+
+        A service whose current incarnation was ready and has left since counts as ready:
+        a short lockstep flight can be over (its vehicle process ended with code 0) before
+        the caller asks.
+        """
         timeout = self.config.ready_timeout if timeout is None else timeout
         t0 = time.monotonic()
         pending = set(self.services)
-        while pending:
+        while True:
+            pending -= self._bus.alive | set(self._seen)
+            if not pending:
+                break
             left = timeout - (time.monotonic() - t0)
             if left <= 0:
                 raise StackError(f"not ready after {timeout:.0f} s: {sorted(pending)}")
             self._check_alive()
             with contextlib.suppress(TimeoutError):  # short slices: notice a dead service
                 self._bus.wait_alive(pending, timeout=min(left, 0.5))
-            pending -= self._bus.alive
         return time.monotonic() - t0
 
     def wait(self, timeout: float | None = None,

@@ -49,6 +49,10 @@ def test_four_vehicles_share_one_bus_without_cross_talk(tmp_path):
                 assert ("probe" in stack.alive) == (name == "quad1"), (name, stack.alive)
         for stack in stacks.values():
             assert stack.wait(timeout=600.0) == 0
+        # Flights over, simulators gone: each stack still was ready (a short lockstep flight
+        # may end before the caller asks).
+        for stack in stacks.values():
+            assert stack.wait_ready(timeout=5.0) >= 0.0
     for name, stack in stacks.items():
         out = tmp_path / name
         codes = {n: p.returncode for n, p in stack.procs.items()}
