@@ -12,13 +12,17 @@ with what it knew after step ``k - 1``, then sees ``x_{k+1}`` and updates by its
 - ``mlp``: MLP [64, 128, 64, 64], last layer updated by SGD over a FIFO of 50;
 - ``gp``: per-output ARD-RBF GPs (marginal-likelihood hyperparameters) on a FIFO of 50;
 - ``sysid``: sparse regression (STLSQ, degree-2 polynomial library), offline fit only;
+- ``proto``: Proto-MPC-style prototypes (:mod:`arcade_core.baselines.proto`): one
+  prototype per training payload (10, 100, 200 g), residual interpolated online by
+  attention from the last 10 transitions, no online training;
 - ``nominal``: the nominal model alone, for reference.
 
 CRMSE (``arcade_core.metrics.crmse``) of the one-step predictions of the full 13-state in
 SI units, summed over a flight, as in the paper's footnote; also per state group.
 
-Tuning effort. Ours, the GP and SysID use fixed, a-priori settings (Appendix D values,
-marginal-likelihood hyperparameters, a standard STLSQ threshold). The MLP's online
+Tuning effort. Ours, the GP, SysID and the prototypes use fixed, a-priori settings
+(Appendix D values, marginal-likelihood hyperparameters, a standard STLSQ threshold, the
+prototype model's architecture and training fixed before any validation flight). The MLP's online
 learning rate is chosen from a grid on a separate tuning flight (150 g, its own seed); the
 paper's 1e-6 is listed beside it. The tuned rate is also what the closed-loop MLP-MPC uses.
 """
@@ -35,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from arcade_core import adaptation, encoder, metrics
-from arcade_core.baselines import gp, mlp, sysid
+from arcade_core.baselines import gp, mlp, proto, sysid
 from benchmarks import quadrotor_data as qd
 from benchmarks.quadrotor_data import f_nom
 
@@ -62,6 +66,7 @@ class Models:
     #: :func:`benchmarks.quadrotor_closedloop.tune`; empty: that module's defaults.
     closedloop: dict[str, float] = field(default_factory=dict)
     guard: Any = None
+    proto: proto.ProtoResidual | None = None
 
 
 def prepare_models(
@@ -94,6 +99,14 @@ def prepare_models(
                  num_steps=100 if quick else 200)
     progress("fitting the SysID baseline")
     sid = sysid.fit(x, u, delta, degree=2, threshold=0.02)
+    steps = 500 if quick else 3000
+    progress(f"training the Proto-MPC baseline ({steps} steps)")
+    pay = np.asarray(data["transition_payload_g"])
+    tasks = tuple(float(p) for p in qd.TRAIN_PAYLOADS_G)
+    task = jnp.asarray(np.searchsorted(np.asarray(tasks), pay))
+    pm = proto.init_model(jax.random.fold_in(key, 1), x, u, delta, tasks)
+    pm = proto.train(pm, x, u, delta, task, jnp.asarray(data["transition_flight"]),
+                     key=jax.random.fold_in(key, 2), steps=steps)
 
     progress("tuning the MLP online learning rate on a separate flight")
     tune = qd.make_validation(seed=seed + 1000, minutes_per_payload=0.5,
@@ -114,7 +127,7 @@ def prepare_models(
         from benchmarks.quadrotor_closedloop import guard_from_metadata
 
         guard = guard_from_metadata(load_model(QUADROTOR_WEIGHTS)[2])
-    return Models(vld, net, float(best), tuning, gpm, sid, stats, guard=guard)
+    return Models(vld, net, float(best), tuning, gpm, sid, stats, guard=guard, proto=pm)
 
 
 # ----------------------------------------------------------------------- online runners
@@ -157,6 +170,16 @@ def run_gp(model: gp.GPModel, X, U, Xn):
     return jax.lax.scan(body, gp.init(model, FIFO), (X, U, Xn))[1]
 
 
+def run_proto(model: proto.ProtoResidual, X, U, Xn):
+    def body(state, inp):
+        x, u, xn = inp
+        nom = f_nom(x, u)
+        xhat = nom + proto.predict_mean(model, state, x, u)
+        return proto.update(state, x, u, xn - nom), xhat
+
+    return jax.lax.scan(body, proto.init(model), (X, U, Xn))[1]
+
+
 def no_cp_config(cfg: adaptation.AdaptationConfig) -> adaptation.AdaptationConfig:
     """Ours without changepoints: a single hypothesis that never tempers (Appendix D 5)."""
     return adaptation.AdaptationConfig(K=1, pi=0.0, beta=1.0, tau2=cfg.tau2, sigma2=cfg.sigma2)
@@ -178,6 +201,8 @@ def predictors(m: Models) -> dict[str, Callable]:
             lambda x, u: f_nom(x, u) + sysid.predict(m.sysid, x, u))(X, U),
         "nominal": lambda X, U, Xn: jax.vmap(f_nom)(X, U),
     }
+    if m.proto is not None:
+        out["proto"] = lambda X, U, Xn: run_proto(m.proto, X, U, Xn)
     beta = m.closedloop.get("ours_beta")
     if beta is not None and beta != cfg.beta:
         tuned = cfg._replace(beta=beta)
