@@ -44,6 +44,17 @@ Design decisions:
   out again at every later step.
 - **Models never recompile**: the learned model is an arbitrary pytree passed at solve
   time, ``step_fn(x, u, model) -> x_next``.
+- **Learned residual along the warm start** (optional, :func:`residual_along`,
+  ``staged=True``; the controllers keep the residual inside the rollout, as Sec. IV
+  writes the model): the learned residual is evaluated once per solve along the warm
+  start (the previous plan, shifted and rolled out from the measured state with the
+  learned model) and held per stage during the iterations, as the linearisation point of
+  a real-time iteration is. The prediction still follows the learned model where the plan
+  goes; the optimiser no longer sees the model's derivatives with respect to inputs and
+  states, and the Jacobians are those of ``f_nom`` (a cheaper solve). Whether that helps
+  depends on the slopes: a decoder adapted on a few seconds of data has untrained slopes
+  off the flown path, but also carries true ones (a payload lowers the thrust gain). The
+  quadrotor evaluation flies both side by side (``run_residual_ablation``).
 """
 
 from __future__ import annotations
@@ -205,31 +216,36 @@ def _unsquash(u: Array, lo: Array, hi: Array) -> Array:
     return jnp.arctanh(jnp.clip(s, -1.0 + _SQUASH_MARGIN, 1.0 - _SQUASH_MARGIN))
 
 
-def make_rollout(step_fn: StepFn) -> Callable[[Array, Array, Any], Array]:
+def make_rollout(step_fn: StepFn, staged: bool = False) -> Callable[[Array, Array, Any], Array]:
     """``rollout(x0, U, model) -> X`` (N+1, nx) with a structured forward-mode rule.
 
     The JVP linearises every step in parallel and propagates tangents with the
     tangent-linear recursion; see the module docstring (direct shooting, Appendix D).
+    ``staged``: every array leaf of ``model`` has a leading axis of length N and step ``i``
+    sees ``model[i]`` (a per-stage model, e.g. :func:`residual_along`).
     """
 
     def rollout(x0: Array, U: Array, model: Any) -> Array:
         dynamic, static = eqx.partition(model, eqx.is_array)
-        return _rollout_arrays(step_fn, static, x0, U, dynamic)
+        return _rollout_arrays(step_fn, static, x0, U, dynamic, staged)
 
     return rollout
 
 
-def _rollout_arrays(step_fn, static, x0, U, dynamic):
+def _rollout_arrays(step_fn, static, x0, U, dynamic, staged=False):
+    ax = 0 if staged else None
+
     def step(x, u, dyn):
         return step_fn(x, u, eqx.combine(dyn, static))
 
     @jax.custom_jvp
     def roll(x0, U, dyn):
-        def body(x, u):
-            x_next = step(x, u, dyn)
+        def body(x, inputs):
+            u, d = inputs
+            x_next = step(x, u, d if staged else dyn)
             return x_next, x_next
 
-        _, xs = jax.lax.scan(body, x0, U)
+        _, xs = jax.lax.scan(body, x0, (U, dyn if staged else None))
         return jnp.concatenate([x0[None], xs], axis=0)
 
     def roll_jvp(primals, tangents):
@@ -237,7 +253,7 @@ def _rollout_arrays(step_fn, static, x0, U, dynamic):
         dx0, dU, ddyn = tangents
         X = roll(x0, U, dyn)
         # Per-step Jacobians, independent given the primal trajectory: one batched call.
-        A, B = jax.vmap(jax.jacfwd(step, argnums=(0, 1)), in_axes=(0, 0, None))(X[:-1], U, dyn)
+        A, B = jax.vmap(jax.jacfwd(step, argnums=(0, 1)), in_axes=(0, 0, ax))(X[:-1], U, dyn)
         terms = jnp.zeros_like(X[1:])
         if not isinstance(dU, SymbolicZero):
             terms = terms + jnp.einsum("nij,nj->ni", B, dU)
@@ -249,8 +265,9 @@ def _rollout_arrays(step_fn, static, x0, U, dynamic):
                 is_leaf=lambda t: isinstance(t, SymbolicZero),
             )
             terms = terms + jax.vmap(
-                lambda x, u: jax.jvp(lambda d: step(x, u, d), (dyn,), (ddyn,))[1]
-            )(X[:-1], U)
+                lambda x, u, d, dd: jax.jvp(lambda d: step(x, u, d), (d,), (dd,))[1],
+                in_axes=(0, 0, ax, ax),
+            )(X[:-1], U, dyn, ddyn)
         dx0 = jnp.zeros_like(x0) if isinstance(dx0, SymbolicZero) else dx0
 
         def body(dx, inputs):
@@ -263,6 +280,29 @@ def _rollout_arrays(step_fn, static, x0, U, dynamic):
 
     roll.defjvp(roll_jvp, symbolic_zeros=True)
     return roll(x0, U, dynamic)
+
+
+def residual_along(
+    step_fn: StepFn, nominal_step: Callable[[Array, Array], Array], model: Any, x0: Array,
+    U: Array,
+) -> Array:
+    """The learned residual along the trajectory ``step_fn`` rolls ``U`` out to, ``(N, nx)``.
+
+    ``d_i = x_{i+1} - f_nom(x_i, u_i)`` with ``x_{i+1} = step_fn(x_i, u_i, model)``: rolling
+    ``U`` out with :func:`staged_residual_step` and these ``d_i`` reproduces that trajectory
+    exactly (module docstring, "Learned residual along the warm start").
+    """
+    X = make_rollout(step_fn)(x0, U, model)
+    return X[1:] - jax.vmap(nominal_step)(X[:-1], U)
+
+
+def staged_residual_step(nominal_step: Callable[[Array, Array], Array]) -> StepFn:
+    """``x_next = f_nom(x, u) + d`` with ``d`` the stage's residual (a ``staged`` model)."""
+
+    def step(x: Array, u: Array, d: Array) -> Array:
+        return nominal_step(x, u) + d
+
+    return step
 
 
 class _Problem(NamedTuple):
@@ -290,17 +330,18 @@ class Controller(NamedTuple):
         return shift_warm_start(u)
 
 
-def make_controller(step_fn: StepFn, config: MPCConfig) -> Controller:
+def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) -> Controller:
     """Build the uncertainty-modulated MPC (Sec. IV) for ``step_fn(x, u, model)``.
 
     Returns a ``Controller`` whose ``solve(x0, x_ref, u_ref, u_warm, u_prev, model,
     sigma_tot2=None)`` takes ``x_ref`` (N+1, nx), ``u_ref`` (N, nu), the warm start
     ``u_warm`` (N, nu), the previously applied input ``u_prev`` (nu,), the model pytree
     and the total predictive variance ``sigma_tot2`` ((nx,) or (N, nx); ``None`` = no
-    modulation), and returns an ``MPCSolution``.
+    modulation), and returns an ``MPCSolution``. ``staged``: ``model`` is per stage
+    (:func:`make_rollout`).
     """
     cfg = config
-    rollout = make_rollout(step_fn)
+    rollout = make_rollout(step_fn, staged)
     # Only finite state bounds produce penalty rows (decided once, outside tracing).
     hi_idx = lo_idx = np.zeros((0,), dtype=int)
     if cfg.x_max is not None:

@@ -16,6 +16,13 @@ runs its 500 Hz rate loop and 1 kHz physics. Per method, the whole per-step upda
 (learning from the last transition, reference window, MPC solve, warm-start shift) is one
 jitted function, so the Python loop only moves a handful of arrays per step.
 
+Learned residual in the MPC (every learned-model method alike: GP, MLP, ours): inside the
+rollout, as Sec. IV writes the model, derivatives included. :func:`run_residual_ablation`
+flies beside it the variant that evaluates the residual along the warm start and holds it
+per stage during the solve (``<method>_held``; :mod:`arcade_core.mpc`, "Learned residual
+along the warm start"): the optimiser then follows the model's prediction but not its
+derivatives.
+
 Methods:
 
 - ``nominal``: MPC on ``f_nom``;
@@ -381,7 +388,18 @@ def beam_method(name: str = "ours") -> Method:
     return Method(name, step_fn, learn, model, sigma, _no_correction, info, learned=True)
 
 
+#: Suffix of a learned-model method flown with its residual held along the warm start
+#: (the optimiser does not see the model's derivatives) instead of inside the rollout.
+HELD = "_held"
+
+
+def base_name(name: str) -> str:
+    """``name`` without the :data:`HELD` suffix."""
+    return name.removesuffix(HELD)
+
+
 def make_method(name: str) -> Method:
+    name = base_name(name)
     if name == "nominal":
         return nominal_method()
     if name == "l1":
@@ -402,6 +420,7 @@ def initial_learner(name: str, models, dtype) -> Any:
     def cast(tree):
         return _cast(tree, dtype)
 
+    name = base_name(name)
     p = qd.nominal_params()
     if name == "nominal":
         return jnp.zeros((), dtype)
@@ -478,15 +497,24 @@ def thrust_reference(step_fn, model, x_ref: Array, u_ref: Array) -> Array:
     return jax.vmap(one)(x_ref[:-1], u_ref)
 
 
-def make_controller_step(method: Method, cfg: mpc.MPCConfig):
+def make_controller_step(method: Method, cfg: mpc.MPCConfig, hold_residual: bool = False):
     """The jitted per-step update of one method (see module docstring).
 
     ``step(carry, x, u_applied, k, x_ref_all, u_ref_all) -> (carry, u, diag)`` where
     ``u_applied`` is what the vehicle actually executed over the last period and ``k``
     the control-step index into the precomputed references. ``diag`` =
     ``[sigma (13), changepoint, cp_prob, solver iterations, converged]``.
+
+    ``hold_residual`` (learned-model methods): the learned residual is evaluated along the
+    warm start and held per stage during the solve (:func:`arcade_core.mpc.residual_along`,
+    module docstring); ``False`` (default, Sec. IV): it sits inside the rollout,
+    derivatives included.
     """
-    controller = mpc.make_controller(method.step_fn, cfg)
+    staged = method.learned and hold_residual
+    if staged:
+        controller = mpc.make_controller(mpc.staged_residual_step(f_nom), cfg, staged=True)
+    else:
+        controller = mpc.make_controller(method.step_fn, cfg)
     N = cfg.N
 
     def step(carry: Carry, x, u_applied, k, x_ref_all, u_ref_all):
@@ -501,6 +529,8 @@ def make_controller_step(method: Method, cfg: mpc.MPCConfig):
         if method.learned:
             u_ref = jnp.clip(thrust_reference(method.step_fn, model, x_ref, u_ref),
                              cfg.u_min, cfg.u_max)
+        if staged:
+            model = mpc.residual_along(method.step_fn, f_nom, model, x, carry.u_warm)
         sol = controller.solve(x, x_ref, u_ref, carry.u_warm, carry.u_mpc, model, sigma)
         u_b = sol.u[0]
         u = jnp.clip(u_b + method.correction(learner, x), cfg.u_min, cfg.u_max)
@@ -549,7 +579,8 @@ class Runner:
 
     def step_fn(self, name: str) -> Callable:
         if name not in self._steps:
-            self._steps[name] = make_controller_step(make_method(name), self.cfg)
+            self._steps[name] = make_controller_step(
+                make_method(name), self.cfg, hold_residual=name.endswith(HELD))
         return self._steps[name]
 
     def fly(self, name: str, scenario: Scenario, seed: int = 0) -> Flight:
@@ -815,6 +846,39 @@ def run_beam_ablation(
                          models.vld, int(K), tuned["ours_beta"], flights[0], runner.dtype)})
     return {"rows": rows, "payload_g": payload_g, "speed_mps": speed_mps, "trials": trials,
             "beta": tuned["ours_beta"], "machine": machine()}
+
+
+def run_residual_ablation(
+    methods: Sequence[str] = ("gp", "mlp", "ours"),
+    trials: int = 3,
+    payload_g: float = 175.0,
+    speed_mps: float = 2.5,
+    models=None,
+    progress: Callable[[str], None] = lambda msg: None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """The learned residual inside the rollout (what every learned-model method flies)
+    against the same method with the residual held along the warm start, side by side:
+    tracking RMSE, z-RMSE and the median per-step time of the jitted update."""
+    from benchmarks.quadrotor_openloop import prepare_models
+
+    if models is None:
+        models = prepare_models(seed=seed, progress=progress)
+    runner = Runner(models)
+    scen = Scenario(payload_g=payload_g, speed_mps=speed_mps)
+    rows = []
+    for name in methods:
+        for variant in (name, name + HELD):
+            progress(f"residual ablation: {variant}")
+            flights = [runner.fly(variant, scen, seed=seed * 1000 + i) for i in range(trials)]
+            rows.append({"method": name, "residual": "held" if variant != name else "rollout",
+                         "rmse_m": _mean([f.metrics["rmse_m"] for f in flights]),
+                         "rmse_z_m": _mean([f.metrics["rmse_z_m"] for f in flights]),
+                         "step_ms_median": float(np.median(np.concatenate(
+                             [f.step_ms[1:] for f in flights])))})
+    return {"rows": rows, "payload_g": payload_g, "speed_mps": speed_mps, "trials": trials,
+            "tuned": {**TUNED_DEFAULTS, **getattr(models, "closedloop", {})},
+            "machine": machine()}
 
 
 def adaptation_time_ms(vld: encoder.VLD, K: int, beta: float, flight: Flight, dtype) -> float:

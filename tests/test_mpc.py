@@ -20,7 +20,9 @@ from arcade_core.mpc import (
     make_rollout,
     modulate_q,
     quadrotor_mpc_config,
+    residual_along,
     shift_warm_start,
+    staged_residual_step,
 )
 from arcade_core.trajectories import FigureEight, Hover, quadrotor_reference
 
@@ -266,3 +268,63 @@ def test_rollout_jvp_matches_plain_autodiff():
 
     for got, want in zip(derivatives(make_rollout(step)), derivatives(plain)):
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+
+
+def _learned_quad_step(x, u, model):
+    return quadrotor_step(x, u, QUAD, DT) + 0.01 * jnp.tanh(model["W"] @ jnp.concatenate([x, u]))
+
+
+def _nominal_quad(x, u):
+    return quadrotor_step(x, u, QUAD, DT)
+
+
+def test_a_staged_rollout_gives_each_stage_its_model_and_the_right_jvp():
+    """``staged=True``: step i sees model[i]; values and derivatives (including those with
+    respect to the per-stage model) match plain autodiff of the same recursion."""
+    N = 6
+    D = 0.01 * jax.random.normal(jax.random.PRNGKey(5), (N, 13))
+    x0 = hover_state(jnp.array([0.1, 0.2, 1.0])).at[3:6].set(jnp.array([0.5, -0.2, 0.1]))
+    U = hover_input(QUAD) + 0.2 * jax.random.normal(jax.random.PRNGKey(1), (N, 4))
+    step = staged_residual_step(_nominal_quad)
+
+    def plain(x0, U, D):
+        def body(x, inp):
+            x_next = step(x, *inp)
+            return x_next, x_next
+
+        return jnp.concatenate([x0[None], jax.lax.scan(body, x0, (U, D))[1]])
+
+    staged = make_rollout(step, staged=True)
+    X = staged(x0, U, D)
+    # Stage i's residual lands on x_{i+1} and nowhere else.
+    np.testing.assert_allclose(X[1:] - jax.vmap(_nominal_quad)(X[:-1], U), D, atol=1e-12)
+    tangents = tuple(jax.random.normal(jax.random.PRNGKey(k), a.shape)
+                     for k, a in zip((2, 3, 4), (x0, U, D)))
+    got = jax.jvp(staged, (x0, U, D), tangents)
+    want = jax.jvp(plain, (x0, U, D), tangents)
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-12)
+
+
+def test_the_residual_held_along_a_plan_reproduces_the_learned_prediction_of_that_plan():
+    """:func:`residual_along`: the staged model predicts the plan it was evaluated on
+    exactly as the learned model does, but its input derivatives are those of ``f_nom``."""
+    W = 0.3 * jax.random.normal(jax.random.PRNGKey(0), (13, 17))
+    model = {"W": W}
+    x0 = hover_state(jnp.array([0.0, 0.0, 1.0])).at[3:6].set(jnp.array([1.0, 0.0, 0.0]))
+    U = hover_input(QUAD) + 0.3 * jax.random.normal(jax.random.PRNGKey(1), (8, 4))
+    D = residual_along(_learned_quad_step, _nominal_quad, model, x0, U)
+    learned = make_rollout(_learned_quad_step)
+    held = make_rollout(staged_residual_step(_nominal_quad), staged=True)
+    np.testing.assert_allclose(held(x0, U, D), learned(x0, U, model), atol=1e-12)
+    dU = jax.random.normal(jax.random.PRNGKey(2), U.shape)
+    d_held = jax.jvp(lambda U: held(x0, U, D), (U,), (dU,))[1]
+
+    def frozen_slopes(x, u, m):  # the learned value, the nominal model's derivatives
+        res = _learned_quad_step(x, u, m) - _nominal_quad(x, u)
+        return _nominal_quad(x, u) + jax.lax.stop_gradient(res)
+
+    d_nominal = jax.jvp(lambda U: make_rollout(frozen_slopes)(x0, U, model), (U,), (dU,))[1]
+    d_learned = jax.jvp(lambda U: learned(x0, U, model), (U,), (dU,))[1]
+    np.testing.assert_allclose(d_held, d_nominal, atol=1e-12)
+    assert float(jnp.max(jnp.abs(d_learned - d_held))) > 1e-6

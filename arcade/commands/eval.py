@@ -89,4 +89,6 @@ def _quadrotor(args, out, progress):
     if not args.quick:
         progress("beam ablation (Table V)")
         result["beam_ablation"] = qc.run_beam_ablation(models=models, progress=progress)
+        progress("residual held along the warm start vs inside the rollout")
+        result["residual_ablation"] = qc.run_residual_ablation(models=models, progress=progress)
     return result, qc.format_table(result)
