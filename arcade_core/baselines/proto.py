@@ -79,6 +79,7 @@ class ProtoResidual(eqx.Module):
         return attention @ h.reshape(self.prototypes.shape[0], self.num_outputs)
 
     def residual(self, x: Array, u: Array, attention: Array) -> Array:
+        """Attention-weighted residual in original units."""
         s = jax.lax.stop_gradient(self.standardizer)
         return self.standardised(x, u, attention) * s.out_scale + s.out_mean
 
