@@ -4,6 +4,7 @@ context picks the task online, and an unseen task interpolates between prototype
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from arcade_core.baselines import proto
 
@@ -22,7 +23,10 @@ def _tasks(key, offsets, n=400):
     return cat(xs), cat(us), cat(ds), cat(task), cat(seg)
 
 
-def _trained(offsets=(-1.0, 1.0)):
+@pytest.fixture(scope="module")
+def model():
+    """Trained once for the module: tasks with offsets -1 and +1."""
+    offsets = (-1.0, 1.0)
     x, u, d, task, seg = _tasks(jax.random.PRNGKey(0), offsets)
     m = proto.init_model(jax.random.PRNGKey(1), x, u, d, tasks=offsets, hidden=32)
     return proto.train(m, x, u, d, task, seg, key=jax.random.PRNGKey(2), steps=1500,
@@ -43,8 +47,7 @@ def _online(model, offset, key, steps=30):
     return np.array(errs), np.asarray(att)
 
 
-def test_the_context_selects_the_task_and_fits_it():
-    model = _trained()
+def test_the_context_selects_the_task_and_fits_it(model):
     for i, off in enumerate((-1.0, 1.0)):
         errs, att = _online(model, off, jax.random.PRNGKey(10 + i))
         assert att[i] > 0.9, att
@@ -52,14 +55,12 @@ def test_the_context_selects_the_task_and_fits_it():
         assert np.mean(errs[proto.CONTEXT:]) < 0.15, errs
 
 
-def test_an_empty_context_attends_uniformly():
-    model = _trained()
+def test_an_empty_context_attends_uniformly(model):
     att = proto.attention(model, proto.init(model))
     np.testing.assert_allclose(np.asarray(att), 0.5, atol=1e-6)
 
 
-def test_an_unseen_task_is_between_the_prototypes():
-    model = _trained()
+def test_an_unseen_task_is_between_the_prototypes(model):
     errs, att = _online(model, 0.0, jax.random.PRNGKey(20))
     # Halfway between the two tasks: both prototypes share the weight, and the
     # interpolated prediction is closer than either task's own offset (error 1).
