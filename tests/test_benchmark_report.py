@@ -22,6 +22,7 @@ def test_quadrotor_section_marks_the_best_method_per_cell(tmp_path):
         "cells": cells, "settings": {"trials": 10}, "generated": "2026-01-01 00:00",
         "machine": "test machine",
         "improvement_over_nominal": [{"payload_g": 75, "speed_mps": 0.5, "ours": 90.0}],
+        "tuning": {"chosen": {"ours_beta": 0.05, "ours_sigma2": 0.001}, "cell": [150.0, 2.0]},
     }))
     text = "\n".join(report._quadrotor_section(path))
     assert "written 2026-01-01 00:00" in text and "test machine" in text
@@ -29,6 +30,7 @@ def test_quadrotor_section_marks_the_best_method_per_cell(tmp_path):
     assert "| 175 | 2.5 | 0.700 | 0.080 | **0.050** |" in text
     assert "| 75 | 0.5 | 1.30 | **0.00** | inf |" in text  # a trial that never settled
     assert "ours 90 %" in text
+    assert "(150 g, 2 m/s" in text and "ours_sigma2 = 0.001" in text  # the tuned knobs
 
 
 def test_quadrotor_section_says_how_to_produce_missing_results(tmp_path):

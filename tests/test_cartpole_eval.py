@@ -55,3 +55,6 @@ def test_changepoint_quality_counts_hits_and_false_alarms():
     assert q["hit_rate"] == 3 / 6
     assert q["false_alarms_per_100_steps"] == 100 * 2 / 240
     assert q["mean_delay_steps"] == (1 + 1 + 2) / 3
+    assert ce.hits_per_intervention(flags) == {"0": 0.5, "40": 0.5, "80": 0.5}
+    flags[1, 40] = True
+    assert ce.hits_per_intervention(flags)["40"] == 1.0

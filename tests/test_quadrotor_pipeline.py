@@ -109,6 +109,28 @@ def test_short_closed_loop_flight_of_ours(data, method):
     assert flight.metrics["rmse_m"] < 0.08
 
 
+def test_tuned_knobs_reach_the_learners():
+    """The closed-loop knobs (``models.closedloop``) set what each learner starts with."""
+    from arcade_core.baselines import gp
+
+    vld, _, _ = load_model(QUADROTOR_WEIGHTS)
+    guard = cl.Guard(jnp.ones(13), -jnp.ones(8), jnp.ones(8))
+    models = SimpleNamespace(vld=vld, guard=guard,
+                             closedloop={"ours_beta": 0.2, "ours_sigma2": 0.003})
+    for name in ("ours", "ours_no_cp"):
+        learner = cl.initial_learner(name, models, jnp.float64)
+        assert float(learner.config.sigma2) == pytest.approx(0.003)
+    assert float(cl.initial_learner("ours", models, jnp.float64).config.beta) == 0.2
+    for rates, applied in ((0.0, False), (10.0, True)):
+        models.closedloop = {"l1_cutoff": 40.0, "l1_cutoff_rates": rates}
+        params = cl.initial_learner("l1", models, jnp.float64).params
+        assert bool(params.rotational) == applied and float(params.cutoff_thrust) == 40.0
+    model = gp.GPModel(gp.initial_hyperparams(17, 13, noise_var=0.1), None)
+    scaled = cl.scale_gp_noise(model, 0.01)
+    np.testing.assert_allclose(np.exp(scaled.hyper.log_noise_var), 1e-3, rtol=1e-6)
+    np.testing.assert_array_equal(scaled.hyper.log_lengthscale, model.hyper.log_lengthscale)
+
+
 def test_mpc_input_bounds_are_what_the_simulated_vehicle_executes():
     """The MPC must not plan with thrust or body rates the vehicle clamps away."""
     from simulator import QuadrotorSim
