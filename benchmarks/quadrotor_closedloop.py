@@ -79,8 +79,8 @@ ground-truth state: here the one-step error the decoder cannot fit over 2 s wind
 0.002 m/s at 75 g / 0.5 m/s and 0.04 m/s at 175 g / 2.5 m/s, so the calibrated noise makes
 the regression average over ten to a hundred times more steps than the data need, and a
 light payload's release (0.07 m/s per step) hardly moves the changepoint evidence. The
-stack's adapter starts from the same tuned values (:data:`TUNED_DEFAULTS`) and adds the
-state estimator's noise to ``sigma^2`` at every step (``services.adapter``).
+stack's adapter, fed by the state estimator, keeps the calibrated ``sigma^2`` and adds the
+estimator's noise to it at every step (``services.adapter``).
 All other hyperparameters are the Appendix D values.
 
 Every method shares the MPC's safeguard (:mod:`arcade_core.mpc`): a failed or non-finite

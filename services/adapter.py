@@ -99,17 +99,30 @@ def load_checkpoint(path: Path, template: Any, meta: dict[str, Any]) -> Any | No
     return type(template)(**{k: jnp.asarray(v) for k, v in fields.items()})
 
 
+def stack_knobs() -> dict[str, Any]:
+    """Closed-loop knobs of the adapter that differ from the evaluation's tuned ones.
+
+    The closed-loop evaluation tunes ``sigma^2`` on in-process flights; the adapter keeps
+    the offline calibration (Appendix D 0.1) and adds the estimator's noise to it: with the
+    tuned 0.001 the lockstep flights flagged changepoints during take-off and hover (on the
+    ground-truth state too), and the beam restarts on most steps of a swinging flight."""
+    from arcade_core import adaptation
+
+    return {"ours_sigma2": float(adaptation.quadrotor_config().sigma2)}
+
+
 def load_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
     """ARCADE's adaptive state at take-off and its method, as the in-process evaluation
-    builds them (``benchmarks.quadrotor_closedloop``: paper preset, feature/residual guard
-    of the training data, beam at the prior)."""
+    builds them (``benchmarks.quadrotor_closedloop``: tuned ``beta``, the calibrated
+    ``sigma^2``, feature/residual guard of the training data, beam at the prior)."""
     from types import SimpleNamespace
 
     from arcade.weights import load_model
     from benchmarks import quadrotor_closedloop as cl
 
     vld, _, extra = load_model(weights)
-    models = SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra))
+    models = SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra),
+                             closedloop=stack_knobs())
     learner = cl.initial_learner("ours", models, dtype)
     return learner, cl.make_method("ours")
 

@@ -83,13 +83,15 @@ def in_process_rmse(monkeypatch) -> float:
     of the full beam, as a deployed controller receives it."""
     from arcade.weights import load_model
     from benchmarks import quadrotor_closedloop as cl
+    from services.adapter import stack_knobs
     from services.controller import moment_matched
 
     beam_method = cl.beam_method
     monkeypatch.setattr(cl, "beam_method", lambda name="ours": moment_matched(beam_method(name)))
     vld, _, extra = load_model(DEFAULT_WEIGHTS)
     # The same trust region as the services: the one the weights file carries.
-    models = types.SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra))
+    models = types.SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra),
+                                   closedloop=stack_knobs())
     assert models.guard is not None
     flight = cl.Runner(models).fly("ours", cl.Scenario(), seed=SEED)
     assert not flight.crashed
