@@ -58,3 +58,18 @@ def test_changepoint_quality_counts_hits_and_false_alarms():
     assert ce.hits_per_intervention(flags) == {"0": 0.5, "40": 0.5, "80": 0.5}
     flags[1, 40] = True
     assert ce.hits_per_intervention(flags)["40"] == 1.0
+
+
+def test_tuned_pi_is_the_one_evaluated(result):
+    """pi is tuned at the tuned beta, by the lowest tuning CRMSE, and the online row runs
+    that configuration."""
+    t = result["tuning"]
+    assert set(t) == {"ours", "ours_pi", "ours_no_cp", "mlp_last_layer"}
+    scores = t["ours_pi"]["tuning_crmse"]
+    assert set(scores) == {str(p) for p in ce.OURS_PI_GRID}
+    assert str(t["ours_pi"]["chosen"]) == min(scores, key=scores.get)
+    # The pi grid's row at the tuned beta is the beta grid's row at the preset pi.
+    preset_pi = ce.adaptation.cartpole_config().pi
+    assert scores[str(preset_pi)] == t["ours"]["tuning_crmse"][str(t["ours"]["chosen"])]
+    cfg = result["ours_config"]
+    assert (cfg["beta"], cfg["pi"]) == (t["ours"]["chosen"], t["ours_pi"]["chosen"])
