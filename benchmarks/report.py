@@ -279,9 +279,13 @@ def _quadrotor_section(path: Path) -> list[str]:
     tuning = r.get("tuning")
     if tuning:
         cell = tuning.get("cell", ["?", "?"])
+        n = len(tuning.get("seeds", [tuning.get("seed")]))
+        how = (f"{n} flight{'s' if n > 1 else ''} per grid value, lowest mean RMSE; one knob "
+               "after the other" + (f", {tuning['passes']} passes until none changed"
+                                    if "passes" in tuning else ""))
         lines.append(
             f"Knobs tuned on a cell that is not evaluated ({cell[0]:g} g, {cell[1]:g} m/s, "
-            "one flight per grid value, lowest RMSE; one knob after the other): " + ", ".join(
+            f"{how}): " + ", ".join(
                 f"{k} = {v:g}" for k, v in tuning["chosen"].items())
             + "; everything else at the paper's values.")
         lines.append("")
