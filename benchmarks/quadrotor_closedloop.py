@@ -148,7 +148,7 @@ TUNING_METHOD = {"ours_beta": "ours", "ours_sigma2": "ours", "gp_noise_scale": "
 MAX_TUNING_PASSES = 4
 #: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
 #: the choice under "tuning"); used when the tuning is skipped (``quick``).
-TUNED_DEFAULTS = {"ours_beta": 0.05, "ours_sigma2": 0.001, "gp_noise_scale": 0.1,
+TUNED_DEFAULTS = {"ours_beta": 0.2, "ours_sigma2": 0.001, "gp_noise_scale": 0.1,
                   "mlp_lr": 0.1, "l1_cutoff": 40.0, "l1_cutoff_rates": 0.0}
 
 
@@ -733,7 +733,8 @@ def tune(
     from :data:`TUNING_START` (coordinate descent), in passes over all knobs until a pass
     changes none (at most :data:`MAX_TUNING_PASSES`): a knob tuned first is tuned again at
     the others' choice, so the result does not hinge on the order. ``rmse_m`` holds each
-    knob's scores in the last pass. The nominal MPC has nothing to tune.
+    knob's scores in the last pass, ``rmse_m_by_pass`` in every pass. The nominal MPC has
+    nothing to tune.
     """
     runner = runner or Runner(models)
     scen = Scenario(payload_g=TUNING_CELL[0], speed_mps=TUNING_CELL[1])
@@ -755,22 +756,25 @@ def tune(
 
     models.closedloop = dict(TUNING_START)
     table: dict[str, dict[str, float]] = {}
+    by_pass: list[dict[str, dict[str, float]]] = []
     passes = 0
     while passes < MAX_TUNING_PASSES:
         passes += 1
         changed = False
+        table = {}
         for knob, grid in TUNING_GRIDS.items():
             scores = {value: score(knob, value) for value in grid}
             best = min(scores, key=scores.get)
             changed |= best != models.closedloop[knob]
             models.closedloop = {**models.closedloop, knob: best}
             table[knob] = {f"{k:g}": v for k, v in scores.items()}
+        by_pass.append(table)
         if not changed:
             break
     chosen = {k: models.closedloop[k] for k in TUNING_GRIDS}
     return {"chosen": chosen, "rmse_m": table, "cell": list(TUNING_CELL),
             "seeds": list(TUNING_SEEDS),
-            "passes": passes}
+            "passes": passes, "rmse_m_by_pass": by_pass}
 
 
 def run_closedloop(

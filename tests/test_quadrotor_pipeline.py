@@ -153,6 +153,9 @@ def test_tuning_passes_until_no_knob_changes():
     out = cl.tune(models, runner=FakeRunner())
     assert out["chosen"]["ours_beta"] == 0.2 and out["chosen"]["ours_sigma2"] == 1e-3
     assert out["passes"] == 3  # pass 2 moves beta, pass 3 confirms
+    first = out["rmse_m_by_pass"][0]["ours_beta"]  # at the starting sigma^2 = 0.1
+    assert len(out["rmse_m_by_pass"]) == 3 and min(first, key=first.get) == "0.05"
+    assert out["rmse_m_by_pass"][-1] == out["rmse_m"]
     assert len(flights) == len(set(flights))  # no setting of a method flown twice
     assert {f[1] for f in flights} == set(cl.TUNING_SEEDS)
 

@@ -117,6 +117,16 @@ def test_controller_degrades_on_stale_state_and_rejects_garbage(tmp_path):
     assert stats["setpoints"] == 3 and stats["hover"] == 1
 
 
+def test_adapter_flies_the_calibrated_noise_and_its_beta():
+    """The adapter's beam: the calibrated sigma^2 (Appendix D 0.1) with the beta tuned at
+    it, not the in-process evaluation's tuned pair (``services.adapter.stack_knobs``)."""
+    from services.adapter import STACK_BETA
+
+    learner, _ = adapter_learner(DEFAULT_WEIGHTS, np.float64)
+    np.testing.assert_allclose(np.asarray(learner.config.sigma2), 0.1)  # one per output
+    assert float(learner.config.beta) == pytest.approx(STACK_BETA)
+
+
 def test_a_checkpoint_of_another_beam_layout_is_not_restored(tmp_path):
     """A checkpoint whose beam lacks a field of the current one (written by a version
     without the offline prior mean in the state) is refused, not half-loaded."""
