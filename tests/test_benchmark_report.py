@@ -33,6 +33,23 @@ def test_quadrotor_section_marks_the_best_method_per_cell(tmp_path):
     assert "(150 g, 2 m/s" in text and "ours_sigma2 = 0.001" in text  # the tuned knobs
 
 
+def test_quadrotor_section_gives_the_median_settling_and_the_trials_off_band(tmp_path):
+    """One late excursion in ten trials sets the mean; the median and the count show it."""
+    def trial(method, i, settling):
+        return {"payload_g": 175, "speed_mps": 2.5, "method": method, "trial": i,
+                "settling_s": settling}
+
+    trials = ([trial("l1", i, 0.3) for i in range(10)]
+              + [trial("ours", i, 3.8 if i == 4 else 0.0) for i in range(10)])
+    cells = [_cell(175, 2.5, "l1", 0.08, 0.3), _cell(175, 2.5, "ours", 0.07, 0.38)]
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"cells": cells, "trials": trials, "settings": {"trials": 10}}))
+    text = "\n".join(report._quadrotor_section(path))
+    assert "| 175 | 2.5 | **0.30** | 0.38 |" in text  # the mean
+    assert "| 175 | 2.5 | 0.30 | **0.00** |" in text  # the median
+    assert "| 175 | 2.5 | 10 | **1** |" in text and "(of 10 per cell)" in text
+
+
 def test_quadrotor_section_says_how_to_produce_missing_results(tmp_path):
     text = "\n".join(report._quadrotor_section(tmp_path / "results.json"))
     assert "No results yet" in text and report.QUADROTOR_COMMAND in text
