@@ -80,9 +80,9 @@ not isolated). These flights are flown by the MPC on the ground-truth state: the
 error a decoder refitted over 2 s windows leaves is 0.002 m/s at 75 g / 0.5 m/s and
 0.04 m/s at 175 g / 2.5 m/s, so the calibrated noise variance is 1.5 to 600 times what the
 data show, and a light payload's release (0.07 m/s per step) hardly moves the changepoint
-evidence. The
-stack's adapter, fed by the state estimator, keeps the calibrated ``sigma^2`` and adds the
-estimator's noise to it at every step (``services.adapter``).
+evidence. The stack's adapter, fed by the state estimator, keeps the calibrated
+``sigma^2`` (with the ``beta`` tuned at it) and adds the estimator's noise to it at every
+step (``services.adapter.stack_knobs``).
 All other hyperparameters are the Appendix D values.
 
 Every method shares the MPC's safeguard (:mod:`arcade_core.mpc`): a failed or non-finite
@@ -755,11 +755,8 @@ def tune(
         return flown[key]
 
     models.closedloop = dict(TUNING_START)
-    table: dict[str, dict[str, float]] = {}
     by_pass: list[dict[str, dict[str, float]]] = []
-    passes = 0
-    while passes < MAX_TUNING_PASSES:
-        passes += 1
+    while len(by_pass) < MAX_TUNING_PASSES:
         changed = False
         table = {}
         for knob, grid in TUNING_GRIDS.items():
@@ -772,9 +769,8 @@ def tune(
         if not changed:
             break
     chosen = {k: models.closedloop[k] for k in TUNING_GRIDS}
-    return {"chosen": chosen, "rmse_m": table, "cell": list(TUNING_CELL),
-            "seeds": list(TUNING_SEEDS),
-            "passes": passes, "rmse_m_by_pass": by_pass}
+    return {"chosen": chosen, "rmse_m": by_pass[-1], "cell": list(TUNING_CELL),
+            "seeds": list(TUNING_SEEDS), "passes": len(by_pass), "rmse_m_by_pass": by_pass}
 
 
 def run_closedloop(

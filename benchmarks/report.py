@@ -292,8 +292,8 @@ def _quadrotor_section(path: Path) -> list[str]:
     if r.get("trials"):
         per = _settling_per_trial(r["trials"])
         lines += [
-            "The mean is carried by single trials: the definition counts any later excursion "
-            "out of the band, however long after the release. Median over the trials (s):",
+            "The settling time of a trial counts any excursion out of the band after the "
+            "release, however late, so one trial can move the mean. Median over the trials (s):",
             "",
             *_cell_table(per, "median", ".2f"),
             "",
