@@ -1,5 +1,7 @@
 """Evaluation metrics of Sec. V: prediction (CRMSE), tracking (RMSE), drop response
-(shift magnitude, settling time) and latent-feature Gramian diagnostics (Sec. V-B, Fig. 4).
+(shift magnitude, settling time) and latent-feature Gramian diagnostics (Sec. V-B, Fig. 4),
+plus one diagnostic the paper does not report: how much the commands jump from one control
+period to the next (:func:`increment_rms`).
 
 All functions are pure JAX on arrays with a leading time axis, jit-friendly (``t_drop``
 may be traced; window lengths are static).
@@ -111,6 +113,17 @@ def settling_time(t: Array, e: Array, t_drop: float | Array, band: float = 0.05)
     t_settle = t[jnp.clip(last_out + 1, 0, n - 1)] - t_drop
     time = jnp.where(last_out < 0, 0.0, jnp.where(settled, t_settle, jnp.inf))
     return Settling(time.astype(t.dtype), settled)
+
+
+def increment_rms(u: Array) -> Array:
+    """RMS of the step-to-step change of a command sequence ``u (T, m)``, per channel ``(m,)``.
+
+    Not a paper metric: a smoothness diagnostic of the commands a controller sends (a
+    vehicle feels a jumpy thrust or rate setpoint as vibration and motor heat, and two
+    controllers with the same tracking error can differ tenfold in it).
+    """
+    du = jnp.diff(_float(u), axis=0)
+    return jnp.sqrt(jnp.mean(du**2, axis=0))
 
 
 # --------------------------------------------------------------------------- Gramian

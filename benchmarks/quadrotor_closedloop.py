@@ -677,21 +677,39 @@ class Runner:
         return flight
 
 
+#: Column of ``Flight.diag`` holding the changepoint flag (after the 13 sigma entries).
+DIAG_CHANGEPOINT = 13
+
+
 def flight_metrics(f: Flight) -> dict[str, float]:
-    """RMSE, z-RMSE on the figure-eight part; shift and settling at the release."""
+    """RMSE, z-RMSE on the figure-eight part; shift and settling at the release.
+
+    Diagnostics beside the paper's metrics, on the figure-eight part too: the RMS of the
+    step-to-step change of the thrust command (N) and of the body-rate commands (rad/s,
+    over the three axes; :func:`arcade_core.metrics.increment_rms`), and for the beam
+    methods the fraction of control steps on which a changepoint was flagged
+    (``nan`` for the others).
+    """
     inf = float("inf")
+    beam = base_name(f.method).startswith("ours")
     if f.crashed:
         return {"rmse_m": inf, "rmse_z_m": inf, "shift_m": inf, "settling_s": inf,
-                "crashed": 1.0}
+                "thrust_increment_rms_n": inf, "rate_increment_rms_rad_s": inf,
+                "changepoint_rate": float("nan"), "crashed": 1.0}
     sel = f.t >= f.scenario.t_figure - 1e-9
     p, pr = jnp.asarray(f.x[sel, :3]), jnp.asarray(f.x_ref[sel, :3])
     e_z = jnp.asarray(f.error[:, 2])
     t = jnp.asarray(f.t)
+    du = np.asarray(metrics.increment_rms(jnp.asarray(f.u[sel])))
     out = {
         "rmse_m": float(metrics.position_rmse(p, pr)),
         "rmse_z_m": float(metrics.z_rmse(p, pr)),
         "shift_m": float("nan"),
         "settling_s": float("nan"),
+        "thrust_increment_rms_n": float(du[0]),
+        "rate_increment_rms_rad_s": float(np.sqrt(np.mean(du[1:] ** 2))),
+        "changepoint_rate": float(np.mean(f.diag[sel, DIAG_CHANGEPOINT])) if beam
+        else float("nan"),
         "crashed": 0.0,
     }
     if np.isfinite(f.t_release):
@@ -704,6 +722,8 @@ def flight_metrics(f: Flight) -> dict[str, float]:
 
 
 KEYS = ("rmse_m", "rmse_z_m", "shift_m", "settling_s")
+#: Diagnostics averaged per cell beside :data:`KEYS` (:func:`flight_metrics`).
+DIAGNOSTIC_KEYS = ("thrust_increment_rms_n", "rate_increment_rms_rad_s", "changepoint_rate")
 
 
 def _mean(values: Sequence[float]) -> float:
@@ -714,6 +734,13 @@ def _finite_mean(values: Sequence[float]) -> float:
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
     return float(v.mean()) if v.size else float("inf")
+
+
+def _diagnostic_mean(values: Sequence[float]) -> float:
+    """Mean over the flights that have the diagnostic (not crashed, a beam method), or nan."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")
 
 
 def tune(
@@ -789,7 +816,8 @@ def run_closedloop(
     ``quick``: one trial of the 175 g / 2.5 m/s cell (a few minutes on a laptop CPU,
     most of it compiling the six controllers). ``cells`` are ``(payload_g, speed_mps)``
     pairs. Returns ``{"cells": [{payload_g, speed_mps, method, rmse_m, rmse_z_m, shift_m,
-    settling_s, settled_fraction, crashed}, ...] (means over trials), "trials": [...]
+    settling_s, settled_fraction, crashed, *DIAGNOSTIC_KEYS}, ...] (means over trials;
+    the diagnostics over the flights that have them), "trials": [...]
     (per-trial values), "improvement_over_nominal": ..., "settings": ...}``. ``out``: a
     folder for figures and the Fig. 5 time series. ``tuning`` (default: not ``quick``)
     runs :func:`tune` first; otherwise :data:`TUNED_DEFAULTS` (or what ``models`` holds).
@@ -813,7 +841,8 @@ def run_closedloop(
         scen = Scenario(payload_g=float(pay), speed_mps=float(speed))
         for name in methods:
             progress(f"{pay:g} g, {speed:g} m/s: {name} ({trials} trial(s))")
-            vals: dict[str, list[float]] = {k: [] for k in (*KEYS, "crashed")}
+            vals: dict[str, list[float]] = {k: [] for k in (*KEYS, *DIAGNOSTIC_KEYS,
+                                                            "crashed")}
             step_ms = []
             for trial in range(trials):
                 f = runner.fly(name, scen, seed=seed * 1000 + trial)
@@ -828,6 +857,7 @@ def run_closedloop(
             rows.append({
                 "payload_g": pay, "speed_mps": speed, "method": name,
                 **{k: _mean(vals[k]) for k in KEYS},
+                **{k: _diagnostic_mean(vals[k]) for k in DIAGNOSTIC_KEYS},
                 "rmse_m_finite_mean": _finite_mean(vals["rmse_m"]),
                 "settled_fraction": float(np.mean(settled)),
                 "crashed": float(np.mean(vals["crashed"])),
@@ -984,12 +1014,17 @@ def _cast(tree, dtype):
 def format_table(result: dict[str, Any]) -> str:
     """Human-readable Table III analogue."""
     lines = ["Closed-loop tracking (mean over trials): RMSE / z-RMSE [m], shift [m], "
-             "settling [s]"]
+             "settling [s]; RMS command increments per control period (dT, drate); "
+             "fraction of steps with a changepoint flagged (beam methods)"]
     for r in result["cells"]:
         lines.append(
             f"  {r['payload_g']:5.0f} g {r['speed_mps']:.1f} m/s  {r['method']:11s} "
             f"{r['rmse_m']:.3f} / {r['rmse_z_m']:.3f}  shift {r['shift_m']:.3f}  "
             f"settle {r['settling_s']:.2f} ({100 * r['settled_fraction']:.0f} % settled)"
+            f"  dT {r['thrust_increment_rms_n']:.2f} N  drate "
+            f"{r['rate_increment_rms_rad_s']:.2f} rad/s"
+            + (f"  changepoints {r['changepoint_rate']:.2f}"
+               if np.isfinite(r["changepoint_rate"]) else "")
             + (f"  CRASHED in {100 * r['crashed']:.0f} % of trials (mean RMSE of the others "
                f"{r['rmse_m_finite_mean']:.3f})" if r["crashed"] > 0 else "")
         )

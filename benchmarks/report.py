@@ -251,6 +251,29 @@ def _settling_per_trial(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
             for (p, v, m), x in by.items()]
 
 
+def _diagnostics_tables(cells: list[dict[str, Any]]) -> list[str]:
+    """Command increments and changepoint rate per cell (absent from older result files)."""
+    if not any("thrust_increment_rms_n" in c for c in cells):
+        return []
+    beam = [c for c in cells if c["method"].startswith("ours") and c["method"] != "ours_no_cp"]
+    return [
+        "Diagnostics beside the paper's metrics (lower is smoother; not targets). RMS change "
+        "of the thrust command from one control period to the next (N):",
+        "",
+        *_cell_table(cells, "thrust_increment_rms_n", ".2f"),
+        "",
+        "RMS change of the body-rate commands from one control period to the next "
+        "(rad/s, three axes):",
+        "",
+        *_cell_table(cells, "rate_increment_rms_rad_s", ".2f"),
+        "",
+        "Control steps on which ours flagged a changepoint (fraction of the figure-eight):",
+        "",
+        *_cell_table(beam, "changepoint_rate", ".2f", best=lambda v: None),
+        "",
+    ]
+
+
 def _quadrotor_section(path: Path) -> list[str]:
     """Tables of the stored quadrotor evaluation (its own command: ~1 h on 2 cores)."""
     head = ["## Quadrotor (`arcade eval quadrotor --json`; paper Sec. V-B, Tables II, III, V)", ""]
@@ -303,6 +326,7 @@ def _quadrotor_section(path: Path) -> list[str]:
             *_cell_table(per, "left_band", "d"),
             "",
         ]
+    lines += _diagnostics_tables(r["cells"])
     tuning = r.get("tuning")
     if tuning:
         cell = tuning.get("cell", ["?", "?"])

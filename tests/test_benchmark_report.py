@@ -50,6 +50,24 @@ def test_quadrotor_section_gives_the_median_settling_and_the_trials_off_band(tmp
     assert "| 175 | 2.5 | 10 | **1** |" in text and "(of 10 per cell)" in text
 
 
+def test_quadrotor_section_tables_the_diagnostics_when_the_results_have_them(tmp_path):
+    def cell(method, dT, drate, cp):
+        return {**_cell(175, 2.5, method, 0.08, 0.3), "thrust_increment_rms_n": dT,
+                "rate_increment_rms_rad_s": drate, "changepoint_rate": cp}
+
+    cells = [cell("l1", 0.13, 0.03, float("nan")), cell("ours_no_cp", 0.3, 0.2, 0.0),
+             cell("ours", 0.55, 0.41, 0.54)]
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"cells": cells, "settings": {"trials": 10}}))
+    text = "\n".join(report._quadrotor_section(path))
+    assert "| 175 | 2.5 | **0.13** | 0.30 | 0.55 |" in text  # thrust increments
+    assert "| 175 | 2.5 | **0.03** | 0.20 | 0.41 |" in text  # rate increments
+    assert "| payload (g) | speed (m/s) | ours |" in text and "| 175 | 2.5 | 0.54 |" in text
+    # Result files written before the diagnostics existed still give a report without them.
+    path.write_text(json.dumps({"cells": [_cell(175, 2.5, "l1", 0.08, 0.3)]}))
+    assert "thrust command" not in "\n".join(report._quadrotor_section(path))
+
+
 def test_quadrotor_section_says_how_to_produce_missing_results(tmp_path):
     text = "\n".join(report._quadrotor_section(tmp_path / "results.json"))
     assert "No results yet" in text and report.QUADROTOR_COMMAND in text

@@ -36,6 +36,14 @@ def test_rmse_family():
     np.testing.assert_allclose(metrics.rmse_per_component(p, p_ref), np.sqrt([0.5, 2.0, 2.0]))
 
 
+def test_increment_rms_hand_values():
+    # Channel 0 steps by +1, -1, +1; channel 1 is constant; a ramp has a constant increment.
+    u = np.array([[0.0, 5.0], [1.0, 5.0], [0.0, 5.0], [1.0, 5.0]])
+    np.testing.assert_allclose(metrics.increment_rms(u), [1.0, 0.0], atol=1e-15)
+    ramp = np.linspace(0.0, 3.0, 7)[:, None]
+    np.testing.assert_allclose(metrics.increment_rms(ramp), [0.5], rtol=1e-14)
+
+
 def _drop_signal():
     t = np.round(np.arange(0.0, 3.0 + 1e-9, 0.1), 10)
     e = np.full_like(t, 0.01)

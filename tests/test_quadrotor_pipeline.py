@@ -192,3 +192,32 @@ def test_controller_step_does_not_depend_on_the_quaternion_sign():
     _, u_neg, _ = step(carry, jnp.asarray(flipped), u0, 0, x_ref_all, u_ref_all)
     np.testing.assert_allclose(np.asarray(u_neg), np.asarray(u_pos), rtol=1e-9, atol=1e-9)
     assert float(u_pos[0]) > 4.0  # a climb back to the reference, not a cut in thrust
+
+
+def _logged_flight(method: str, u: np.ndarray, changepoint: np.ndarray) -> cl.Flight:
+    """A flight record of 20 control steps at 0.05 s; the figure-eight starts at 0.5 s."""
+    n = len(u)
+    t = 0.05 * np.arange(n)
+    x = np.zeros((n, 13))
+    diag = np.zeros((n, 17))
+    diag[:, cl.DIAG_CHANGEPOINT] = changepoint
+    scen = cl.Scenario(takeoff_s=0.25, hover_s=0.25, release_fraction=-1.0)
+    return cl.Flight(method, scen, 0, t, x, x.copy(), u, diag, float("nan"), False, t)
+
+
+def test_flight_diagnostics_measure_command_jumps_and_changepoints():
+    """Thrust alternating +-0.5 N and roll rate +-0.2 rad/s per period in the figure-eight
+    part (the first 10 steps hold still and are outside it); changepoints on 3 of 10 steps."""
+    n = 20
+    u = np.zeros((n, 4))
+    u[:, 0] = 5.0
+    u[10:, 0] += 0.5 * (-1.0) ** np.arange(10)
+    u[10:, 1] = 0.1 * (-1.0) ** np.arange(10)
+    cp = np.zeros(n)
+    cp[[2, 12, 15, 19]] = 1.0  # step 2 is before the figure-eight
+    m = cl.flight_metrics(_logged_flight("ours", u, cp))
+    assert m["thrust_increment_rms_n"] == pytest.approx(1.0)
+    assert m["rate_increment_rms_rad_s"] == pytest.approx(np.sqrt(0.2**2 / 3))
+    assert m["changepoint_rate"] == pytest.approx(0.3)
+    # Methods without a changepoint detector report none, not zero.
+    assert np.isnan(cl.flight_metrics(_logged_flight("l1", u, cp))["changepoint_rate"])
