@@ -188,6 +188,12 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
             f"step {k} {v:.0%}" for k, v in r["hit_rate_per_intervention"].items())
            + " (at step 0 the beam has no earlier regime: it starts from the offline prior)."),
         "",
+    ]
+    if "detection_tuning" in r:
+        from benchmarks.cartpole_eval import detection_summary
+
+        lines += [detection_summary(r["detection_tuning"]), ""]
+    lines += [
         f"Offline validation, CRMSE on 20 test trajectories (mean ± std over "
         f"{r['settings']['n_splits']} random 80/20 splits):",
         "",

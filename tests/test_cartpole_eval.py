@@ -73,3 +73,34 @@ def test_tuned_pi_is_the_one_evaluated(result):
     assert scores[str(preset_pi)] == t["ours"]["tuning_crmse"][str(t["ours"]["chosen"])]
     cfg = result["ours_config"]
     assert (cfg["beta"], cfg["pi"]) == (t["ours"]["chosen"], t["ours_pi"]["chosen"])
+
+
+def test_detection_tuned_row_is_the_most_accurate_pair_that_detects(result):
+    """The (beta, pi) grid runs with traced knobs in one program: its rows must equal the
+    separately compiled tuning runs, and the chosen pair is the lowest tuning CRMSE among
+    the pairs that reach the hit rate."""
+    d = result["detection_tuning"]
+    grid = {(g["beta"], g["pi"]): g for g in d["grid"]}
+    assert len(grid) == len(ce.OURS_BETA_GRID) * len(ce.OURS_PI_GRID)
+    preset_pi = ce.adaptation.cartpole_config().pi
+    for beta, crmse in result["tuning"]["ours"]["tuning_crmse"].items():
+        assert grid[(float(beta), preset_pi)]["tuning_crmse"] == pytest.approx(crmse, rel=1e-4)
+    ok = [g for g in d["grid"] if g["tuning_hit_rate"] >= d["min_hit_rate"]]
+    if ok:
+        best = min(ok, key=lambda g: g["tuning_crmse"])
+        assert d["chosen"] == {"beta": best["beta"], "pi": best["pi"]}
+        assert math.isfinite(result["online"]["ours_detection_tuned"]["mean"])
+        assert 0.0 <= d["changepoints"]["hit_rate"] <= 1.0
+    else:
+        assert d["chosen"] is None and "ours_detection_tuned" not in result["online"]
+
+
+def test_detection_summary_says_when_no_pair_detects_enough():
+    text = ce.detection_summary({"min_hit_rate": 0.9, "grid": [], "chosen": None})
+    assert "no (beta, pi) pair" in text and "90%" in text
+    text = ce.detection_summary({
+        "min_hit_rate": 0.9, "chosen": {"beta": 0.5, "pi": 0.3},
+        "changepoints": {"hit_rate": 0.97, "false_alarms_per_100_steps": 19.7,
+                         "mean_delay_steps": 0.7},
+        "hit_rate_per_intervention": {"0": 0.9, "40": 1.0}})
+    assert "beta = 0.5, pi = 0.3" in text and "hit rate 97% (step 0 90%, step 40 100%)" in text
