@@ -167,7 +167,8 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
         + f", Ours w/o CP tau^2 = {t['ours_no_cp']['chosen']:g} (paper 0.1; with one hypothesis "
         "only tau^2 / sigma^2 matters), MLP learning rate = "
         f"{t['mlp_last_layer']['chosen']:g} (paper 1e-6); the GP's hyperparameters are fitted "
-        "by marginal likelihood. Detection quality is not a tuning criterion. "
+        "by marginal likelihood. Detection quality is not a tuning criterion of these rows "
+        "(it is of `ours_detection_tuned`, below). "
         "Rows `*_paper_*` use the paper's settings; "
         "`oracle_true_model` knows the true dynamics and shows the noise floor.",
         "",
