@@ -120,7 +120,7 @@ def increment_rms(u: Array) -> Array:
 
     Not a paper metric: a smoothness diagnostic of the commands a controller sends (a
     vehicle feels a jumpy thrust or rate setpoint as vibration and motor heat, and two
-    controllers with the same tracking error can differ tenfold in it).
+    controllers with the same tracking error can differ several-fold in it).
     """
     du = jnp.diff(_float(u), axis=0)
     return jnp.sqrt(jnp.mean(du**2, axis=0))

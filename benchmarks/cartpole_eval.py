@@ -50,7 +50,8 @@ from benchmarks import cartpole_data as cd
 STATE_NAMES = ("x", "xdot", "theta", "thetadot")
 MLP_LR_GRID = (1e-6, 1e-4, 1e-3, 1e-2, 1e-1, 0.3, 1.0)
 OURS_BETA_GRID = (0.3, 0.5, 0.7, 0.9, 0.97)
-OURS_PI_GRID = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)  # tuned after beta, at the tuned beta
+# pi is tuned after beta, at the tuned beta; beta at the preset pi, which the grid holds.
+OURS_PI_GRID = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
 # Wide on purpose: with K = 1 the predictions depend on tau^2 / sigma^2 only, and the
 # tuning picks the largest values (an almost flat prior); a grid ending at 1 cut it short.
 NO_CP_TAU2_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 100.0)
@@ -267,23 +268,27 @@ def hits_per_intervention(flags: np.ndarray, steps=cd.INTERVENTION_STEPS) -> dic
     return {str(t): changepoint_quality(flags, steps=(t,))["hit_rate"] for t in steps}
 
 
-def _tune(make_fn, grid, X, U, X_np) -> dict[str, Any]:
-    """Pick the grid value with the lowest mean CRMSE on the tuning trajectories."""
-    scores = {}
-    for value in grid:
-        c = _crmse_batch(jax.jit(jax.vmap(make_fn(value)))(X, U), X_np)
-        scores[value] = float(c.mean()) if np.isfinite(c).all() else float("inf")
+def _choice(scores: dict[float, float]) -> dict[str, Any]:
+    """The grid value with the lowest mean tuning CRMSE, and every value's score."""
     return {
         "chosen": min(scores, key=scores.get),
         "tuning_crmse": {str(k): v for k, v in scores.items()},
     }
 
 
-def detection_tuning(model, cfg, X, U, X_np, betas=OURS_BETA_GRID, pis=OURS_PI_GRID,
-                     min_hit_rate=DETECTION_MIN_HIT_RATE) -> dict[str, Any]:
-    """Lowest tuning CRMSE over the ``betas x pis`` grid among the pairs whose hit rate on
-    the tuning trajectories is at least ``min_hit_rate`` (``chosen`` is ``None`` when no
-    pair reaches it). All pairs run in one compiled program (the knobs are traced)."""
+def _tune(make_fn, grid, X, U, X_np) -> dict[str, Any]:
+    """Pick the grid value with the lowest mean CRMSE on the tuning trajectories."""
+    scores = {}
+    for value in grid:
+        c = _crmse_batch(jax.jit(jax.vmap(make_fn(value)))(X, U), X_np)
+        scores[value] = float(c.mean()) if np.isfinite(c).all() else float("inf")
+    return _choice(scores)
+
+
+def beam_tuning_grid(model, cfg, X, U, X_np, betas=OURS_BETA_GRID,
+                     pis=OURS_PI_GRID) -> list[dict[str, float]]:
+    """Ours on the tuning trajectories for every ``(beta, pi)`` pair: mean CRMSE and hit
+    rate per pair. All pairs run in one compiled program (the knobs are traced)."""
     B, P = (a.ravel() for a in np.meshgrid(np.asarray(betas, float), np.asarray(pis, float),
                                            indexing="ij"))
 
@@ -298,6 +303,14 @@ def detection_tuning(model, cfg, X, U, X_np, betas=OURS_BETA_GRID, pis=OURS_PI_G
         grid.append({"beta": float(B[i]), "pi": float(P[i]),
                      "tuning_crmse": float(c.mean()) if np.isfinite(c).all() else float("inf"),
                      "tuning_hit_rate": changepoint_quality(np.asarray(flags[i]))["hit_rate"]})
+    return grid
+
+
+def detection_tuning(grid: list[dict[str, float]],
+                     min_hit_rate=DETECTION_MIN_HIT_RATE) -> dict[str, Any]:
+    """Lowest tuning CRMSE of :func:`beam_tuning_grid` among the pairs whose hit rate on
+    the tuning trajectories is at least ``min_hit_rate`` (``chosen`` is ``None`` when no
+    pair reaches it)."""
     ok = [g for g in grid if g["tuning_hit_rate"] >= min_hit_rate]
     best = min(ok, key=lambda g: g["tuning_crmse"]) if ok else None
     return {"min_hit_rate": min_hit_rate, "grid": grid,
@@ -363,10 +376,6 @@ def evaluate(
     tx, tu = jnp.asarray(tune_data.X), jnp.asarray(tune_data.U)
     cfg = adaptation.cartpole_config()
 
-    def ours_fn(beta, pi=cfg.pi):
-        c = cfg._replace(beta=beta, pi=pi)
-        return lambda X, U: run_beam(m.vld, c, X, U)[0]
-
     def no_cp_fn(tau2):
         c = adaptation.AdaptationConfig(K=1, pi=0.0, beta=1.0, tau2=tau2, sigma2=cfg.sigma2)
         return lambda X, U: run_beam(m.vld, c, X, U)[0]
@@ -375,15 +384,18 @@ def evaluate(
         return lambda X, U: run_mlp(m.mlp, lr, X, U)
 
     # Each method's online knobs, chosen on separate tuning trajectories (module docstring).
+    # Ours: one run of the whole beta x pi grid serves beta (at the preset pi), pi (at the
+    # tuned beta) and the detection-tuned pair.
     progress("online: tuning beta then pi (ours), tau^2 (ours w/o CP), learning rate (MLP)")
-    tuned = {"ours": _tune(ours_fn, OURS_BETA_GRID, tx, tu, tune_data.X)}
+    grid = beam_tuning_grid(m.vld, cfg, tx, tu, tune_data.X)
+    crmse = {(g["beta"], g["pi"]): g["tuning_crmse"] for g in grid}
+    tuned = {"ours": _choice({b: crmse[(b, cfg.pi)] for b in OURS_BETA_GRID})}
     beta = tuned["ours"]["chosen"]
-    tuned["ours_pi"] = _tune(lambda p: ours_fn(beta, p), OURS_PI_GRID, tx, tu, tune_data.X)
+    tuned["ours_pi"] = _choice({p: crmse[(beta, p)] for p in OURS_PI_GRID})
     tuned["ours_no_cp"] = _tune(no_cp_fn, NO_CP_TAU2_GRID, tx, tu, tune_data.X)
     tuned["mlp_last_layer"] = _tune(mlp_fn, MLP_LR_GRID, tx, tu, tune_data.X)
     ours_cfg = cfg._replace(beta=beta, pi=tuned["ours_pi"]["chosen"])
-    progress("online: tuning ours for detection (beta x pi)")
-    detection = detection_tuning(m.vld, cfg, tx, tu, tune_data.X)
+    detection = detection_tuning(grid)
 
     progress("online: running all methods")
     vm = lambda f: jax.jit(jax.vmap(f))(X, U)  # noqa: E731

@@ -730,17 +730,12 @@ def _mean(values: Sequence[float]) -> float:
     return float(np.mean(np.asarray(values, float)))
 
 
-def _finite_mean(values: Sequence[float]) -> float:
+def _finite_mean(values: Sequence[float], empty: float = float("inf")) -> float:
+    """Mean of the finite values (flights that did not crash; for a diagnostic, that have
+    it), ``empty`` when there are none."""
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
-    return float(v.mean()) if v.size else float("inf")
-
-
-def _diagnostic_mean(values: Sequence[float]) -> float:
-    """Mean over the flights that have the diagnostic (not crashed, a beam method), or nan."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    return float(v.mean()) if v.size else float("nan")
+    return float(v.mean()) if v.size else empty
 
 
 def tune(
@@ -857,7 +852,7 @@ def run_closedloop(
             rows.append({
                 "payload_g": pay, "speed_mps": speed, "method": name,
                 **{k: _mean(vals[k]) for k in KEYS},
-                **{k: _diagnostic_mean(vals[k]) for k in DIAGNOSTIC_KEYS},
+                **{k: _finite_mean(vals[k], empty=float("nan")) for k in DIAGNOSTIC_KEYS},
                 "rmse_m_finite_mean": _finite_mean(vals["rmse_m"]),
                 "settled_fraction": float(np.mean(settled)),
                 "crashed": float(np.mean(vals["crashed"])),
