@@ -6,7 +6,8 @@
 3. Online adaptation: disturbed trajectories of 120 steps with interventions at steps 0, 40
    and 80 (see ``cartpole_data``); every method starts from the same offline training
    (split 0) and is updated online after each step; one-step-ahead CRMSE per trajectory.
-4. Changepoint detection quality of Ours, ablations over K, beta, pi, and the figures.
+4. Changepoint detection quality of Ours, ablations over K, beta, pi and the encoder's
+   latent dimension l (:func:`latent_ablation`), and the figures.
 
 Prediction protocol: at step k each method predicts x_{k+1} from (x_k, u_k) with what it
 knew after step k-1, then sees x_{k+1} and updates. CRMSE is the paper's footnote metric
@@ -20,7 +21,9 @@ one hypothesis its predictions depend on tau^2 / sigma^2 only, so that is its on
 for the MLP the online learning rate; the GP's hyperparameters are fitted by marginal
 likelihood on the offline data (Appendix D). Detection quality is not a tuning criterion.
 The paper's own settings (Appendix D: beta = 0.9, tau^2 = 0.1; MLP rate 1e-6) are reported
-beside the tuned ones, as are an oracle that knows the true model (the noise floor).
+beside the tuned ones, as are an oracle that knows the true model (the noise floor) and
+Ours with the true changepoints (:func:`run_known_changepoints`, its beta tuned the same
+way): what a detector that never misses and never false-alarms would buy.
 
 Beside them, one more row for a user who needs the detector itself (to log or act on
 changes): ``ours_detection_tuned``, the (beta, pi) pair of the grid with the lowest tuning
@@ -55,6 +58,10 @@ OURS_PI_GRID = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
 # Wide on purpose: with K = 1 the predictions depend on tau^2 / sigma^2 only, and the
 # tuning picks the largest values (an almost flat prior); a grid ending at 1 cut it short.
 NO_CP_TAU2_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 100.0)
+# The known-changepoint reference restarts only at true changes: it may temper harder.
+KNOWN_CP_BETA_GRID = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9)
+#: Latent dimensions of the ablation over l (Appendix D: l = 2 for the cartpole).
+LATENT_DIMS = (2, 4, 8)
 PAPER_MLP_LR = 1e-6
 HIT_WINDOW = 3  # steps after an intervention within which a detection counts (issue spec)
 #: Hit rate the detection-tuned row must reach on the tuning trajectories.
@@ -98,9 +105,12 @@ def f_nom(x, u):
     return cartpole_nominal_step(x, u)
 
 
-def train_vld(key, x, u, xn, *, variational: bool, epochs: int, callback=None) -> encoder.VLD:
+def train_vld(key, x, u, xn, *, variational: bool, epochs: int, callback=None,
+              **overrides: Any) -> encoder.VLD:
+    """The cartpole VLD (Appendix D preset; ``overrides`` change its config, e.g.
+    ``latent_dim`` for :func:`latent_ablation`), residual scale calibrated to sigma^2."""
     delta = xn - cd.nominal_next(x, u)
-    cfg = encoder.cartpole_config(epochs=epochs, variational=variational)
+    cfg = encoder.cartpole_config(epochs=epochs, variational=variational, **overrides)
     model, _ = encoder.train(key, cfg, x, u, delta, callback=callback)
     return encoder.calibrate_residual_scale(model, x, u, delta, adaptation.cartpole_config().sigma2)
 
@@ -186,6 +196,30 @@ def run_beam(model: encoder.VLD, cfg: adaptation.AdaptationConfig, X, U):
 
     _, out = jax.lax.scan(body, state0, (X[:-1], U, X[1:]))
     return out
+
+
+def run_known_changepoints(model: encoder.VLD, cfg: adaptation.AdaptationConfig, X, U,
+                           steps=cd.INTERVENTION_STEPS):
+    """Reference, not a method: Ours with one hypothesis (K = 1) whose changepoints are
+    the true intervention steps and no others (the prior tempered with ``cfg.beta`` at
+    exactly those steps, Eq. 5). It shows what a detector that never misses and never
+    false-alarms would buy. Returns the predictions, ``(T, 4)``."""
+    pis = np.zeros(U.shape[0])
+    # pi = 1 forces the changepoint branch, pi = 0 forbids it.
+    pis[[t for t in steps if t < len(pis)]] = 1.0
+    c0 = cfg._replace(K=1)
+    state0 = adaptation.init(model.theta0, c0)
+
+    def body(state, inp):
+        x, u, xn, pi = inp
+        nom = f_nom(x, u)
+        dn = model.normalise_residual(xn - nom)
+        state, pred, _ = adaptation.step(state, model.features(x, u), dn, c0._replace(pi=pi),
+                                         model.latent_variance(x, u))
+        return state, nom + model.denormalise_residual(pred.mean)
+
+    pis = jnp.asarray(pis, jnp.result_type(X))
+    return jax.lax.scan(body, state0, (X[:-1], U, X[1:], pis))[1]
 
 
 def run_offline_only(model: encoder.VLD, X, U):
@@ -276,6 +310,16 @@ def _choice(scores: dict[float, float]) -> dict[str, Any]:
     }
 
 
+def ours_tuning(grid: list[dict[str, float]], preset_pi: float) -> dict[str, Any]:
+    """Ours' CRMSE tuning read off :func:`beam_tuning_grid`: beta at the preset pi, then pi
+    at that beta (``{"ours": .., "ours_pi": ..}``, each as :func:`_choice` gives it)."""
+    crmse = {(g["beta"], g["pi"]): g["tuning_crmse"] for g in grid}
+    betas = sorted({g["beta"] for g in grid})
+    pis = sorted({g["pi"] for g in grid})
+    ours = _choice({b: crmse[(b, preset_pi)] for b in betas})
+    return {"ours": ours, "ours_pi": _choice({p: crmse[(ours["chosen"], p)] for p in pis})}
+
+
 def _tune(make_fn, grid, X, U, X_np) -> dict[str, Any]:
     """Pick the grid value with the lowest mean CRMSE on the tuning trajectories."""
     scores = {}
@@ -359,7 +403,7 @@ def evaluate(
             lambda m, sp=split: progress(f"split {sp + 1}/{s.n_splits}: {m}"),
         )
         if split == 0:
-            models0 = models
+            models0, train0 = models, (x, u, xn)
         for name, pred in offline_predictors(models).items():
             c = trajectory_crmse(pred, data.X[test], data.U[test])
             offline.setdefault(name, []).append(float(c.mean()))
@@ -383,18 +427,19 @@ def evaluate(
     def mlp_fn(lr):
         return lambda X, U: run_mlp(m.mlp, lr, X, U)
 
+    def known_fn(beta):
+        return lambda X, U: run_known_changepoints(m.vld, cfg._replace(beta=beta), X, U)
+
     # Each method's online knobs, chosen on separate tuning trajectories (module docstring).
     # Ours: one run of the whole beta x pi grid serves beta (at the preset pi), pi (at the
     # tuned beta) and the detection-tuned pair.
     progress("online: tuning beta then pi (ours), tau^2 (ours w/o CP), learning rate (MLP)")
     grid = beam_tuning_grid(m.vld, cfg, tx, tu, tune_data.X)
-    crmse = {(g["beta"], g["pi"]): g["tuning_crmse"] for g in grid}
-    tuned = {"ours": _choice({b: crmse[(b, cfg.pi)] for b in OURS_BETA_GRID})}
-    beta = tuned["ours"]["chosen"]
-    tuned["ours_pi"] = _choice({p: crmse[(beta, p)] for p in OURS_PI_GRID})
+    tuned = ours_tuning(grid, cfg.pi)
     tuned["ours_no_cp"] = _tune(no_cp_fn, NO_CP_TAU2_GRID, tx, tu, tune_data.X)
     tuned["mlp_last_layer"] = _tune(mlp_fn, MLP_LR_GRID, tx, tu, tune_data.X)
-    ours_cfg = cfg._replace(beta=beta, pi=tuned["ours_pi"]["chosen"])
+    tuned["ours_known_changepoints"] = _tune(known_fn, KNOWN_CP_BETA_GRID, tx, tu, tune_data.X)
+    ours_cfg = cfg._replace(beta=tuned["ours"]["chosen"], pi=tuned["ours_pi"]["chosen"])
     detection = detection_tuning(grid)
 
     progress("online: running all methods")
@@ -412,6 +457,7 @@ def evaluate(
         "ours_no_cp_paper_config": vm(no_cp_fn(cfg.tau2)),
         "mlp_last_layer_paper_lr": vm(mlp_fn(PAPER_MLP_LR)),
         "oracle_true_model": vm(lambda X, U: run_oracle(sched, X, U)),
+        "ours_known_changepoints": vm(known_fn(tuned["ours_known_changepoints"]["chosen"])),
     }
     det = detection["chosen"]
     if det is not None:
@@ -444,6 +490,10 @@ def evaluate(
         # detected, so K and pi would change nothing visible there.
         progress("ablations over K, beta, pi (around the tuned configuration)")
         result["ablations"] = ablations(m.vld, ours_cfg, online_data)
+        progress(f"ablation over the latent dimension l = {LATENT_DIMS} (training each)")
+        vld_key = jax.random.split(jax.random.fold_in(k_train, 0), 6)[0]  # as train_all
+        result["latent_ablation"] = latent_ablation(
+            vld_key, train0, m.vld, cfg, s, tune_data, online_data)
 
     if out_dir is not None:
         from benchmarks import cartpole_figures as figs
@@ -485,6 +535,46 @@ def ablations(model, cfg, data) -> dict[str, list[dict[str, float]]]:
     return out
 
 
+def latent_ablation(key, train, vld0: encoder.VLD, cfg: adaptation.AdaptationConfig,
+                    s: EvalSettings, tune: cd.Batch, online: cd.Batch,
+                    dims=LATENT_DIMS) -> list[dict[str, Any]]:
+    """Ours, Ours w/o CP and offline-only for each latent dimension ``l`` of the encoder.
+
+    Each ``l`` is trained like the main model (same data, key and epochs; the preset ``l``
+    reuses ``vld0``, the model of every other row) and both online methods are tuned
+    on the tuning trajectories exactly as in :func:`evaluate`, so a row differs from the
+    main table only by ``l``.
+    """
+    x, u, xn = train
+    tx, tu = jnp.asarray(tune.X), jnp.asarray(tune.U)
+    X, U = jnp.asarray(online.X), jnp.asarray(online.U)
+    rows = []
+    for l in dims:
+        vld = vld0 if l == vld0.theta0.shape[-1] else train_vld(
+            key, x, u, xn, variational=True, epochs=s.epochs, latent_dim=l)
+        tuned = ours_tuning(beam_tuning_grid(vld, cfg, tx, tu, tune.X), cfg.pi)
+
+        def no_cp_fn(tau2, vld=vld):
+            c = adaptation.AdaptationConfig(K=1, pi=0.0, beta=1.0, tau2=tau2, sigma2=cfg.sigma2)
+            return lambda X, U: run_beam(vld, c, X, U)[0]
+
+        tau2 = _tune(no_cp_fn, NO_CP_TAU2_GRID, tx, tu, tune.X)["chosen"]
+        c = cfg._replace(beta=tuned["ours"]["chosen"], pi=tuned["ours_pi"]["chosen"])
+        xhat, _, flags, _ = beam_batch(vld, c, X, U)
+        ours = _crmse_batch(xhat, online.X)
+        no_cp = _crmse_batch(jax.jit(jax.vmap(no_cp_fn(tau2)))(X, U), online.X)
+        offline = _crmse_batch(
+            jax.jit(jax.vmap(lambda X, U, vld=vld: run_offline_only(vld, X, U)))(X, U), online.X)
+        q = changepoint_quality(np.asarray(flags))
+        rows.append({"l": l, "beta": float(c.beta), "pi": float(c.pi), "tau2": tau2,
+                     "ours": _stat(ours), "ours_no_cp": _stat(no_cp),
+                     "offline_only": _stat(offline),
+                     "ratio_ours_no_cp": float(ours.mean() / no_cp.mean()),
+                     "hit_rate": q["hit_rate"],
+                     "false_alarms_per_100_steps": q["false_alarms_per_100_steps"]})
+    return rows
+
+
 def format_table(result: dict[str, Any]) -> str:
     """Human-readable summary of :func:`evaluate`."""
     lines = ["Online adaptation (CRMSE, mean ± std over trajectories):"]
@@ -500,6 +590,12 @@ def format_table(result: dict[str, Any]) -> str:
         f"{cp['mean_delay_steps']:.2f} steps"
     )
     lines.append(detection_summary(result.get("detection_tuning")))
+    for row in result.get("latent_ablation", []):
+        lines.append(
+            f"Latent dimension l = {row['l']}: ours {row['ours']['mean']:.3f} (hit rate "
+            f"{row['hit_rate']:.0%}), ours_no_cp {row['ours_no_cp']['mean']:.3f}, "
+            f"offline_only {row['offline_only']['mean']:.3f}, "
+            f"ours/ours_no_cp {row['ratio_ours_no_cp']:.2f}")
     lines.append("Ratios: " + ", ".join(f"{k} = {v:.2f}" for k, v in result["ratios"].items()))
     return "\n".join(lines)
 

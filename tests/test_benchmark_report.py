@@ -85,3 +85,33 @@ def test_loop_section_states_the_realtime_conditions_of_its_numbers():
     assert "sim fifo + CPU wake-up latency 0 µs" in text
     assert "controller normal (idle CPUs may sleep)" in text
     assert "| 0.20 | 0.40 | 9.50 | 50.00 | 0 | 120 |" in text
+
+
+def test_cartpole_section_renders_the_reference_rows_and_the_latent_ablation(tmp_path):
+    stat = {"mean": 4.0, "std": 0.2}
+    choice = lambda v: {"chosen": v, "tuning_crmse": {}}  # noqa: E731
+    cp = {"hit_rate": 0.77, "false_alarms_per_100_steps": 8.4, "mean_delay_steps": 0.7}
+    r = {
+        "settings": {"trials": 10, "n_splits": 10},
+        "online": {"ours": stat, "ours_known_changepoints": {"mean": 5.25, "std": 0.48}},
+        "offline": {"ours": stat},
+        "ratios": {"ours/ours_no_cp": 0.7},
+        "tuning": {"ours": choice(0.7), "ours_pi": choice(0.1), "ours_no_cp": choice(100.0),
+                   "mlp_last_layer": choice(0.1), "ours_known_changepoints": choice(0.2)},
+        "changepoints": cp, "changepoints_paper_config": cp,
+        "latent_ablation": [{"l": 4, "beta": 0.7, "pi": 0.1, "tau2": 100.0,
+                             "ours": {"mean": 3.981, "std": 0.3}, "hit_rate": 0.9,
+                             "false_alarms_per_100_steps": 9.0,
+                             "ours_no_cp": {"mean": 5.871, "std": 0.8},
+                             "offline_only": {"mean": 7.141, "std": 0.1},
+                             "ratio_ours_no_cp": 0.678}],
+    }
+    text = "\n".join(report._cartpole_section(r, tmp_path))
+    assert "| ours_known_changepoints | 5.250 ± 0.480 | — |" in text
+    assert "`ours_known_changepoints` is Ours with one hypothesis" in text
+    assert "beta = 0.2 tuned the same way" in text
+    row = "| 4 | 3.981 ± 0.300 | 90% | 9.00 | 5.871 ± 0.800 | 7.141 | 0.68 | 0.7, 0.1; 100 |"
+    assert row in text
+    del r["latent_ablation"], r["tuning"]["ours_known_changepoints"]
+    text = "\n".join(report._cartpole_section(r, tmp_path))
+    assert "latent dimension" not in text and "shows the noise floor." in text

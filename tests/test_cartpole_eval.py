@@ -22,7 +22,8 @@ def test_online_ordering_matches_table_1(result):
     o = {k: v["mean"] for k, v in result["online"].items()}
     assert o["ours"] < o["ours_no_cp"] < o["offline_only"], o
     # No learner may beat the oracle that knows the true dynamics (noise floor).
-    for name in ("ours", "ours_no_cp", "gp", "mlp_last_layer", "offline_only"):
+    for name in ("ours", "ours_no_cp", "gp", "mlp_last_layer", "offline_only",
+                 "ours_known_changepoints"):
         assert o[name] > o["oracle_true_model"], name
 
 
@@ -64,7 +65,8 @@ def test_tuned_pi_is_the_one_evaluated(result):
     """pi is tuned at the tuned beta, by the lowest tuning CRMSE, and the online row runs
     that configuration."""
     t = result["tuning"]
-    assert set(t) == {"ours", "ours_pi", "ours_no_cp", "mlp_last_layer"}
+    assert set(t) == {"ours", "ours_pi", "ours_no_cp", "mlp_last_layer",
+                      "ours_known_changepoints"}
     scores = t["ours_pi"]["tuning_crmse"]
     assert set(scores) == {str(p) for p in ce.OURS_PI_GRID}
     assert str(t["ours_pi"]["chosen"]) == min(scores, key=scores.get)
@@ -124,3 +126,80 @@ def test_detection_summary_says_when_no_pair_detects_enough():
                          "mean_delay_steps": 0.7},
         "hit_rate_per_intervention": {"0": 0.9, "40": 1.0}})
     assert "beta = 0.5, pi = 0.3" in text and "hit rate 97% (step 0 90%, step 40 100%)" in text
+
+
+def test_known_changepoints_match_the_batch_posterior():
+    """The known-changepoint reference against brute force (float64): a prediction after
+    the last forced changepoint t is the batch posterior of the data from t on, under the
+    prior tempered at t (Eq. 5: mean kept, precision times beta^2) from the batch
+    posterior of the data before t."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    key = jax.random.PRNGKey(5)
+    model = ce.encoder.VLD(key, ce.encoder.cartpole_config(), dtype=jnp.float64)
+    data = ce.cd.simulate(key, ce.cd.sample_initial_states(key, 1),
+                          ce.cd.intervention_schedule(30))
+    X, U = jnp.asarray(data.X[0], jnp.float64), jnp.asarray(data.U[0], jnp.float64)
+    cfg = ce.adaptation.cartpole_config()._replace(beta=0.3)
+    t_cp = 12
+    xhat = np.asarray(ce.run_known_changepoints(model, cfg, X, U, steps=(t_cp,)))
+
+    Z = np.asarray(jax.vmap(model.features)(X[:-1], U))
+    D = np.asarray(jax.vmap(lambda x, u, xn: model.normalise_residual(
+        xn - ce.f_nom(x, u)))(X[:-1], U, X[1:]))
+    theta0 = np.asarray(model.theta0)
+    l = Z.shape[1]
+
+    def posterior(P0, mu0, k0, k1):  # precision and mean (d, l) after steps k0..k1-1
+        P = P0 + Z[k0:k1].T @ Z[k0:k1] / cfg.sigma2
+        b = P0 @ mu0.T + Z[k0:k1].T @ D[k0:k1] / cfg.sigma2
+        return P, np.linalg.solve(P, b).T
+
+    P_t, mu_t = posterior(np.eye(l) / cfg.tau2, theta0, 0, t_cp)
+    P_cp = cfg.beta**2 * P_t
+    for j in (t_cp + 1, t_cp + 5, len(U) - 1):
+        _, mu = posterior(P_cp, mu_t, t_cp, j)
+        expected = np.asarray(ce.f_nom(X[j], U[j]) + model.denormalise_residual(
+            jnp.asarray(mu @ Z[j])))
+        np.testing.assert_allclose(xhat[j], expected, rtol=1e-9, atol=1e-12)
+    # Without forced changepoints it is the one-hypothesis regression, beta unused.
+    no_cp = cfg._replace(K=1, pi=0.0)
+    np.testing.assert_allclose(
+        np.asarray(ce.run_known_changepoints(model, cfg, X, U, steps=())),
+        np.asarray(ce.run_beam(model, no_cp, X, U)[0]), rtol=1e-12)
+
+
+def test_latent_ablation_reuses_the_main_model_and_trains_the_others():
+    """The preset l row is the main model, tuned as the main table tunes it; another l is a
+    model of that latent size, and each row's ratio is its own ours / ours_no_cp."""
+    import jax
+    import numpy as np
+
+    key = jax.random.PRNGKey(2)
+    k_data, k_tune, k_online, k_vld = jax.random.split(key, 4)
+    data = ce.cd.simulate(k_data, ce.cd.sample_initial_states(k_data, 6),
+                          ce.cd.stationary_schedule(40))
+    x, u, xn = ce.cd.transitions(data, np.arange(6))
+    tune = ce.cd.simulate(k_tune, ce.cd.sample_initial_states(k_tune, 2),
+                          ce.cd.intervention_schedule(50))
+    online = ce.cd.simulate(k_online, ce.cd.sample_initial_states(k_online, 2),
+                            ce.cd.intervention_schedule(50))
+    s = ce.EvalSettings.quick()
+    s = ce.EvalSettings(**{**s.__dict__, "epochs": 2})
+    vld0 = ce.train_vld(k_vld, x, u, xn, variational=True, epochs=2)
+    cfg = ce.adaptation.cartpole_config()
+    rows = ce.latent_ablation(k_vld, (x, u, xn), vld0, cfg, s, tune, online, dims=(2, 3))
+    assert [r["l"] for r in rows] == [2, 3]
+
+    tuned = ce.ours_tuning(ce.beam_tuning_grid(vld0, cfg, tune.X, tune.U, tune.X), cfg.pi)
+    assert (rows[0]["beta"], rows[0]["pi"]) == (tuned["ours"]["chosen"], tuned["ours_pi"]["chosen"])
+    xhat = ce.beam_batch(vld0, cfg._replace(beta=rows[0]["beta"], pi=rows[0]["pi"]),
+                         online.X, online.U)[0]
+    assert rows[0]["ours"]["mean"] == pytest.approx(
+        float(ce._crmse_batch(xhat, online.X).mean()), rel=1e-5)
+    for r in rows:
+        assert r["ratio_ours_no_cp"] == pytest.approx(r["ours"]["mean"] / r["ours_no_cp"]["mean"])
+        assert 0.0 <= r["hit_rate"] <= 1.0 and math.isfinite(r["offline_only"]["mean"])
+    assert rows[1]["ours"]["mean"] != rows[0]["ours"]["mean"]
