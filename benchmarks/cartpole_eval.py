@@ -198,6 +198,16 @@ def run_beam(model: encoder.VLD, cfg: adaptation.AdaptationConfig, X, U):
     return out
 
 
+def no_cp_runner(model: encoder.VLD, sigma2) -> Callable[[float], Callable]:
+    """Ours w/o CP (one hypothesis, no changepoints) as ``tau2 -> (X, U) -> predictions``."""
+
+    def make(tau2):
+        c = adaptation.AdaptationConfig(K=1, pi=0.0, beta=1.0, tau2=tau2, sigma2=sigma2)
+        return lambda X, U: run_beam(model, c, X, U)[0]
+
+    return make
+
+
 def run_known_changepoints(model: encoder.VLD, cfg: adaptation.AdaptationConfig, X, U,
                            steps=cd.INTERVENTION_STEPS):
     """Reference, not a method: Ours with one hypothesis (K = 1) whose changepoints are
@@ -420,9 +430,7 @@ def evaluate(
     tx, tu = jnp.asarray(tune_data.X), jnp.asarray(tune_data.U)
     cfg = adaptation.cartpole_config()
 
-    def no_cp_fn(tau2):
-        c = adaptation.AdaptationConfig(K=1, pi=0.0, beta=1.0, tau2=tau2, sigma2=cfg.sigma2)
-        return lambda X, U: run_beam(m.vld, c, X, U)[0]
+    no_cp_fn = no_cp_runner(m.vld, cfg.sigma2)
 
     def mlp_fn(lr):
         return lambda X, U: run_mlp(m.mlp, lr, X, U)
@@ -541,7 +549,7 @@ def latent_ablation(key, train, vld0: encoder.VLD, cfg: adaptation.AdaptationCon
     """Ours, Ours w/o CP and offline-only for each latent dimension ``l`` of the encoder.
 
     Each ``l`` is trained like the main model (same data, key and epochs; the preset ``l``
-    reuses ``vld0``, the model of every other row) and both online methods are tuned
+    reuses ``vld0``, the model of the main table) and both online methods are tuned
     on the tuning trajectories exactly as in :func:`evaluate`, so a row differs from the
     main table only by ``l``.
     """
@@ -553,11 +561,7 @@ def latent_ablation(key, train, vld0: encoder.VLD, cfg: adaptation.AdaptationCon
         vld = vld0 if l == vld0.theta0.shape[-1] else train_vld(
             key, x, u, xn, variational=True, epochs=s.epochs, latent_dim=l)
         tuned = ours_tuning(beam_tuning_grid(vld, cfg, tx, tu, tune.X), cfg.pi)
-
-        def no_cp_fn(tau2, vld=vld):
-            c = adaptation.AdaptationConfig(K=1, pi=0.0, beta=1.0, tau2=tau2, sigma2=cfg.sigma2)
-            return lambda X, U: run_beam(vld, c, X, U)[0]
-
+        no_cp_fn = no_cp_runner(vld, cfg.sigma2)
         tau2 = _tune(no_cp_fn, NO_CP_TAU2_GRID, tx, tu, tune.X)["chosen"]
         c = cfg._replace(beta=tuned["ours"]["chosen"], pi=tuned["ours_pi"]["chosen"])
         xhat, _, flags, _ = beam_batch(vld, c, X, U)
