@@ -149,11 +149,16 @@ def run(
     }
 
 
+SOLVERS = ("gauss_newton_armijo", "gauss_newton", "dogleg", "levenberg_marquardt")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--speed", type=float, default=2.5)
-    parser.add_argument("--solver", help="gauss_newton | dogleg | levenberg_marquardt")
+    parser.add_argument("--solver", choices=SOLVERS,
+                        help="MPC solver (default: the quadrotor configuration's, "
+                             "gauss_newton_armijo)")
     parser.add_argument("--max-steps", type=int, default=None)
     parser.add_argument("--residual", choices=("rollout", "held"), default="rollout",
                         help="learned residual inside the rollout (the controller's scheme, "
