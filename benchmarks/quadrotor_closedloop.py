@@ -148,7 +148,7 @@ TUNING_METHOD = {"ours_beta": "ours", "ours_sigma2": "ours", "gp_noise_scale": "
 MAX_TUNING_PASSES = 4
 #: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
 #: the choice under "tuning"); used when the tuning is skipped (``quick``).
-TUNED_DEFAULTS = {"ours_beta": 0.2, "ours_sigma2": 0.001, "gp_noise_scale": 0.1,
+TUNED_DEFAULTS = {"ours_beta": 0.05, "ours_sigma2": 0.0001, "gp_noise_scale": 0.01,
                   "mlp_lr": 0.1, "l1_cutoff": 40.0, "l1_cutoff_rates": 0.0}
 
 
