@@ -33,6 +33,27 @@ def test_unknown_choice_is_rejected(capsys):
     assert "invalid choice" in capsys.readouterr().err
 
 
+def test_mpc_options_belong_to_bench_mpc(capsys):
+    assert main(["bench", "adapt", "--solver", "gauss_newton"]) == 2
+    assert "belong to `arcade bench mpc`" in capsys.readouterr().err
+    assert main(["bench", "mpc", "--max-steps", "0"]) == 2
+    assert "--max-steps must be at least 1" in capsys.readouterr().err
+
+
+def test_bench_mpc_takes_the_solver_options():
+    """`arcade bench mpc --solver --max-steps --residual` reach the benchmark."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "arcade", "bench", "mpc", "--json", "--quick",
+         "--solver", "gauss_newton", "--max-steps", "5", "--residual", "held"],
+        capture_output=True, text=True, timeout=600, check=True,
+    )
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert (result["solver"], result["max_steps"], result["residual"]) == (
+        "gauss_newton", 5, "held")
+    assert 0 < result["median_ms"] <= result["p99_ms"]
+    assert result["mean_iterations"] <= 5
+
+
 def test_bench_adapt_json_contract():
     """`arcade bench adapt --json` prints the documented object (issue contract)."""
     proc = subprocess.run(

@@ -12,6 +12,9 @@ HELP = (
     "fuzzing; `report` regenerates BENCHMARKS.md"
 )
 
+#: MPC solvers `arcade bench mpc --solver` accepts (``arcade_core.mpc.MPCConfig.solver``).
+SOLVERS = ("gauss_newton_armijo", "gauss_newton", "dogleg", "levenberg_marquardt")
+
 # name -> module in `benchmarks/` exposing run(**kwargs) -> dict
 BENCHES = {
     "adapt": "benchmarks.adapt",
@@ -37,6 +40,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--effect", action="append", default=None,
                    help="only this effect (repeatable)")
     g.add_argument("--seed", type=int, default=0, help="flight seed of --sweep / --limits")
+    m = p.add_argument_group("mpc")
+    m.add_argument("--residual", choices=("rollout", "held"), default=None,
+                   help="learned residual inside the rollout (the controllers' scheme, "
+                        "default) or held along the warm start")
+    m.add_argument("--solver", choices=SOLVERS, default=None,
+                   help="MPC solver (default: the quadrotor configuration's, "
+                        "gauss_newton_armijo)")
+    m.add_argument("--max-steps", type=int, default=None,
+                   help="solver iteration cap (default: the configuration's, 8)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,8 +67,17 @@ def run(args: argparse.Namespace) -> int:
         print("--sweep, --limits and --effect belong to `arcade bench discrepancy`",
               file=sys.stderr)
         return 2
+    mpc_options = {k: v for k, v in (("residual", args.residual), ("solver", args.solver),
+                                      ("max_steps", args.max_steps)) if v is not None}
+    if mpc_options and args.which != "mpc":
+        print("--residual, --solver and --max-steps belong to `arcade bench mpc`",
+              file=sys.stderr)
+        return 2
+    if args.max_steps is not None and args.max_steps < 1:
+        print("--max-steps must be at least 1", file=sys.stderr)
+        return 2
     module = importlib.import_module(BENCHES[args.which])
-    result = module.run(quick=args.quick)
+    result = module.run(quick=args.quick, **mpc_options)
     if args.json:
         print(json.dumps(result))
     else:
