@@ -15,6 +15,7 @@ from arcade_core.dynamics import (
     quadrotor_step,
 )
 from arcade_core.mpc import (
+    ArmijoGaussNewton,
     cartpole_mpc_config,
     make_controller,
     make_rollout,
@@ -328,3 +329,26 @@ def test_the_residual_held_along_a_plan_reproduces_the_learned_prediction_of_tha
     d_learned = jax.jvp(lambda U: learned(x0, U, model), (U,), (dU,))[1]
     np.testing.assert_allclose(d_held, d_nominal, atol=1e-12)
     assert float(jnp.max(jnp.abs(d_learned - d_held))) > 1e-6
+
+
+def test_line_search_converges_where_full_gauss_newton_steps_diverge():
+    """``ArmijoGaussNewton`` never accepts a step that raises the cost (module docstring).
+
+    ``r(z) = arctan(z)``: full Gauss-Newton steps from ``|z| > 1.39`` overshoot further
+    each time; the backtracking search halves them until the cost falls.
+    """
+    import lineax as lx
+    import optimistix as optx
+
+    def fn(z, _):
+        return jnp.arctan(z)
+
+    z0 = jnp.array([3.0])
+    lin = lx.Normal(lx.Cholesky())
+    full = optx.least_squares(fn, optx.GaussNewton(1e-8, 1e-8, linear_solver=lin), z0,
+                              max_steps=20, throw=False)
+    assert not abs(float(full.value[0])) < 1.0  # diverged (or non-finite)
+    damped = optx.least_squares(fn, ArmijoGaussNewton(1e-8, 1e-8, lin), z0, max_steps=40,
+                                throw=False)
+    assert damped.result == optx.RESULTS.successful
+    assert abs(float(damped.value[0])) < 1e-6
