@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--speed", type=float, default=2.5)
-    from arcade.commands.bench import SOLVERS
+    from arcade_core.mpc import SOLVERS
 
     parser.add_argument("--solver", choices=SOLVERS,
                         help="MPC solver (default: the quadrotor configuration's, "

@@ -38,6 +38,8 @@ def test_mpc_options_belong_to_bench_mpc(capsys):
     assert "belong to `arcade bench mpc`" in capsys.readouterr().err
     assert main(["bench", "mpc", "--max-steps", "0"]) == 2
     assert "--max-steps must be at least 1" in capsys.readouterr().err
+    assert main(["bench", "mpc", "--solver", "newton"]) == 2
+    assert "--solver must be one of gauss_newton_armijo" in capsys.readouterr().err
 
 
 def test_bench_mpc_takes_the_solver_options():

@@ -332,7 +332,7 @@ def test_the_residual_held_along_a_plan_reproduces_the_learned_prediction_of_tha
 
 
 def test_line_search_converges_where_full_gauss_newton_steps_diverge():
-    """``ArmijoGaussNewton`` never accepts a step that raises the cost (module docstring).
+    """``ArmijoGaussNewton`` rejects steps that raise the cost beyond rounding noise.
 
     ``r(z) = arctan(z)``: full Gauss-Newton steps from ``|z| > 1.39`` overshoot further
     each time; the backtracking search halves them until the cost falls.
