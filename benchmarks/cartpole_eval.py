@@ -52,12 +52,18 @@ from benchmarks import cartpole_data as cd
 
 STATE_NAMES = ("x", "xdot", "theta", "thetadot")
 MLP_LR_GRID = (1e-6, 1e-4, 1e-3, 1e-2, 1e-1, 0.3, 1.0)
+# Ours' knobs are tuned one after the other (beta, pi, tau^2), each at the others' current
+# values, starting from the preset (which every grid holds), in passes until one changes
+# nothing (:func:`ours_tuning`).
 OURS_BETA_GRID = (0.3, 0.5, 0.7, 0.9, 0.97)
-# pi is tuned after beta, at the tuned beta; beta at the preset pi, which the grid holds.
 OURS_PI_GRID = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
 # Wide on purpose: with K = 1 the predictions depend on tau^2 / sigma^2 only, and the
 # tuning picks the largest values (an almost flat prior); a grid ending at 1 cut it short.
 NO_CP_TAU2_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 100.0)
+# Ours gets the same prior-variance grid as Ours w/o CP: the same tuning effort.
+OURS_TAU2_GRID = NO_CP_TAU2_GRID
+OURS_KNOBS = ("beta", "pi", "tau2")
+MAX_TUNING_PASSES = 4
 # The known-changepoint reference restarts only at true changes: it may temper harder.
 KNOWN_CP_BETA_GRID = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9)
 #: Latent dimensions of the ablation over l (Appendix D: l = 2 for the cartpole).
@@ -78,7 +84,9 @@ class EvalSettings:
     T_online: int = 120
     epochs: int = 50
     gp_points: int = 400
-    tuning_trials: int = 5
+    # 20: with 5 the tuning scores of Ours' tau^2 differed by less than their spread
+    # between trajectories (README, "Reproducing the paper's cartpole results").
+    tuning_trials: int = 20
     ablations: bool = True
     seed: int = 0
 
@@ -320,14 +328,72 @@ def _choice(scores: dict[float, float]) -> dict[str, Any]:
     }
 
 
-def ours_tuning(grid: list[dict[str, float]], preset_pi: float) -> dict[str, Any]:
-    """Ours' CRMSE tuning read off :func:`beam_tuning_grid`: beta at the preset pi, then pi
-    at that beta (``{"ours": .., "ours_pi": ..}``, each as :func:`_choice` gives it)."""
-    crmse = {(g["beta"], g["pi"]): g["tuning_crmse"] for g in grid}
-    betas = sorted({g["beta"] for g in grid})
-    pis = sorted({g["pi"] for g in grid})
-    ours = _choice({b: crmse[(b, preset_pi)] for b in betas})
-    return {"ours": ours, "ours_pi": _choice({p: crmse[(ours["chosen"], p)] for p in pis})}
+def ours_tuning(grid: list[dict[str, float]],
+                preset: adaptation.AdaptationConfig) -> dict[str, Any]:
+    """Ours' CRMSE tuning read off :func:`beam_tuning_grid` by coordinate descent: beta at
+    the preset pi and tau^2, then pi, then tau^2, each at the others' current choice, in
+    passes until a pass changes nothing (at most :data:`MAX_TUNING_PASSES`).
+
+    Returns ``{"ours": .., "ours_pi": .., "ours_tau2": ..}`` (beta, pi, tau^2 of the last
+    pass, each as :func:`_choice` gives it: the chosen value and the scores along that
+    knob at the others' final values) and ``"ours_passes"``.
+    """
+    scores = {tuple(g[k] for k in OURS_KNOBS): g["tuning_crmse"] for g in grid}
+    table, passes = coordinate_descent(scores, OURS_KNOBS,
+                                       {k: float(getattr(preset, k)) for k in OURS_KNOBS})
+    return {"ours": table["beta"], "ours_pi": table["pi"], "ours_tau2": table["tau2"],
+            "ours_passes": passes}
+
+
+def coordinate_descent(scores: dict[tuple, float], knobs: tuple[str, ...],
+                       start: dict[str, float]) -> tuple[dict[str, dict[str, Any]], int]:
+    """Minimise a score tabulated on a grid (keys: values of ``knobs`` in that order) one
+    knob after the other from ``start``, in passes until one changes nothing (at most
+    :data:`MAX_TUNING_PASSES`). Returns each knob's :func:`_choice` of the last pass and
+    the number of passes."""
+    values = {k: sorted({key[i] for key in scores}) for i, k in enumerate(knobs)}
+    point = dict(start)
+    passes = 0
+    while passes < MAX_TUNING_PASSES:
+        passes += 1
+        changed, table = False, {}
+        for knob in knobs:
+            table[knob] = _choice({v: scores[tuple({**point, knob: v}[k] for k in knobs)]
+                                   for v in values[knob]})
+            changed |= table[knob]["chosen"] != point[knob]
+            point[knob] = table[knob]["chosen"]
+        if not changed:
+            break
+    return table, passes
+
+
+def known_changepoints_tuning(model, cfg, X, U, X_np, betas=KNOWN_CP_BETA_GRID,
+                              tau2s=OURS_TAU2_GRID) -> dict[str, Any]:
+    """The known-changepoint reference's beta and tau^2, tuned like Ours' (coordinate
+    descent from the preset on the tuning trajectories; one compiled program for the
+    grid). ``chosen`` and ``tuning_crmse`` are beta's, ``tau2`` is :func:`_choice`'s."""
+    B, T = (a.ravel() for a in np.meshgrid(np.asarray(betas, float), np.asarray(tau2s, float),
+                                           indexing="ij"))
+
+    def one(b, t):
+        c = cfg._replace(beta=b, tau2=t)
+        return jax.vmap(lambda X, U: run_known_changepoints(model, c, X, U))(X, U)
+
+    xhat = jax.jit(jax.vmap(one))(jnp.asarray(B), jnp.asarray(T))
+    scores = {}
+    for i in range(len(B)):
+        c = _crmse_batch(xhat[i], X_np)
+        scores[(float(B[i]), float(T[i]))] = float(c.mean()) if np.isfinite(c).all() else float(
+            "inf")
+    table, passes = coordinate_descent(scores, ("beta", "tau2"),
+                                       {"beta": float(cfg.beta), "tau2": float(cfg.tau2)})
+    return {**table["beta"], "tau2": table["tau2"], "passes": passes}
+
+
+def tuned_config(cfg: adaptation.AdaptationConfig, tuned: dict[str, Any]):
+    """``cfg`` with Ours' knobs as :func:`ours_tuning` chose them."""
+    return cfg._replace(beta=tuned["ours"]["chosen"], pi=tuned["ours_pi"]["chosen"],
+                        tau2=tuned["ours_tau2"]["chosen"])
 
 
 def _tune(make_fn, grid, X, U, X_np) -> dict[str, Any]:
@@ -339,22 +405,23 @@ def _tune(make_fn, grid, X, U, X_np) -> dict[str, Any]:
     return _choice(scores)
 
 
-def beam_tuning_grid(model, cfg, X, U, X_np, betas=OURS_BETA_GRID,
-                     pis=OURS_PI_GRID) -> list[dict[str, float]]:
-    """Ours on the tuning trajectories for every ``(beta, pi)`` pair: mean CRMSE and hit
-    rate per pair. All pairs run in one compiled program (the knobs are traced)."""
-    B, P = (a.ravel() for a in np.meshgrid(np.asarray(betas, float), np.asarray(pis, float),
-                                           indexing="ij"))
+def beam_tuning_grid(model, cfg, X, U, X_np, betas=OURS_BETA_GRID, pis=OURS_PI_GRID,
+                     tau2s=OURS_TAU2_GRID) -> list[dict[str, float]]:
+    """Ours on the tuning trajectories for every ``(beta, pi, tau2)`` triple: mean CRMSE
+    and hit rate per triple. All run in one compiled program (the knobs are traced)."""
+    B, P, T = (a.ravel() for a in np.meshgrid(
+        np.asarray(betas, float), np.asarray(pis, float), np.asarray(tau2s, float),
+        indexing="ij"))
 
-    def one(b, p):
-        c = cfg._replace(beta=b, pi=p)
+    def one(b, p, t):
+        c = cfg._replace(beta=b, pi=p, tau2=t)
         return jax.vmap(lambda X, U: run_beam(model, c, X, U))(X, U)
 
-    xhat, _, flags, _ = jax.jit(jax.vmap(one))(jnp.asarray(B), jnp.asarray(P))
+    xhat, _, flags, _ = jax.jit(jax.vmap(one))(jnp.asarray(B), jnp.asarray(P), jnp.asarray(T))
     grid = []
     for i in range(len(B)):
         c = _crmse_batch(xhat[i], X_np)
-        grid.append({"beta": float(B[i]), "pi": float(P[i]),
+        grid.append({"beta": float(B[i]), "pi": float(P[i]), "tau2": float(T[i]),
                      "tuning_crmse": float(c.mean()) if np.isfinite(c).all() else float("inf"),
                      "tuning_hit_rate": changepoint_quality(np.asarray(flags[i]))["hit_rate"]})
     return grid
@@ -362,13 +429,13 @@ def beam_tuning_grid(model, cfg, X, U, X_np, betas=OURS_BETA_GRID,
 
 def detection_tuning(grid: list[dict[str, float]],
                      min_hit_rate=DETECTION_MIN_HIT_RATE) -> dict[str, Any]:
-    """Lowest tuning CRMSE of :func:`beam_tuning_grid` among the pairs whose hit rate on
+    """Lowest tuning CRMSE of :func:`beam_tuning_grid` among the settings whose hit rate on
     the tuning trajectories is at least ``min_hit_rate`` (``chosen`` is ``None`` when no
-    pair reaches it)."""
+    setting reaches it)."""
     ok = [g for g in grid if g["tuning_hit_rate"] >= min_hit_rate]
     best = min(ok, key=lambda g: g["tuning_crmse"]) if ok else None
     return {"min_hit_rate": min_hit_rate, "grid": grid,
-            "chosen": None if best is None else {"beta": best["beta"], "pi": best["pi"]}}
+            "chosen": None if best is None else {k: best[k] for k in OURS_KNOBS}}
 
 
 def _stat(v) -> dict[str, float]:
@@ -435,19 +502,20 @@ def evaluate(
     def mlp_fn(lr):
         return lambda X, U: run_mlp(m.mlp, lr, X, U)
 
-    def known_fn(beta):
-        return lambda X, U: run_known_changepoints(m.vld, cfg._replace(beta=beta), X, U)
+    def known_fn(beta, tau2):
+        return lambda X, U: run_known_changepoints(m.vld, cfg._replace(beta=beta, tau2=tau2),
+                                                   X, U)
 
     # Each method's online knobs, chosen on separate tuning trajectories (module docstring).
-    # Ours: one run of the whole beta x pi grid serves beta (at the preset pi), pi (at the
-    # tuned beta) and the detection-tuned pair.
-    progress("online: tuning beta then pi (ours), tau^2 (ours w/o CP), learning rate (MLP)")
+    # Ours: one run of the whole beta x pi x tau^2 grid serves its coordinate descent and
+    # the detection-tuned setting.
+    progress("online: tuning beta, pi, tau^2 (ours), tau^2 (ours w/o CP), learning rate (MLP)")
     grid = beam_tuning_grid(m.vld, cfg, tx, tu, tune_data.X)
-    tuned = ours_tuning(grid, cfg.pi)
+    tuned = ours_tuning(grid, cfg)
     tuned["ours_no_cp"] = _tune(no_cp_fn, NO_CP_TAU2_GRID, tx, tu, tune_data.X)
     tuned["mlp_last_layer"] = _tune(mlp_fn, MLP_LR_GRID, tx, tu, tune_data.X)
-    tuned["ours_known_changepoints"] = _tune(known_fn, KNOWN_CP_BETA_GRID, tx, tu, tune_data.X)
-    ours_cfg = cfg._replace(beta=tuned["ours"]["chosen"], pi=tuned["ours_pi"]["chosen"])
+    tuned["ours_known_changepoints"] = known_changepoints_tuning(m.vld, cfg, tx, tu, tune_data.X)
+    ours_cfg = tuned_config(cfg, tuned)
     detection = detection_tuning(grid)
 
     progress("online: running all methods")
@@ -465,7 +533,8 @@ def evaluate(
         "ours_no_cp_paper_config": vm(no_cp_fn(cfg.tau2)),
         "mlp_last_layer_paper_lr": vm(mlp_fn(PAPER_MLP_LR)),
         "oracle_true_model": vm(lambda X, U: run_oracle(sched, X, U)),
-        "ours_known_changepoints": vm(known_fn(tuned["ours_known_changepoints"]["chosen"])),
+        "ours_known_changepoints": vm(known_fn(tuned["ours_known_changepoints"]["chosen"],
+                                               tuned["ours_known_changepoints"]["tau2"]["chosen"])),
     }
     det = detection["chosen"]
     if det is not None:
@@ -483,7 +552,8 @@ def evaluate(
         "hit_rate_per_intervention": hits_per_intervention(np.asarray(ours_out[2])),
         "tuning": tuned,
         "detection_tuning": detection,
-        "ours_config": {"K": ours_cfg.K, "beta": ours_cfg.beta, "pi": ours_cfg.pi},
+        "ours_config": {"K": ours_cfg.K, "beta": ours_cfg.beta, "pi": ours_cfg.pi,
+                        "tau2": ours_cfg.tau2},
         "mlp_learning_rate": {"chosen": tuned["mlp_last_layer"]["chosen"], "paper": PAPER_MLP_LR},
         "settings": s.__dict__,
     }
@@ -560,17 +630,18 @@ def latent_ablation(key, train, vld0: encoder.VLD, cfg: adaptation.AdaptationCon
     for l in dims:
         vld = vld0 if l == vld0.theta0.shape[-1] else train_vld(
             key, x, u, xn, variational=True, epochs=s.epochs, latent_dim=l)
-        tuned = ours_tuning(beam_tuning_grid(vld, cfg, tx, tu, tune.X), cfg.pi)
+        tuned = ours_tuning(beam_tuning_grid(vld, cfg, tx, tu, tune.X), cfg)
         no_cp_fn = no_cp_runner(vld, cfg.sigma2)
         tau2 = _tune(no_cp_fn, NO_CP_TAU2_GRID, tx, tu, tune.X)["chosen"]
-        c = cfg._replace(beta=tuned["ours"]["chosen"], pi=tuned["ours_pi"]["chosen"])
+        c = tuned_config(cfg, tuned)
         xhat, _, flags, _ = beam_batch(vld, c, X, U)
         ours = _crmse_batch(xhat, online.X)
         no_cp = _crmse_batch(jax.jit(jax.vmap(no_cp_fn(tau2)))(X, U), online.X)
         offline = _crmse_batch(
             jax.jit(jax.vmap(lambda X, U, vld=vld: run_offline_only(vld, X, U)))(X, U), online.X)
         q = changepoint_quality(np.asarray(flags))
-        rows.append({"l": l, "beta": float(c.beta), "pi": float(c.pi), "tau2": tau2,
+        rows.append({"l": l, "beta": float(c.beta), "pi": float(c.pi),
+                     "ours_tau2": float(c.tau2), "tau2": tau2,
                      "ours": _stat(ours), "ours_no_cp": _stat(no_cp),
                      "offline_only": _stat(offline),
                      "ratio_ours_no_cp": float(ours.mean() / no_cp.mean()),
@@ -610,12 +681,14 @@ def detection_summary(d: dict[str, Any] | None) -> str:
         return "Detection-tuned Ours: not run."
     goal = f"at least {d['min_hit_rate']:.0%} of the tuning trajectories' interventions"
     if d["chosen"] is None:
-        return f"Detection-tuned Ours: no (beta, pi) pair of the grid detects {goal}."
+        return f"Detection-tuned Ours: no (beta, pi, tau^2) setting of the grid detects {goal}."
     c, q = d["chosen"], d["changepoints"]
     per = d.get("hit_rate_per_intervention", {})
     return (
-        f"Detection-tuned Ours (lowest tuning CRMSE among the pairs that detect {goal}): "
-        f"beta = {c['beta']:g}, pi = {c['pi']:g}; on the evaluation trajectories hit rate "
+        f"Detection-tuned Ours (lowest tuning CRMSE among the settings that detect {goal}): "
+        f"beta = {c['beta']:g}, pi = {c['pi']:g}"
+        + (f", tau^2 = {c['tau2']:g}" if "tau2" in c else "")
+        + "; on the evaluation trajectories hit rate "
         f"{q['hit_rate']:.0%}" + (" (" + ", ".join(f"step {k} {v:.0%}" for k, v in per.items())
                                   + ")" if per else "")
         + f", false alarms {q['false_alarms_per_100_steps']:.2f} per 100 steps, mean delay "

@@ -162,8 +162,9 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
         "",
         "Tuning: each adaptive method's online knobs, chosen by mean CRMSE on separate "
         f"tuning trajectories: Ours beta = {t['ours']['chosen']:g} (paper 0.9)"
-        + (f", then pi = {t['ours_pi']['chosen']:g} at that beta (paper 0.05)"
-           if "ours_pi" in t else "")
+        + (f", pi = {t['ours_pi']['chosen']:g} (paper 0.05)" if "ours_pi" in t else "")
+        + (f", tau^2 = {t['ours_tau2']['chosen']:g} (paper 0.1; one knob after the other, "
+           f"{t['ours_passes']} passes)" if "ours_tau2" in t else "")
         + f", Ours w/o CP tau^2 = {t['ours_no_cp']['chosen']:g} (paper 0.1; with one hypothesis "
         "only tau^2 / sigma^2 matters), MLP learning rate = "
         f"{t['mlp_last_layer']['chosen']:g} (paper 1e-6); the GP's hyperparameters are fitted "
@@ -173,7 +174,10 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
         "`oracle_true_model` knows the true dynamics and shows the noise floor"
         + ("; `ours_known_changepoints` is Ours with one hypothesis and the true "
            "changepoints (tempered at the intervention steps and nowhere else, beta = "
-           f"{t['ours_known_changepoints']['chosen']:g} tuned the same way): a detector "
+           f"{t['ours_known_changepoints']['chosen']:g}"
+           + (f", tau^2 = {t['ours_known_changepoints']['tau2']['chosen']:g}"
+              if "tau2" in t["ours_known_changepoints"] else "")
+           + " tuned the same way): a detector "
            "that never misses and never false-alarms." if "ours_known_changepoints" in t
            else "."),
         "",
@@ -232,7 +236,7 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
             "trained and both online methods tuned as above, evaluation trajectories:",
             "",
             "| l | ours | hit rate | false alarms / 100 steps | ours_no_cp | offline_only "
-            "| ours/ours_no_cp | tuned beta, pi; tau^2 |",
+            "| ours/ours_no_cp | tuned beta, pi, tau^2; w/o CP tau^2 |",
             "|---|---|---|---|---|---|---|---|",
         ]
         lines += [
@@ -240,7 +244,8 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
             f"{x['hit_rate']:.0%} | {x['false_alarms_per_100_steps']:.2f} | "
             f"{x['ours_no_cp']['mean']:.3f} ± {x['ours_no_cp']['std']:.3f} | "
             f"{x['offline_only']['mean']:.3f} | {x['ratio_ours_no_cp']:.2f} | "
-            f"{x['beta']:g}, {x['pi']:g}; {x['tau2']:g} |"
+            f"{x['beta']:g}, {x['pi']:g}"
+            + (f", {x['ours_tau2']:g}" if "ours_tau2" in x else "") + f"; {x['tau2']:g} |"
             for x in r["latent_ablation"]
         ]
     lines += ["", "Figures:", ""]

@@ -96,10 +96,11 @@ def test_cartpole_section_renders_the_reference_rows_and_the_latent_ablation(tmp
         "online": {"ours": stat, "ours_known_changepoints": {"mean": 5.25, "std": 0.48}},
         "offline": {"ours": stat},
         "ratios": {"ours/ours_no_cp": 0.7},
-        "tuning": {"ours": choice(0.7), "ours_pi": choice(0.1), "ours_no_cp": choice(100.0),
-                   "mlp_last_layer": choice(0.1), "ours_known_changepoints": choice(0.2)},
+        "tuning": {"ours": choice(0.7), "ours_pi": choice(0.2), "ours_tau2": choice(3.0),
+                   "ours_passes": 2, "ours_no_cp": choice(100.0), "mlp_last_layer": choice(0.1),
+                   "ours_known_changepoints": {**choice(0.2), "tau2": choice(10.0)}},
         "changepoints": cp, "changepoints_paper_config": cp,
-        "latent_ablation": [{"l": 4, "beta": 0.7, "pi": 0.1, "tau2": 100.0,
+        "latent_ablation": [{"l": 4, "beta": 0.7, "pi": 0.1, "ours_tau2": 3.0, "tau2": 100.0,
                              "ours": {"mean": 3.981, "std": 0.3}, "hit_rate": 0.9,
                              "false_alarms_per_100_steps": 9.0,
                              "ours_no_cp": {"mean": 5.871, "std": 0.8},
@@ -109,8 +110,9 @@ def test_cartpole_section_renders_the_reference_rows_and_the_latent_ablation(tmp
     text = "\n".join(report._cartpole_section(r, tmp_path))
     assert "| ours_known_changepoints | 5.250 ± 0.480 | — |" in text
     assert "`ours_known_changepoints` is Ours with one hypothesis" in text
-    assert "beta = 0.2 tuned the same way" in text
-    row = "| 4 | 3.981 ± 0.300 | 90% | 9.00 | 5.871 ± 0.800 | 7.141 | 0.68 | 0.7, 0.1; 100 |"
+    assert "beta = 0.2, tau^2 = 10 tuned the same way" in text
+    assert "Ours beta = 0.7 (paper 0.9), pi = 0.2 (paper 0.05), tau^2 = 3 (paper 0.1; " in text
+    row = "| 4 | 3.981 ± 0.300 | 90% | 9.00 | 5.871 ± 0.800 | 7.141 | 0.68 | 0.7, 0.1, 3; 100 |"
     assert row in text
     del r["latent_ablation"], r["tuning"]["ours_known_changepoints"]
     text = "\n".join(report._cartpole_section(r, tmp_path))

@@ -61,35 +61,48 @@ def test_changepoint_quality_counts_hits_and_false_alarms():
     assert ce.hits_per_intervention(flags)["40"] == 1.0
 
 
-def test_tuned_pi_is_the_one_evaluated(result):
-    """pi is tuned at the tuned beta, by the lowest tuning CRMSE, and the online row runs
-    that configuration."""
+def test_tuned_knobs_are_the_ones_evaluated(result):
+    """beta, pi and tau^2 are each the lowest tuning CRMSE along their grid at the others'
+    choice (coordinate descent), and the online row runs that configuration."""
     t = result["tuning"]
-    assert set(t) == {"ours", "ours_pi", "ours_no_cp", "mlp_last_layer",
-                      "ours_known_changepoints"}
-    scores = t["ours_pi"]["tuning_crmse"]
-    assert set(scores) == {str(p) for p in ce.OURS_PI_GRID}
-    assert str(t["ours_pi"]["chosen"]) == min(scores, key=scores.get)
-    # The pi grid's row at the tuned beta is the beta grid's row at the preset pi.
-    preset_pi = ce.adaptation.cartpole_config().pi
-    assert scores[str(preset_pi)] == t["ours"]["tuning_crmse"][str(t["ours"]["chosen"])]
+    assert set(t) == {"ours", "ours_pi", "ours_tau2", "ours_passes", "ours_no_cp",
+                      "mlp_last_layer", "ours_known_changepoints"}
+    for key, grid in (("ours", ce.OURS_BETA_GRID), ("ours_pi", ce.OURS_PI_GRID),
+                      ("ours_tau2", ce.OURS_TAU2_GRID)):
+        scores = t[key]["tuning_crmse"]
+        assert set(scores) == {str(v) for v in grid}
+        assert str(t[key]["chosen"]) == min(scores, key=scores.get)
     cfg = result["ours_config"]
-    assert (cfg["beta"], cfg["pi"]) == (t["ours"]["chosen"], t["ours_pi"]["chosen"])
+    assert (cfg["beta"], cfg["pi"], cfg["tau2"]) == (
+        t["ours"]["chosen"], t["ours_pi"]["chosen"], t["ours_tau2"]["chosen"])
+
+
+def test_coordinate_descent_stops_at_a_coordinatewise_minimum():
+    # f(a, b) = (a - 2)^2 + (b - a)^2 / 2 on a grid: from (0, 0), a -> 1, b -> 1, then
+    # a -> 2, b -> 2, and a third pass changes nothing.
+    vals = (0.0, 1.0, 2.0, 3.0)
+    scores = {(a, b): (a - 2) ** 2 + 0.5 * (b - a) ** 2 for a in vals for b in vals}
+    table, passes = ce.coordinate_descent(scores, ("a", "b"), {"a": 0.0, "b": 0.0})
+    assert (table["a"]["chosen"], table["b"]["chosen"]) == (2.0, 2.0)
+    assert passes == 3
+    assert table["a"]["tuning_crmse"] == {str(a): scores[(a, 2.0)] for a in vals}
 
 
 def test_detection_tuned_row_is_the_most_accurate_pair_that_detects(result):
-    """beta and pi are read off the same beta x pi grid as the detection-tuned pair, which
-    is the lowest tuning CRMSE among the pairs that reach the hit rate."""
+    """Ours' knobs are read off the same beta x pi x tau^2 grid as the detection-tuned
+    setting, which is the lowest tuning CRMSE among the settings that reach the hit rate."""
     d = result["detection_tuning"]
-    grid = {(g["beta"], g["pi"]): g for g in d["grid"]}
-    assert len(grid) == len(ce.OURS_BETA_GRID) * len(ce.OURS_PI_GRID)
-    preset_pi = ce.adaptation.cartpole_config().pi
-    for beta, crmse in result["tuning"]["ours"]["tuning_crmse"].items():
-        assert grid[(float(beta), preset_pi)]["tuning_crmse"] == crmse
+    grid = {(g["beta"], g["pi"], g["tau2"]): g for g in d["grid"]}
+    assert len(grid) == len(ce.OURS_BETA_GRID) * len(ce.OURS_PI_GRID) * len(ce.OURS_TAU2_GRID)
+    t = result["tuning"]
+    if t["ours_passes"] < ce.MAX_TUNING_PASSES:  # converged: the last pass saw the final point
+        pi, tau2 = t["ours_pi"]["chosen"], t["ours_tau2"]["chosen"]
+        for beta, crmse in t["ours"]["tuning_crmse"].items():
+            assert grid[(float(beta), pi, tau2)]["tuning_crmse"] == crmse
     ok = [g for g in d["grid"] if g["tuning_hit_rate"] >= d["min_hit_rate"]]
     if ok:
         best = min(ok, key=lambda g: g["tuning_crmse"])
-        assert d["chosen"] == {"beta": best["beta"], "pi": best["pi"]}
+        assert d["chosen"] == {"beta": best["beta"], "pi": best["pi"], "tau2": best["tau2"]}
         assert math.isfinite(result["online"]["ours_detection_tuned"]["mean"])
         assert 0.0 <= d["changepoints"]["hit_rate"] <= 1.0
     else:
@@ -97,8 +110,8 @@ def test_detection_tuned_row_is_the_most_accurate_pair_that_detects(result):
 
 
 def test_tuning_grid_with_traced_knobs_matches_separately_compiled_runs():
-    """The grid runs every (beta, pi) pair in one program with the knobs traced; each row
-    must be what a run compiled for that pair alone gives (CRMSE, hit rate)."""
+    """The grid runs every (beta, pi, tau^2) setting in one program with the knobs traced;
+    each row must be what a run compiled for that setting alone gives (CRMSE, hit rate)."""
     import jax
 
     key = jax.random.PRNGKey(3)
@@ -106,26 +119,28 @@ def test_tuning_grid_with_traced_knobs_matches_separately_compiled_runs():
     data = ce.cd.simulate(key, ce.cd.sample_initial_states(key, 3),
                           ce.cd.intervention_schedule(60))
     cfg = ce.adaptation.cartpole_config()
-    betas, pis = (0.3, 0.9), (0.05, 0.3)
-    grid = ce.beam_tuning_grid(model, cfg, data.X, data.U, data.X, betas, pis)
-    assert [(g["beta"], g["pi"]) for g in grid] == [(b, p) for b in betas for p in pis]
+    betas, pis, tau2s = (0.3, 0.9), (0.05, 0.3), (0.1, 3.0)
+    grid = ce.beam_tuning_grid(model, cfg, data.X, data.U, data.X, betas, pis, tau2s)
+    assert [(g["beta"], g["pi"], g["tau2"]) for g in grid] == [
+        (b, p, t) for b in betas for p in pis for t in tau2s]
     for g in grid:
-        xhat, _, flags, _ = ce.beam_batch(model, cfg._replace(beta=g["beta"], pi=g["pi"]),
-                                          data.X, data.U)
+        c = cfg._replace(beta=g["beta"], pi=g["pi"], tau2=g["tau2"])
+        xhat, _, flags, _ = ce.beam_batch(model, c, data.X, data.U)
         assert g["tuning_crmse"] == pytest.approx(
             float(ce._crmse_batch(xhat, data.X).mean()), rel=1e-4)
         assert g["tuning_hit_rate"] == ce.changepoint_quality(flags)["hit_rate"]
 
 
-def test_detection_summary_says_when_no_pair_detects_enough():
+def test_detection_summary_says_when_no_setting_detects_enough():
     text = ce.detection_summary({"min_hit_rate": 0.9, "grid": [], "chosen": None})
-    assert "no (beta, pi) pair" in text and "90%" in text
+    assert "no (beta, pi, tau^2) setting" in text and "90%" in text
     text = ce.detection_summary({
-        "min_hit_rate": 0.9, "chosen": {"beta": 0.5, "pi": 0.3},
+        "min_hit_rate": 0.9, "chosen": {"beta": 0.5, "pi": 0.3, "tau2": 3.0},
         "changepoints": {"hit_rate": 0.97, "false_alarms_per_100_steps": 19.7,
                          "mean_delay_steps": 0.7},
         "hit_rate_per_intervention": {"0": 0.9, "40": 1.0}})
-    assert "beta = 0.5, pi = 0.3" in text and "hit rate 97% (step 0 90%, step 40 100%)" in text
+    assert "beta = 0.5, pi = 0.3, tau^2 = 3;" in text
+    assert "hit rate 97% (step 0 90%, step 40 100%)" in text
 
 
 def test_known_changepoints_match_the_batch_posterior():
@@ -193,10 +208,10 @@ def test_latent_ablation_reuses_the_main_model_and_trains_the_others():
     rows = ce.latent_ablation(k_vld, (x, u, xn), vld0, cfg, s, tune, online, dims=(2, 3))
     assert [r["l"] for r in rows] == [2, 3]
 
-    tuned = ce.ours_tuning(ce.beam_tuning_grid(vld0, cfg, tune.X, tune.U, tune.X), cfg.pi)
-    assert (rows[0]["beta"], rows[0]["pi"]) == (tuned["ours"]["chosen"], tuned["ours_pi"]["chosen"])
-    xhat = ce.beam_batch(vld0, cfg._replace(beta=rows[0]["beta"], pi=rows[0]["pi"]),
-                         online.X, online.U)[0]
+    tuned = ce.ours_tuning(ce.beam_tuning_grid(vld0, cfg, tune.X, tune.U, tune.X), cfg)
+    c = ce.tuned_config(cfg, tuned)
+    assert (rows[0]["beta"], rows[0]["pi"], rows[0]["ours_tau2"]) == (c.beta, c.pi, c.tau2)
+    xhat = ce.beam_batch(vld0, c, online.X, online.U)[0]
     assert rows[0]["ours"]["mean"] == pytest.approx(
         float(ce._crmse_batch(xhat, online.X).mean()), rel=1e-5)
     for r in rows:
