@@ -15,20 +15,21 @@ summed over the trajectory (``arcade_core.metrics.crmse``).
 
 Tuning: every adaptive method's own online hyperparameters are chosen from grids on
 separate tuning trajectories (never the evaluation trajectories) by mean CRMSE — for Ours
-the tempering beta, then the changepoint prior pi at that beta (the two knobs of
-Algorithm 1 beyond the shared noise model); for Ours w/o CP the prior variance tau^2 (with
-one hypothesis its predictions depend on tau^2 / sigma^2 only, so that is its one knob);
-for the MLP the online learning rate; the GP's hyperparameters are fitted by marginal
-likelihood on the offline data (Appendix D). Detection quality is not a tuning criterion.
-The paper's own settings (Appendix D: beta = 0.9, tau^2 = 0.1; MLP rate 1e-6) are reported
-beside the tuned ones, as are an oracle that knows the true model (the noise floor) and
-Ours with the true changepoints (:func:`run_known_changepoints`, its beta tuned the same
-way): what a detector that never misses and never false-alarms would buy.
+the tempering beta, the changepoint prior pi and the prior variance tau^2, one after the
+other until none changes (:func:`ours_tuning`); for Ours w/o CP the prior variance tau^2
+on the same grid (with one hypothesis its predictions depend on tau^2 / sigma^2 only, so
+that is its one knob); for the MLP the online learning rate; the GP's hyperparameters are
+fitted by marginal likelihood on the offline data (Appendix D). Detection quality is not a
+tuning criterion. The paper's own settings (Appendix D: beta = 0.9, tau^2 = 0.1; MLP rate
+1e-6) are reported beside the tuned ones, as are an oracle that knows the true model (the
+noise floor) and Ours with the true changepoints (:func:`run_known_changepoints`, its beta
+and tau^2 tuned the same way): what a detector that never misses and never false-alarms
+would buy.
 
 Beside them, one more row for a user who needs the detector itself (to log or act on
-changes): ``ours_detection_tuned``, the (beta, pi) pair of the grid with the lowest tuning
-CRMSE among those that detect at least :data:`DETECTION_MIN_HIT_RATE` of the tuning
-trajectories' interventions within :data:`HIT_WINDOW` steps (:func:`detection_tuning`).
+changes): ``ours_detection_tuned``, the (beta, pi, tau^2) setting of the grid with the
+lowest tuning CRMSE among those that detect at least :data:`DETECTION_MIN_HIT_RATE` of the
+tuning trajectories' interventions within :data:`HIT_WINDOW` steps (:func:`detection_tuning`).
 It is evaluated on the same trajectories; the ratios stay those of the CRMSE-tuned Ours.
 """
 
