@@ -65,7 +65,10 @@ mean RMSE), one knob after the other, in passes until a pass changes nothing (co
 descent): ours the temperature ``beta`` (the Appendix D value 0.997 is in the grid), then
 the noise variance ``sigma^2`` of the online regression; the GP a factor on its noise
 variances; the MLP its SGD rate; L1 its filter bandwidth, thrust channel then rate
-channel (or none: the grid starts at "rate correction off"). With ``beta = 0.997`` a
+channel (or none: the grid starts at "rate correction off"), then its predictor pole
+``a_s`` (the piecewise-constant law settles at ``exp(a_s T_s)`` of a constant
+disturbance: at 50 Hz 4 % short with ``a_s = -2``, and the MPC sags under what is left
+uncancelled). With ``beta = 0.997`` a
 changepoint tempers the precision by only 0.6 %, so ours then behaves like ours without
 changepoints; the grid is geometric in the share ``beta^2`` of the posterior a
 changepoint keeps (99.4 %, 81 %, 25 %, 4 %, 0.25 %): at its small end a changepoint
@@ -136,20 +139,23 @@ TUNING_GRIDS = {
     "mlp_lr": (1e-4, 1e-3, 1e-2, 1e-1, 1.0),
     "l1_cutoff": (5.0, 10.0, 20.0, 40.0, 80.0),
     "l1_cutoff_rates": (0.0, 5.0, 10.0, 20.0, 40.0, 80.0),  # 0: rate channel not applied
+    # Predictor pole: the piecewise-constant law settles at exp(a_s T_s) of a constant
+    # disturbance (arcade_core.baselines.l1), 4 % short at a_s = -2 and 50 Hz.
+    "l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1),
 }
 #: Where :func:`tune` starts: the presets (Appendix D ``sigma^2 = 0.1``, the GP's
 #: marginal-likelihood noise, L1 on the thrust channel only) and a middle value of the
 #: other grids; see :func:`tune` for the order and the passes.
 TUNING_START = {"ours_beta": 0.05, "ours_sigma2": 0.1, "gp_noise_scale": 1.0, "mlp_lr": 0.1,
-                "l1_cutoff": 40.0, "l1_cutoff_rates": 0.0}
+                "l1_cutoff": 40.0, "l1_cutoff_rates": 0.0, "l1_a_s": -2.0}
 #: The method each knob belongs to.
 TUNING_METHOD = {"ours_beta": "ours", "ours_sigma2": "ours", "gp_noise_scale": "gp",
-                 "mlp_lr": "mlp", "l1_cutoff": "l1", "l1_cutoff_rates": "l1"}
+                 "mlp_lr": "mlp", "l1_cutoff": "l1", "l1_cutoff_rates": "l1", "l1_a_s": "l1"}
 MAX_TUNING_PASSES = 4
 #: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
 #: the choice under "tuning"); used when the tuning is skipped (``quick``).
 TUNED_DEFAULTS = {"ours_beta": 0.05, "ours_sigma2": 0.0001, "gp_noise_scale": 0.01,
-                  "mlp_lr": 0.1, "l1_cutoff": 40.0, "l1_cutoff_rates": 0.0}
+                  "mlp_lr": 0.1, "l1_cutoff": 40.0, "l1_cutoff_rates": 0.0, "l1_a_s": -2.0}
 
 
 # --------------------------------------------------------------------------- scenario
@@ -465,6 +471,7 @@ def initial_learner(name: str, models, dtype) -> Any:
         # The rate channel (matched body-rate disturbance) is applied when it has a bandwidth.
         c, c_rates = tuned["l1_cutoff"], tuned["l1_cutoff_rates"]
         return l1.init(l1.L1Params(mass=p.mass, gravity=p.gravity, rate_tau=p.rate_tau,
+                                   a_s=tuned["l1_a_s"],
                                    cutoff_thrust=c, cutoff_rates=c_rates if c_rates > 0 else c,
                                    rotational=c_rates > 0), dtype)
     guard = make_guard(models, dtype)
@@ -751,10 +758,11 @@ def tune(
     variance ``sigma^2`` of the online regression (Appendix D: 0.1, also in the grid);
     GP-MPC: a factor on its noise variances; MLP-MPC: the SGD learning rate; L1: the
     low-pass bandwidth of the thrust channel, then of the rate channel (``0``: the rate
-    correction is not applied, L1 on thrust alone). Knobs are tuned one after the other
-    from :data:`TUNING_START` (coordinate descent), in passes over all knobs until a pass
-    changes none (at most :data:`MAX_TUNING_PASSES`): a knob tuned first is tuned again at
-    the others' choice, so the result does not hinge on the order. ``rmse_m`` holds each
+    correction is not applied, L1 on thrust alone), then the predictor pole ``a_s``.
+    Knobs are tuned one after the other from :data:`TUNING_START` (coordinate descent), in
+    passes over all knobs until a pass changes none (at most :data:`MAX_TUNING_PASSES`): a
+    knob tuned first is tuned again at the others' choice, so the result does not hinge on
+    the order. ``rmse_m`` holds each
     knob's scores in the last pass, ``rmse_m_by_pass`` in every pass. The nominal MPC has
     nothing to tune.
     """
