@@ -155,7 +155,7 @@ MAX_TUNING_PASSES = 4
 #: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
 #: the choice under "tuning"); used when the tuning is skipped (``quick``).
 TUNED_DEFAULTS = {"ours_beta": 0.05, "ours_sigma2": 0.0001, "gp_noise_scale": 0.01,
-                  "mlp_lr": 0.1, "l1_cutoff": 40.0, "l1_cutoff_rates": 0.0, "l1_a_s": -2.0}
+                  "mlp_lr": 0.1, "l1_cutoff": 80.0, "l1_cutoff_rates": 0.0, "l1_a_s": -0.1}
 
 
 # --------------------------------------------------------------------------- scenario
