@@ -68,12 +68,11 @@ variances; the MLP its SGD rate; L1 its filter bandwidth, thrust channel then ra
 channel (or none: the grid starts at "rate correction off"), then its predictor pole
 ``a_s`` (the piecewise-constant law settles at ``exp(a_s T_s)`` of a constant
 disturbance: at 50 Hz 4 % short with ``a_s = -2``, and the MPC sags under what is left
-uncancelled). With ``beta = 0.997`` a
-changepoint tempers the precision by only 0.6 %, so ours then behaves like ours without
-changepoints; the grid is geometric in the share ``beta^2`` of the posterior a
-changepoint keeps (99.4 %, 81 %, 25 %, 4 %, 0.25 %): at its small end a changepoint
-restarts from the offline prior, which the changepoint prior approaches as ``beta -> 0``
-(``prior_floor = 1``).
+uncancelled). With ``beta = 0.997`` a changepoint tempers the precision by only 0.6 %, so
+ours then behaves like ours without changepoints; the grid is geometric in the share
+``beta^2`` of the posterior a changepoint keeps (99.4 %, 81 %, 25 %, 4 %, 0.25 %): at its
+small end a changepoint restarts from the offline prior, which the changepoint prior
+approaches as ``beta -> 0`` (``prior_floor = 1``).
 
 Why a noise knob: ``sigma^2`` (and the GP's noise, fitted by marginal likelihood) is
 calibrated on the training flights, where the offline model leaves a one-step
@@ -139,8 +138,6 @@ TUNING_GRIDS = {
     "mlp_lr": (1e-4, 1e-3, 1e-2, 1e-1, 1.0),
     "l1_cutoff": (5.0, 10.0, 20.0, 40.0, 80.0),
     "l1_cutoff_rates": (0.0, 5.0, 10.0, 20.0, 40.0, 80.0),  # 0: rate channel not applied
-    # Predictor pole: the piecewise-constant law settles at exp(a_s T_s) of a constant
-    # disturbance (arcade_core.baselines.l1), 4 % short at a_s = -2 and 50 Hz.
     "l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1),
 }
 #: Where :func:`tune` starts: the presets (Appendix D ``sigma^2 = 0.1``, the GP's
@@ -762,9 +759,8 @@ def tune(
     Knobs are tuned one after the other from :data:`TUNING_START` (coordinate descent), in
     passes over all knobs until a pass changes none (at most :data:`MAX_TUNING_PASSES`): a
     knob tuned first is tuned again at the others' choice, so the result does not hinge on
-    the order. ``rmse_m`` holds each
-    knob's scores in the last pass, ``rmse_m_by_pass`` in every pass. The nominal MPC has
-    nothing to tune.
+    the order. ``rmse_m`` holds each knob's scores in the last pass, ``rmse_m_by_pass`` in
+    every pass. The nominal MPC has nothing to tune.
     """
     runner = runner or Runner(models)
     scen = Scenario(payload_g=TUNING_CELL[0], speed_mps=TUNING_CELL[1])
