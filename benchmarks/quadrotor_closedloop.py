@@ -517,14 +517,6 @@ def mpc_config(dtype) -> mpc.MPCConfig:
                                     max_thrust=4.0 * float(v["rotors"]["max_thrust_n"]))
 
 
-#: Newton iterations of :func:`thrust_reference` after its first (unit-effectiveness) step.
-THRUST_REFERENCE_NEWTON_STEPS = 3
-#: Least thrust effectiveness (fraction of the nominal model's) :func:`thrust_reference`
-#: divides by: a learned model that claims thrust barely lifts (or pushes down) must not
-#: turn the reference into a huge thrust; the caller clips to the input bounds.
-THRUST_REFERENCE_MIN_EFFECTIVENESS = 0.05
-
-
 def thrust_reference(step_fn, model, x_ref: Array, u_ref: Array) -> Array:
     """Input reference made consistent with a learned model (design decision, see below).
 
@@ -532,34 +524,18 @@ def thrust_reference(step_fn, model, x_ref: Array, u_ref: Array) -> Array:
     learned model that knows about the payload needs more thrust to hold the reference,
     and the MPC's input cost ``R (u - u_ref)^2`` would then pull the thrust back towards
     the nominal hover value; over a 1 s horizon, sinking a little is cheaper than paying
-    that cost, and the vehicle keeps sinking. So every learned-model method gets, at
-    every reference stage, the thrust ``T`` at which its model's acceleration along the
-    body z axis equals the nominal model's at the flat reference input, found by Newton's
-    method on ``T``: a first step with the nominal effectiveness (``T_ref += -m_nom
-    (delta_v . z_b) / dt``), then :data:`THRUST_REFERENCE_NEWTON_STEPS` steps with the
-    learned model's own. The residual depends on the thrust (a payload lowers the thrust
-    effectiveness, and a one-step model also sees the rotors' lag), so the first step
-    alone leaves the reference short: at 175 g / 0.5 m/s it sat near 6.6 N where holding
-    altitude takes 7.3 N, and the vehicle flew 13 mm low on average.
+    that cost, and the vehicle keeps sinking. So every learned-model method adds to the
+    reference thrust what cancels its predicted residual acceleration along the body z
+    axis at the reference: ``T_ref += -m_nom (delta_v . z_b) / dt``.
     """
     p = qd.nominal_params()
-    nominal_slope = DT / p.mass  # d(delta v . z_b) / dT of the nominal model
 
     def one(x, u):
+        dv = (step_fn(x, u, model) - f_nom(x, u))[3:6]
         q = x[6:10]
         z_b = jnp.stack([2 * (q[1] * q[3] + q[0] * q[2]), 2 * (q[2] * q[3] - q[0] * q[1]),
                          1 - 2 * (q[1] ** 2 + q[2] ** 2)])
-        target = jnp.dot(f_nom(x, u)[3:6], z_b)
-
-        def excess(thrust):  # learned minus nominal-at-reference velocity change along z_b
-            return jnp.dot(step_fn(x, u.at[0].set(thrust), model)[3:6], z_b) - target
-
-        thrust = u[0] - excess(u[0]) / nominal_slope
-        for _ in range(THRUST_REFERENCE_NEWTON_STEPS):
-            value, slope = jax.jvp(excess, (thrust,), (jnp.ones_like(thrust),))
-            slope = jnp.maximum(slope, THRUST_REFERENCE_MIN_EFFECTIVENESS * nominal_slope)
-            thrust = thrust - value / slope
-        return u.at[0].set(thrust)
+        return u.at[0].add(-p.mass * jnp.dot(dv, z_b) / DT)
 
     return jax.vmap(one)(x_ref[:-1], u_ref)
 
