@@ -60,7 +60,7 @@ reference is made consistent with the learned model (:func:`thrust_reference`), 
 learned residual is confined to its training range inside the rollout (:class:`Guard`).
 
 Tuning (:func:`tune`): each adaptive method gets small grids over its adaptation knobs
-on a tuning cell that is not evaluated (150 g, 2.0 m/s, two flights with their own seeds,
+on a tuning cell that is not evaluated (150 g, 2.0 m/s, four flights with their own seeds,
 mean RMSE), one knob after the other, in passes until a pass changes nothing (coordinate
 descent): ours the temperature ``beta`` (the Appendix D value 0.997 is in the grid), then
 the noise variance ``sigma^2`` of the online regression; the GP a factor on its noise
@@ -130,7 +130,10 @@ CRASH_ERROR_M = 2.0
 #: Tuning cell and seeds (not one of the evaluation cells or seeds), and the grids: the
 #: adaptation-rate knob of each adaptive method (module docstring, "Tuning").
 TUNING_CELL = (150.0, 2.0)
-TUNING_SEEDS = (999, 998)  # score: mean RMSE over these flights
+#: Four flights: ours' flights differ by a few per cent between seeds and between roundings,
+#: and its two best ``sigma^2`` values lie within that on this cell, so two flights picked
+#: between them at random (README, "Tuning flights").
+TUNING_SEEDS = (999, 998, 997, 996)  # score: mean RMSE over these flights
 TUNING_GRIDS = {
     "ours_beta": (0.997, 0.9, 0.5, 0.2, 0.05),
     "ours_sigma2": (0.1, 0.01, 0.001, 0.0001),
@@ -151,7 +154,7 @@ TUNING_METHOD = {"ours_beta": "ours", "ours_sigma2": "ours", "gp_noise_scale": "
 MAX_TUNING_PASSES = 4
 #: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
 #: the choice under "tuning"); used when the tuning is skipped (``quick``).
-TUNED_DEFAULTS = {"ours_beta": 0.05, "ours_sigma2": 0.001, "gp_noise_scale": 0.01,
+TUNED_DEFAULTS = {"ours_beta": 0.05, "ours_sigma2": 0.0001, "gp_noise_scale": 0.01,
                   "mlp_lr": 0.1, "l1_cutoff": 80.0, "l1_cutoff_rates": 0.0, "l1_a_s": -0.1}
 
 
