@@ -106,7 +106,7 @@ def stack_knobs() -> dict[str, Any]:
 
     The closed-loop evaluation tunes ``sigma^2`` on in-process flights; the adapter keeps
     the offline calibration (Appendix D 0.1) and adds the estimator's noise to it: with
-    0.001 (what the evaluation tunes) the lockstep flights flagged changepoints during
+    0.001 (the evaluation now tunes 1e-4) the lockstep flights flagged changepoints during
     take-off and hover (on the ground-truth state too), and the beam restarts on most steps
     of a swinging flight.
     ``beta`` is then the one the tuning picks at ``sigma^2 = 0.1`` (its first pass, before
