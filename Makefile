@@ -17,9 +17,13 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/arcade demo
 
+# Unit and property tests share the cores (one worker per test file, so per-file fixtures
+# are built once); the integration tests run real-time loops and run alone so that their
+# timing assertions are not measured on a starved CPU.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -m "not integration" -n 2 --dist loadfile
+	$(PY) -m pytest -q -m integration
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

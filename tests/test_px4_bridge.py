@@ -291,6 +291,7 @@ def _arm(bus: Bus, events: Events) -> None:
     assert e is not None, [x.text for _, x in events.items[n:]]
 
 
+@pytest.mark.integration
 def test_bridge_against_fake_px4(rig):
     px4, proc, bus, events, _ = rig
 
