@@ -34,8 +34,9 @@ def read_truth(path: Path) -> dict[str, np.ndarray]:
     return {name: np.atleast_1d(data[name]) for name in data.dtype.names}
 
 
-def truth_metrics(truth: dict[str, np.ndarray], t_figure: float, t_release: float | None
-                  ) -> dict[str, float]:
+def truth_metrics(
+    truth: dict[str, np.ndarray], t_figure: float, t_release: float | None
+) -> dict[str, float]:
     """RMSE and z-RMSE from ``t_figure`` on; shift and settling at ``t_release`` (as the
     in-process evaluation computes them, ``benchmarks.quadrotor_closedloop.flight_metrics``)."""
     import jax.numpy as jnp
@@ -58,8 +59,9 @@ def truth_metrics(truth: dict[str, np.ndarray], t_figure: float, t_release: floa
     return out
 
 
-def plot(path: Path, truth: dict[str, np.ndarray], t_release: float | None,
-         changepoints: list[float]) -> None:
+def plot(
+    path: Path, truth: dict[str, np.ndarray], t_release: float | None, changepoints: list[float]
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -87,11 +89,22 @@ def plot(path: Path, truth: dict[str, np.ndarray], t_release: float | None,
     plt.close(fig)
 
 
-def run_demo(out: Path, *, payload_g: float = 175.0, speed: float = 2.5, seed: int = 0,
-             rate: float = 20.0, x64: bool = False, weights: Path | None = None,
-             duration: float | None = None, lockstep: bool = True,
-             progress: bool = True, extra: dict[str, list[str]] | None = None,
-             truth_state: bool = False, hub: str | None = None) -> dict[str, Any]:
+def run_demo(
+    out: Path,
+    *,
+    payload_g: float = 175.0,
+    speed: float = 2.5,
+    seed: int = 0,
+    rate: float = 20.0,
+    x64: bool = False,
+    weights: Path | None = None,
+    duration: float | None = None,
+    lockstep: bool = True,
+    progress: bool = True,
+    extra: dict[str, list[str]] | None = None,
+    truth_state: bool = False,
+    hub: str | None = None,
+) -> dict[str, Any]:
     """Fly the demo through the stack; writes the run folder and returns the summary."""
     from tqdm import tqdm
 
@@ -101,12 +114,28 @@ def run_demo(out: Path, *, payload_g: float = 175.0, speed: float = 2.5, seed: i
     out = Path(out)
     scen = Scenario(payload_g=payload_g, speed_mps=speed)
     t_end = duration if duration is not None else scen.t_end
-    cfg = StackConfig(out=out, lockstep=lockstep, hub=hub or free_hub(), rate=rate,
-                      duration=duration, payload_g=payload_g, speed=speed, seed=seed, x64=x64,
-                      weights=weights, extra=dict(extra or {}), truth_state=truth_state)
+    cfg = StackConfig(
+        out=out,
+        lockstep=lockstep,
+        hub=hub or free_hub(),
+        rate=rate,
+        duration=duration,
+        payload_g=payload_g,
+        speed=speed,
+        seed=seed,
+        x64=x64,
+        weights=weights,
+        extra=dict(extra or {}),
+        truth_state=truth_state,
+    )
 
-    bar = tqdm(total=round(t_end, 2), unit="s sim", disable=not progress, file=sys.stderr,
-               bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s simulated [{elapsed}]")
+    bar = tqdm(
+        total=round(t_end, 2),
+        unit="s sim",
+        disable=not progress,
+        file=sys.stderr,
+        bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s simulated [{elapsed}]",
+    )
 
     def on_time(t: float) -> None:
         bar.n = round(min(max(t, 0.0), t_end), 2)
@@ -135,10 +164,17 @@ def run_demo(out: Path, *, payload_g: float = 175.0, speed: float = 2.5, seed: i
         flight_wall_s=result["flight_wall_s"],
         startup_s=result["ready_s"],
         exit_codes=result["codes"],
-        adaptation="nominal" if any(e["kind"] == "degraded" and "weights" in e["text"]
-                                    for e in result["events"]) else "ours",
-        settings={"payload_g": payload_g, "speed_mps": speed, "seed": seed, "rate_hz": rate,
-                  "lockstep": lockstep, "x64": x64},
+        adaptation="nominal"
+        if any(e["kind"] == "degraded" and "weights" in e["text"] for e in result["events"])
+        else "ours",
+        settings={
+            "payload_g": payload_g,
+            "speed_mps": speed,
+            "seed": seed,
+            "rate_hz": rate,
+            "lockstep": lockstep,
+            "x64": x64,
+        },
     )
     rejects = {}
     for f in (out / "stats").glob("*.json"):
@@ -163,8 +199,7 @@ def format_summary(s: dict[str, Any]) -> str:
         f"{'settling (5 cm)':22s} {f(s.get('settling_s'), ' s')}",
         f"{'changepoint delay':22s} {f(s.get('detection_delay_s'), ' s')}",
         f"{'payload released at':22s} {f(s.get('t_release_s'), ' s')}",
-        f"{'flight wall time':22s} {f(s['flight_wall_s'], ' s')} "
-        f"(start-up {s['startup_s']:.1f} s)",
+        f"{'flight wall time':22s} {f(s['flight_wall_s'], ' s')} (start-up {s['startup_s']:.1f} s)",
     ]
     if s["crashed"]:
         lines.append("THE VEHICLE CRASHED")

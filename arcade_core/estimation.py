@@ -123,18 +123,28 @@ def init(dtype=None) -> FilterState:
     z = jnp.zeros((), dtype)
     i = jnp.zeros((), jnp.int32)
     return FilterState(
-        t=z, p=jnp.zeros(3, dtype), v=jnp.zeros(3, dtype), a=jnp.zeros(3, dtype),
-        q=jnp.array([1.0, 0.0, 0.0, 0.0], dtype), cov=jnp.eye(3, dtype=dtype),
-        initialised=jnp.zeros((), bool), rejects=i, accepted=i, rejected=i,
+        t=z,
+        p=jnp.zeros(3, dtype),
+        v=jnp.zeros(3, dtype),
+        a=jnp.zeros(3, dtype),
+        q=jnp.array([1.0, 0.0, 0.0, 0.0], dtype),
+        cov=jnp.eye(3, dtype=dtype),
+        initialised=jnp.zeros((), bool),
+        rejects=i,
+        accepted=i,
+        rejected=i,
     )
 
 
 def empty_frames(max_frames: int = MAX_FRAMES, dtype=None) -> Frames:
     """An all-invalid batch (fill the first rows, set ``valid``)."""
     dtype = dtype or jnp.result_type(float)
-    return Frames(jnp.zeros(max_frames, dtype), jnp.zeros((max_frames, 3), dtype),
-                  jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0], dtype), (max_frames, 1)),
-                  jnp.zeros(max_frames, bool))
+    return Frames(
+        jnp.zeros(max_frames, dtype),
+        jnp.zeros((max_frames, 3), dtype),
+        jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0], dtype), (max_frames, 1)),
+        jnp.zeros(max_frames, bool),
+    )
 
 
 def propagate_attitude(q: Array, omega: Array, dt: ArrayLike) -> Array:
@@ -153,13 +163,20 @@ def ca_transition(dt: ArrayLike, jerk_psd: ArrayLike) -> tuple[Array, Array]:
     """Constant-acceleration model over ``dt``: ``F`` (3, 3) and the white-jerk noise ``Q``."""
     dt = jnp.asarray(dt)
     one, zero = jnp.ones_like(dt), jnp.zeros_like(dt)
-    F = jnp.stack([jnp.stack([one, dt, 0.5 * dt**2]), jnp.stack([zero, one, dt]),
-                   jnp.stack([zero, zero, one])])
-    Q = jerk_psd * jnp.stack([
-        jnp.stack([dt**5 / 20.0, dt**4 / 8.0, dt**3 / 6.0]),
-        jnp.stack([dt**4 / 8.0, dt**3 / 3.0, dt**2 / 2.0]),
-        jnp.stack([dt**3 / 6.0, dt**2 / 2.0, dt]),
-    ])
+    F = jnp.stack(
+        [
+            jnp.stack([one, dt, 0.5 * dt**2]),
+            jnp.stack([zero, one, dt]),
+            jnp.stack([zero, zero, one]),
+        ]
+    )
+    Q = jerk_psd * jnp.stack(
+        [
+            jnp.stack([dt**5 / 20.0, dt**4 / 8.0, dt**3 / 6.0]),
+            jnp.stack([dt**4 / 8.0, dt**3 / 3.0, dt**2 / 2.0]),
+            jnp.stack([dt**3 / 6.0, dt**2 / 2.0, dt]),
+        ]
+    )
     return F, Q.astype(dt.dtype)
 
 
@@ -169,8 +186,10 @@ def predict(state: FilterState, t: ArrayLike, config: FilterConfig) -> FilterSta
     dt = jnp.maximum(t - state.t, 0.0)
     F, Q = ca_transition(dt, config.jerk_psd)
     return state._replace(
-        t=jnp.maximum(state.t, t), p=state.p + dt * state.v + 0.5 * dt**2 * state.a,
-        v=state.v + dt * state.a, cov=F @ state.cov @ F.T + Q,
+        t=jnp.maximum(state.t, t),
+        p=state.p + dt * state.v + 0.5 * dt**2 * state.a,
+        v=state.v + dt * state.a,
+        cov=F @ state.cov @ F.T + Q,
     )
 
 
@@ -179,8 +198,12 @@ def _angle_between(a: Array, b: Array) -> Array:
 
 
 def update(
-    state: FilterState, stamp: ArrayLike, position: Array, quaternion: Array,
-    omega: Array, config: FilterConfig,
+    state: FilterState,
+    stamp: ArrayLike,
+    position: Array,
+    quaternion: Array,
+    omega: Array,
+    config: FilterConfig,
 ) -> tuple[FilterState, Array]:
     """Fuse one frame captured at ``stamp``; returns ``(state, accepted)``.
 
@@ -201,8 +224,9 @@ def update(
     # A first frame starts in the identity's hemisphere (q_pred of an uninitialised filter
     # is the identity propagated over the whole stamp, i.e. arbitrary); a re-initialisation
     # continues the hemisphere of the estimate it replaces.
-    q_first = jnp.where(state.initialised, q_meas,
-                        quat.align(quaternion, jnp.array([1.0, 0.0, 0.0, 0.0], dtype)))
+    q_first = jnp.where(
+        state.initialised, q_meas, quat.align(quaternion, jnp.array([1.0, 0.0, 0.0, 0.0], dtype))
+    )
     close = (d2 <= config.gate_chi2) | (jnp.sum(nu * nu) <= config.gate_floor_m**2)
     in_gate = close & (_angle_between(q_pred, q_meas) <= config.gate_angle_rad)
     in_order = stamp >= state.t
@@ -218,23 +242,42 @@ def update(
     q_blend = q_pred + config.attitude_gain * (q_meas - q_pred)
     q_new = q_blend / jnp.linalg.norm(q_blend)
 
-    var0 = jnp.stack([r, jnp.asarray(config.init_velocity_std, dtype) ** 2,
-                      jnp.asarray(config.accel_std, dtype) ** 2])
+    var0 = jnp.stack(
+        [
+            r,
+            jnp.asarray(config.init_velocity_std, dtype) ** 2,
+            jnp.asarray(config.accel_std, dtype) ** 2,
+        ]
+    )
     fresh = FilterState(
-        t=stamp, p=position, v=jnp.where(state.initialised, pred.v, 0.0),
-        a=jnp.zeros(3, dtype), q=q_first, cov=jnp.diag(var0),
-        initialised=jnp.ones((), bool), rejects=jnp.zeros((), jnp.int32),
-        accepted=state.accepted + 1, rejected=state.rejected,
+        t=stamp,
+        p=position,
+        v=jnp.where(state.initialised, pred.v, 0.0),
+        a=jnp.zeros(3, dtype),
+        q=q_first,
+        cov=jnp.diag(var0),
+        initialised=jnp.ones((), bool),
+        rejects=jnp.zeros((), jnp.int32),
+        accepted=state.accepted + 1,
+        rejected=state.rejected,
     )
     fused = FilterState(
-        t=stamp, p=p_new, v=v_new, a=a_new, q=q_new, cov=cov_new, initialised=state.initialised,
-        rejects=jnp.zeros((), jnp.int32), accepted=state.accepted + 1,
+        t=stamp,
+        p=p_new,
+        v=v_new,
+        a=a_new,
+        q=q_new,
+        cov=cov_new,
+        initialised=state.initialised,
+        rejects=jnp.zeros((), jnp.int32),
+        accepted=state.accepted + 1,
         rejected=state.rejected,
     )
     use_fresh = reinit & ~in_gate | ~state.initialised
     new = jax.tree.map(lambda a, b: jnp.where(use_fresh, a, b), fresh, fused)
-    bad = state._replace(rejects=state.rejects + in_order.astype(jnp.int32),
-                         rejected=state.rejected + 1)
+    bad = state._replace(
+        rejects=state.rejects + in_order.astype(jnp.int32), rejected=state.rejected + 1
+    )
     out = jax.tree.map(lambda a, b: jnp.where(accept, a, b), new, bad)
     return out, accept
 
@@ -248,8 +291,14 @@ def output(state: FilterState, t: ArrayLike, omega: Array, config: FilterConfig)
     q = propagate_attitude(state.q, omega, age)
     x = jnp.concatenate([pred.p, pred.v, q, omega])
     att_var = jnp.full(4, (config.gyro_std * age) ** 2 + 1e-6, dtype)
-    var = jnp.concatenate([jnp.full(3, pred.cov[0, 0]), jnp.full(3, pred.cov[1, 1]), att_var,
-                           jnp.full(3, config.gyro_std**2, dtype)])
+    var = jnp.concatenate(
+        [
+            jnp.full(3, pred.cov[0, 0]),
+            jnp.full(3, pred.cov[1, 1]),
+            att_var,
+            jnp.full(3, config.gyro_std**2, dtype),
+        ]
+    )
     return Estimate(x, var, jnp.zeros((), jnp.int32), age > config.dropout_s, age)
 
 

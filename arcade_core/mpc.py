@@ -295,7 +295,10 @@ def _rollout_arrays(step_fn, static, x0, U, dynamic, staged=False):
 
 
 def residual_along(
-    step_fn: StepFn, nominal_step: Callable[[Array, Array], Array], model: Any, x0: Array,
+    step_fn: StepFn,
+    nominal_step: Callable[[Array, Array], Array],
+    model: Any,
+    x0: Array,
     U: Array,
 ) -> Array:
     """The learned residual along the trajectory ``step_fn`` rolls ``U`` out to, ``(N, nx)``.
@@ -358,8 +361,14 @@ class ArmijoGaussNewton(optx.AbstractGaussNewton):
     search: optx.BacktrackingArmijo
     verbose: Callable
 
-    def __init__(self, rtol: float, atol: float, linear_solver: lx.AbstractLinearSolver,
-                 decrease_factor: float = 0.5, slope: float = 0.1):
+    def __init__(
+        self,
+        rtol: float,
+        atol: float,
+        linear_solver: lx.AbstractLinearSolver,
+        decrease_factor: float = 0.5,
+        slope: float = 0.1,
+    ):
         self.rtol = rtol
         self.atol = atol
         self.norm = optx.max_norm
@@ -450,9 +459,7 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
     elif cfg.solver == "dogleg":
         solver = optx.Dogleg(rtol=cfg.rtol, atol=cfg.atol, linear_solver=linear_solver)
     elif cfg.solver == "levenberg_marquardt":
-        solver = optx.LevenbergMarquardt(
-            rtol=cfg.rtol, atol=cfg.atol, linear_solver=linear_solver
-        )
+        solver = optx.LevenbergMarquardt(rtol=cfg.rtol, atol=cfg.atol, linear_solver=linear_solver)
     else:
         raise ValueError(f"unknown MPC solver {cfg.solver!r} (one of {', '.join(SOLVERS)})")
 
@@ -472,12 +479,11 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
         prob = _Problem(x0, x_ref, u_ref, u_prev, model, q_stage)
         lo, hi = bounds(u_warm.dtype)
         z0 = _unsquash(u_warm, lo, hi)
-        sol = optx.least_squares(
-            fn, solver, z0, args=prob, max_steps=cfg.max_steps, throw=False
-        )
+        sol = optx.least_squares(fn, solver, z0, args=prob, max_steps=cfg.max_steps, throw=False)
         U = _squash(sol.value, lo, hi)
         X = rollout(x0, U, model)
         cost = jnp.sum(residuals(U, X, prob) ** 2)
+
         # Safeguards: never hand out a non-finite plan, nor one worse than the warm start
         # (undamped Gauss-Newton can overshoot far from the optimum); the fallback is the
         # cheaper finite one of the warm start and the input reference.

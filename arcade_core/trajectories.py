@@ -150,9 +150,7 @@ def flat_state(
         return quat.vee(R.T @ R_dot)
 
     omega, omega_dot = jax.jvp(body_rates, (t,), (jnp.ones_like(t),))
-    x = jnp.concatenate(
-        [pos(t), vel(t), quat.from_rotation_matrix(attitude(t)), omega]
-    )
+    x = jnp.concatenate([pos(t), vel(t), quat.from_rotation_matrix(attitude(t)), omega])
     u = jnp.concatenate(
         [jnp.linalg.norm(thrust_vector(t))[None], omega + params.rate_tau * omega_dot]
     )

@@ -51,8 +51,7 @@ def _inputs(steps: int, d: int, l: int, seed: int) -> np.ndarray:
     return np.concatenate([z, delta, sigma_z2], axis=1).astype(np.float32)
 
 
-def _measure(Ks, d: int, l: int, steps: int, warmup: int, seed: int,
-             floors=(1.0, 0.0)) -> dict:
+def _measure(Ks, d: int, l: int, steps: int, warmup: int, seed: int, floors=(1.0, 0.0)) -> dict:
     """Timing loop; runs in the worker process."""
     import jax
 
@@ -73,8 +72,14 @@ def _measure(Ks, d: int, l: int, steps: int, warmup: int, seed: int,
                 samples.append(time.perf_counter() - t0)
         assert np.isfinite(np.asarray(out)).all(), "non-finite adaptation output"
         med, p99 = percentiles(samples, 1e6)
-        results.append({"K": int(K), "prior_floor": float(floor), "median_us": round(med, 2),
-                        "p99_us": round(p99, 2)})
+        results.append(
+            {
+                "K": int(K),
+                "prior_floor": float(floor),
+                "median_us": round(med, 2),
+                "p99_us": round(p99, 2),
+            }
+        )
     return {"machine": machine(), "d": d, "l": l, "results": results}
 
 

@@ -114,8 +114,9 @@ def f_nom(x, u):
     return cartpole_nominal_step(x, u)
 
 
-def train_vld(key, x, u, xn, *, variational: bool, epochs: int, callback=None,
-              **overrides: Any) -> encoder.VLD:
+def train_vld(
+    key, x, u, xn, *, variational: bool, epochs: int, callback=None, **overrides: Any
+) -> encoder.VLD:
     """The cartpole VLD (Appendix D preset; ``overrides`` change its config, e.g.
     ``latent_dim`` for :func:`latent_ablation`), residual scale calibrated to sigma^2."""
     delta = xn - cd.nominal_next(x, u)
@@ -217,8 +218,9 @@ def no_cp_runner(model: encoder.VLD, sigma2) -> Callable[[float], Callable]:
     return make
 
 
-def run_known_changepoints(model: encoder.VLD, cfg: adaptation.AdaptationConfig, X, U,
-                           steps=cd.INTERVENTION_STEPS):
+def run_known_changepoints(
+    model: encoder.VLD, cfg: adaptation.AdaptationConfig, X, U, steps=cd.INTERVENTION_STEPS
+):
     """Reference, not a method: Ours with one hypothesis (K = 1) whose changepoints are
     the true intervention steps and no others (the prior tempered with ``cfg.beta`` at
     exactly those steps, Eq. 5). It shows what a detector that never misses and never
@@ -233,8 +235,9 @@ def run_known_changepoints(model: encoder.VLD, cfg: adaptation.AdaptationConfig,
         x, u, xn, pi = inp
         nom = f_nom(x, u)
         dn = model.normalise_residual(xn - nom)
-        state, pred, _ = adaptation.step(state, model.features(x, u), dn, c0._replace(pi=pi),
-                                         model.latent_variance(x, u))
+        state, pred, _ = adaptation.step(
+            state, model.features(x, u), dn, c0._replace(pi=pi), model.latent_variance(x, u)
+        )
         return state, nom + model.denormalise_residual(pred.mean)
 
     pis = jnp.asarray(pis, jnp.result_type(X))
@@ -329,8 +332,9 @@ def _choice(scores: dict[float, float]) -> dict[str, Any]:
     }
 
 
-def ours_tuning(grid: list[dict[str, float]],
-                preset: adaptation.AdaptationConfig) -> dict[str, Any]:
+def ours_tuning(
+    grid: list[dict[str, float]], preset: adaptation.AdaptationConfig
+) -> dict[str, Any]:
     """Ours' CRMSE tuning read off :func:`beam_tuning_grid` by coordinate descent: beta at
     the preset pi and tau^2, then pi, then tau^2, each at the others' current choice, in
     passes until a pass changes nothing (at most :data:`MAX_TUNING_PASSES`).
@@ -340,14 +344,20 @@ def ours_tuning(grid: list[dict[str, float]],
     knob at the others' final values) and ``"ours_passes"``.
     """
     scores = {tuple(g[k] for k in OURS_KNOBS): g["tuning_crmse"] for g in grid}
-    table, passes = coordinate_descent(scores, OURS_KNOBS,
-                                       {k: float(getattr(preset, k)) for k in OURS_KNOBS})
-    return {"ours": table["beta"], "ours_pi": table["pi"], "ours_tau2": table["tau2"],
-            "ours_passes": passes}
+    table, passes = coordinate_descent(
+        scores, OURS_KNOBS, {k: float(getattr(preset, k)) for k in OURS_KNOBS}
+    )
+    return {
+        "ours": table["beta"],
+        "ours_pi": table["pi"],
+        "ours_tau2": table["tau2"],
+        "ours_passes": passes,
+    }
 
 
-def coordinate_descent(scores: dict[tuple, float], knobs: tuple[str, ...],
-                       start: dict[str, float]) -> tuple[dict[str, dict[str, Any]], int]:
+def coordinate_descent(
+    scores: dict[tuple, float], knobs: tuple[str, ...], start: dict[str, float]
+) -> tuple[dict[str, dict[str, Any]], int]:
     """Minimise a score tabulated on a grid (keys: values of ``knobs`` in that order) one
     knob after the other from ``start``, in passes until one changes nothing (at most
     :data:`MAX_TUNING_PASSES`). Returns each knob's :func:`_choice` of the last pass and
@@ -359,8 +369,9 @@ def coordinate_descent(scores: dict[tuple, float], knobs: tuple[str, ...],
         passes += 1
         changed, table = False, {}
         for knob in knobs:
-            table[knob] = _choice({v: scores[tuple({**point, knob: v}[k] for k in knobs)]
-                                   for v in values[knob]})
+            table[knob] = _choice(
+                {v: scores[tuple({**point, knob: v}[k] for k in knobs)] for v in values[knob]}
+            )
             changed |= table[knob]["chosen"] != point[knob]
             point[knob] = table[knob]["chosen"]
         if not changed:
@@ -368,13 +379,16 @@ def coordinate_descent(scores: dict[tuple, float], knobs: tuple[str, ...],
     return table, passes
 
 
-def known_changepoints_tuning(model, cfg, X, U, X_np, betas=KNOWN_CP_BETA_GRID,
-                              tau2s=OURS_TAU2_GRID) -> dict[str, Any]:
+def known_changepoints_tuning(
+    model, cfg, X, U, X_np, betas=KNOWN_CP_BETA_GRID, tau2s=OURS_TAU2_GRID
+) -> dict[str, Any]:
     """The known-changepoint reference's beta and tau^2, tuned like Ours' (coordinate
     descent from the preset on the tuning trajectories; one compiled program for the
     grid). ``chosen`` and ``tuning_crmse`` are beta's, ``tau2`` is :func:`_choice`'s."""
-    B, T = (a.ravel() for a in np.meshgrid(np.asarray(betas, float), np.asarray(tau2s, float),
-                                           indexing="ij"))
+    B, T = (
+        a.ravel()
+        for a in np.meshgrid(np.asarray(betas, float), np.asarray(tau2s, float), indexing="ij")
+    )
 
     def one(b, t):
         c = cfg._replace(beta=b, tau2=t)
@@ -384,15 +398,19 @@ def known_changepoints_tuning(model, cfg, X, U, X_np, betas=KNOWN_CP_BETA_GRID,
     scores = {}
     for i in range(len(B)):
         scores[(float(B[i]), float(T[i]))] = _tuning_score(xhat[i], X_np)
-    table, passes = coordinate_descent(scores, ("beta", "tau2"),
-                                       {"beta": float(cfg.beta), "tau2": float(cfg.tau2)})
+    table, passes = coordinate_descent(
+        scores, ("beta", "tau2"), {"beta": float(cfg.beta), "tau2": float(cfg.tau2)}
+    )
     return {**table["beta"], "tau2": table["tau2"], "passes": passes}
 
 
 def tuned_config(cfg: adaptation.AdaptationConfig, tuned: dict[str, Any]):
     """``cfg`` with Ours' knobs as :func:`ours_tuning` chose them."""
-    return cfg._replace(beta=tuned["ours"]["chosen"], pi=tuned["ours_pi"]["chosen"],
-                        tau2=tuned["ours_tau2"]["chosen"])
+    return cfg._replace(
+        beta=tuned["ours"]["chosen"],
+        pi=tuned["ours_pi"]["chosen"],
+        tau2=tuned["ours_tau2"]["chosen"],
+    )
 
 
 def _tuning_score(xhat, X_np) -> float:
@@ -403,17 +421,25 @@ def _tuning_score(xhat, X_np) -> float:
 
 def _tune(make_fn, grid, X, U, X_np) -> dict[str, Any]:
     """Pick the grid value with the lowest mean CRMSE on the tuning trajectories."""
-    return _choice({value: _tuning_score(jax.jit(jax.vmap(make_fn(value)))(X, U), X_np)
-                    for value in grid})
+    return _choice(
+        {value: _tuning_score(jax.jit(jax.vmap(make_fn(value)))(X, U), X_np) for value in grid}
+    )
 
 
-def beam_tuning_grid(model, cfg, X, U, X_np, betas=OURS_BETA_GRID, pis=OURS_PI_GRID,
-                     tau2s=OURS_TAU2_GRID) -> list[dict[str, float]]:
+def beam_tuning_grid(
+    model, cfg, X, U, X_np, betas=OURS_BETA_GRID, pis=OURS_PI_GRID, tau2s=OURS_TAU2_GRID
+) -> list[dict[str, float]]:
     """Ours on the tuning trajectories for every ``(beta, pi, tau2)`` triple: mean CRMSE
     and hit rate per triple. All run in one compiled program (the knobs are traced)."""
-    B, P, T = (a.ravel() for a in np.meshgrid(
-        np.asarray(betas, float), np.asarray(pis, float), np.asarray(tau2s, float),
-        indexing="ij"))
+    B, P, T = (
+        a.ravel()
+        for a in np.meshgrid(
+            np.asarray(betas, float),
+            np.asarray(pis, float),
+            np.asarray(tau2s, float),
+            indexing="ij",
+        )
+    )
 
     def one(b, p, t):
         c = cfg._replace(beta=b, pi=p, tau2=t)
@@ -422,21 +448,31 @@ def beam_tuning_grid(model, cfg, X, U, X_np, betas=OURS_BETA_GRID, pis=OURS_PI_G
     xhat, _, flags, _ = jax.jit(jax.vmap(one))(jnp.asarray(B), jnp.asarray(P), jnp.asarray(T))
     grid = []
     for i in range(len(B)):
-        grid.append({"beta": float(B[i]), "pi": float(P[i]), "tau2": float(T[i]),
-                     "tuning_crmse": _tuning_score(xhat[i], X_np),
-                     "tuning_hit_rate": changepoint_quality(np.asarray(flags[i]))["hit_rate"]})
+        grid.append(
+            {
+                "beta": float(B[i]),
+                "pi": float(P[i]),
+                "tau2": float(T[i]),
+                "tuning_crmse": _tuning_score(xhat[i], X_np),
+                "tuning_hit_rate": changepoint_quality(np.asarray(flags[i]))["hit_rate"],
+            }
+        )
     return grid
 
 
-def detection_tuning(grid: list[dict[str, float]],
-                     min_hit_rate=DETECTION_MIN_HIT_RATE) -> dict[str, Any]:
+def detection_tuning(
+    grid: list[dict[str, float]], min_hit_rate=DETECTION_MIN_HIT_RATE
+) -> dict[str, Any]:
     """Lowest tuning CRMSE of :func:`beam_tuning_grid` among the settings whose hit rate on
     the tuning trajectories is at least ``min_hit_rate`` (``chosen`` is ``None`` when no
     setting reaches it)."""
     ok = [g for g in grid if g["tuning_hit_rate"] >= min_hit_rate]
     best = min(ok, key=lambda g: g["tuning_crmse"]) if ok else None
-    return {"min_hit_rate": min_hit_rate, "grid": grid,
-            "chosen": None if best is None else {k: best[k] for k in OURS_KNOBS}}
+    return {
+        "min_hit_rate": min_hit_rate,
+        "grid": grid,
+        "chosen": None if best is None else {k: best[k] for k in OURS_KNOBS},
+    }
 
 
 def _stat(v) -> dict[str, float]:
@@ -504,8 +540,7 @@ def evaluate(
         return lambda X, U: run_mlp(m.mlp, lr, X, U)
 
     def known_fn(beta, tau2):
-        return lambda X, U: run_known_changepoints(m.vld, cfg._replace(beta=beta, tau2=tau2),
-                                                   X, U)
+        return lambda X, U: run_known_changepoints(m.vld, cfg._replace(beta=beta, tau2=tau2), X, U)
 
     # Each method's online knobs, chosen on separate tuning trajectories (module docstring).
     # Ours: one run of the whole beta x pi x tau^2 grid serves its coordinate descent and
@@ -534,8 +569,12 @@ def evaluate(
         "ours_no_cp_paper_config": vm(no_cp_fn(cfg.tau2)),
         "mlp_last_layer_paper_lr": vm(mlp_fn(PAPER_MLP_LR)),
         "oracle_true_model": vm(lambda X, U: run_oracle(sched, X, U)),
-        "ours_known_changepoints": vm(known_fn(tuned["ours_known_changepoints"]["chosen"],
-                                               tuned["ours_known_changepoints"]["tau2"]["chosen"])),
+        "ours_known_changepoints": vm(
+            known_fn(
+                tuned["ours_known_changepoints"]["chosen"],
+                tuned["ours_known_changepoints"]["tau2"]["chosen"],
+            )
+        ),
     }
     det = detection["chosen"]
     if det is not None:
@@ -553,8 +592,12 @@ def evaluate(
         "hit_rate_per_intervention": hits_per_intervention(np.asarray(ours_out[2])),
         "tuning": tuned,
         "detection_tuning": detection,
-        "ours_config": {"K": ours_cfg.K, "beta": ours_cfg.beta, "pi": ours_cfg.pi,
-                        "tau2": ours_cfg.tau2},
+        "ours_config": {
+            "K": ours_cfg.K,
+            "beta": ours_cfg.beta,
+            "pi": ours_cfg.pi,
+            "tau2": ours_cfg.tau2,
+        },
         "mlp_learning_rate": {"chosen": tuned["mlp_last_layer"]["chosen"], "paper": PAPER_MLP_LR},
         "settings": s.__dict__,
     }
@@ -572,7 +615,8 @@ def evaluate(
         progress(f"ablation over the latent dimension l = {LATENT_DIMS} (training each)")
         vld_key = jax.random.split(jax.random.fold_in(k_train, 0), 6)[0]  # as train_all
         result["latent_ablation"] = latent_ablation(
-            vld_key, train0, m.vld, cfg, s, tune_data, online_data)
+            vld_key, train0, m.vld, cfg, s, tune_data, online_data
+        )
 
     if out_dir is not None:
         from benchmarks import cartpole_figures as figs
@@ -614,9 +658,16 @@ def ablations(model, cfg, data) -> dict[str, list[dict[str, float]]]:
     return out
 
 
-def latent_ablation(key, train, vld0: encoder.VLD, cfg: adaptation.AdaptationConfig,
-                    s: EvalSettings, tune: cd.Batch, online: cd.Batch,
-                    dims=LATENT_DIMS) -> list[dict[str, Any]]:
+def latent_ablation(
+    key,
+    train,
+    vld0: encoder.VLD,
+    cfg: adaptation.AdaptationConfig,
+    s: EvalSettings,
+    tune: cd.Batch,
+    online: cd.Batch,
+    dims=LATENT_DIMS,
+) -> list[dict[str, Any]]:
     """Ours, Ours w/o CP and offline-only for each latent dimension ``l`` of the encoder.
 
     Each ``l`` is trained like the main model (same data, key and epochs; the preset ``l``
@@ -629,8 +680,11 @@ def latent_ablation(key, train, vld0: encoder.VLD, cfg: adaptation.AdaptationCon
     X, U = jnp.asarray(online.X), jnp.asarray(online.U)
     rows = []
     for l in dims:
-        vld = vld0 if l == vld0.theta0.shape[-1] else train_vld(
-            key, x, u, xn, variational=True, epochs=s.epochs, latent_dim=l)
+        vld = (
+            vld0
+            if l == vld0.theta0.shape[-1]
+            else train_vld(key, x, u, xn, variational=True, epochs=s.epochs, latent_dim=l)
+        )
         tuned = ours_tuning(beam_tuning_grid(vld, cfg, tx, tu, tune.X), cfg)
         no_cp_fn = no_cp_runner(vld, cfg.sigma2)
         tau2 = _tune(no_cp_fn, NO_CP_TAU2_GRID, tx, tu, tune.X)["chosen"]
@@ -639,15 +693,24 @@ def latent_ablation(key, train, vld0: encoder.VLD, cfg: adaptation.AdaptationCon
         ours = _crmse_batch(xhat, online.X)
         no_cp = _crmse_batch(jax.jit(jax.vmap(no_cp_fn(tau2)))(X, U), online.X)
         offline = _crmse_batch(
-            jax.jit(jax.vmap(lambda X, U, vld=vld: run_offline_only(vld, X, U)))(X, U), online.X)
+            jax.jit(jax.vmap(lambda X, U, vld=vld: run_offline_only(vld, X, U)))(X, U), online.X
+        )
         q = changepoint_quality(np.asarray(flags))
-        rows.append({"l": l, "beta": float(c.beta), "pi": float(c.pi),
-                     "ours_tau2": float(c.tau2), "tau2": tau2,
-                     "ours": _stat(ours), "ours_no_cp": _stat(no_cp),
-                     "offline_only": _stat(offline),
-                     "ratio_ours_no_cp": float(ours.mean() / no_cp.mean()),
-                     "hit_rate": q["hit_rate"],
-                     "false_alarms_per_100_steps": q["false_alarms_per_100_steps"]})
+        rows.append(
+            {
+                "l": l,
+                "beta": float(c.beta),
+                "pi": float(c.pi),
+                "ours_tau2": float(c.tau2),
+                "tau2": tau2,
+                "ours": _stat(ours),
+                "ours_no_cp": _stat(no_cp),
+                "offline_only": _stat(offline),
+                "ratio_ours_no_cp": float(ours.mean() / no_cp.mean()),
+                "hit_rate": q["hit_rate"],
+                "false_alarms_per_100_steps": q["false_alarms_per_100_steps"],
+            }
+        )
     return rows
 
 
@@ -671,7 +734,8 @@ def format_table(result: dict[str, Any]) -> str:
             f"Latent dimension l = {row['l']}: ours {row['ours']['mean']:.3f} (hit rate "
             f"{row['hit_rate']:.0%}), ours_no_cp {row['ours_no_cp']['mean']:.3f}, "
             f"offline_only {row['offline_only']['mean']:.3f}, "
-            f"ours/ours_no_cp {row['ratio_ours_no_cp']:.2f}")
+            f"ours/ours_no_cp {row['ratio_ours_no_cp']:.2f}"
+        )
     lines.append("Ratios: " + ", ".join(f"{k} = {v:.2f}" for k, v in result["ratios"].items()))
     return "\n".join(lines)
 
@@ -690,8 +754,8 @@ def detection_summary(d: dict[str, Any] | None) -> str:
         f"beta = {c['beta']:g}, pi = {c['pi']:g}"
         + (f", tau^2 = {c['tau2']:g}" if "tau2" in c else "")
         + "; on the evaluation trajectories hit rate "
-        f"{q['hit_rate']:.0%}" + (" (" + ", ".join(f"step {k} {v:.0%}" for k, v in per.items())
-                                  + ")" if per else "")
+        f"{q['hit_rate']:.0%}"
+        + (" (" + ", ".join(f"step {k} {v:.0%}" for k, v in per.items()) + ")" if per else "")
         + f", false alarms {q['false_alarms_per_100_steps']:.2f} per 100 steps, mean delay "
         f"{q['mean_delay_steps']:.2f} steps; its CRMSE is the `ours_detection_tuned` row."
     )

@@ -43,8 +43,12 @@ def _wakeup(stats: dict[str, Any]) -> int | None:
     return req.get("requested_us") if req.get("applied") else None
 
 
-def run(quick: bool = False, out: Path | None = None, rate: float = RATE_HZ,
-        duration: float | None = None) -> dict[str, Any]:
+def run(
+    quick: bool = False,
+    out: Path | None = None,
+    rate: float = RATE_HZ,
+    duration: float | None = None,
+) -> dict[str, Any]:
     from arcade.demo_stack import free_hub
     from benchmarks.common import machine
     from deploy.launcher import StackConfig, run_flight
@@ -52,11 +56,12 @@ def run(quick: bool = False, out: Path | None = None, rate: float = RATE_HZ,
     duration = duration if duration is not None else (20.0 if quick else 120.0)
     with tempfile.TemporaryDirectory(prefix="arcade-loop-") as tmp:
         folder = Path(out) if out is not None else Path(tmp)
-        cfg = StackConfig(out=folder, lockstep=False, hub=free_hub(), rate=rate,
-                          duration=duration)
+        cfg = StackConfig(out=folder, lockstep=False, hub=free_hub(), rate=rate, duration=duration)
         result = run_flight(cfg)
-        stats = {name: json.loads((folder / "stats" / f"{name}.json").read_text())
-                 for name in ("sim", "estimator", "controller", "adapter")}
+        stats = {
+            name: json.loads((folder / "stats" / f"{name}.json").read_text())
+            for name in ("sim", "estimator", "controller", "adapter")
+        }
     sim, est, ctl = stats["sim"], stats["estimator"], stats["controller"]
     wall = sim["wall_s"] - sim.get("preroll_s", 0.0)
     steps = sim["steps"]
@@ -72,20 +77,31 @@ def run(quick: bool = False, out: Path | None = None, rate: float = RATE_HZ,
         "mpc_p99_ms": mpc_p99,
         "adapt_p99_ms": stats["adapter"]["update"]["p99_ms"],
         # Where sense-to-actuate goes, stage by stage in path order (p50/p99 each).
-        "stages_ms": {name: [round(st[key]["p50_ms"], 3), round(st[key]["p99_ms"], 3)]
-                      for name, st, key in (("sim_publish", sim, "publish_lag"),
-                                            ("hop_imu", est, "hop_imu"),
-                                            ("estimator", est, "process"),
-                                            ("hop_state", ctl, "hop_state"),
-                                            ("controller", ctl, "react"),
-                                            ("hop_setpoint", sim, "hop_setpoint"))},
+        "stages_ms": {
+            name: [round(st[key]["p50_ms"], 3), round(st[key]["p99_ms"], 3)]
+            for name, st, key in (
+                ("sim_publish", sim, "publish_lag"),
+                ("hop_imu", est, "hop_imu"),
+                ("estimator", est, "process"),
+                ("hop_state", ctl, "hop_state"),
+                ("controller", ctl, "react"),
+                ("hop_setpoint", sim, "hop_setpoint"),
+            )
+        },
         # The conditions the numbers were taken under (a service without the privilege
         # runs under the normal policy and lets idle CPUs sleep: expect longer tails).
-        "realtime": {name: {"policy": stats[name].get("scheduling", {}).get("policy", "normal"),
-                            "cpu_wakeup_latency_us": _wakeup(stats[name])}
-                     for name in ("sim", "estimator", "controller")},
-        "gc_pause_max_ms": max(st.get("gc_pauses", {}).get(f"gen{g}", {}).get("max_ms", 0.0)
-                               for st in stats.values() for g in range(3)),
+        "realtime": {
+            name: {
+                "policy": stats[name].get("scheduling", {}).get("policy", "normal"),
+                "cpu_wakeup_latency_us": _wakeup(stats[name]),
+            }
+            for name in ("sim", "estimator", "controller")
+        },
+        "gc_pause_max_ms": max(
+            st.get("gc_pauses", {}).get(f"gen{g}", {}).get("max_ms", 0.0)
+            for st in stats.values()
+            for g in range(3)
+        ),
         "rate_hz": (steps - 1) / wall if wall > 0 else 0.0,
         "target_rate_hz": rate,
         "missed_deadlines": sim["missed_deadlines"],

@@ -155,16 +155,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--speed", type=float, default=2.5)
     from arcade_core.mpc import SOLVERS
 
-    parser.add_argument("--solver", choices=SOLVERS,
-                        help="MPC solver (default: the quadrotor configuration's, "
-                             "gauss_newton_armijo)")
+    parser.add_argument(
+        "--solver",
+        choices=SOLVERS,
+        help="MPC solver (default: the quadrotor configuration's, gauss_newton_armijo)",
+    )
     parser.add_argument("--max-steps", type=int, default=None)
-    parser.add_argument("--residual", choices=("rollout", "held"), default="rollout",
-                        help="learned residual inside the rollout (the controller's scheme, "
-                        "default) or held along the warm start")
+    parser.add_argument(
+        "--residual",
+        choices=("rollout", "held"),
+        default="rollout",
+        help="learned residual inside the rollout (the controller's scheme, "
+        "default) or held along the warm start",
+    )
     args = parser.parse_args(argv)
     result = run(
-        steps=args.steps, speed=args.speed, solver=args.solver, max_steps=args.max_steps,
+        steps=args.steps,
+        speed=args.speed,
+        solver=args.solver,
+        max_steps=args.max_steps,
         residual=args.residual,
     )
     print(json.dumps(result, indent=2))

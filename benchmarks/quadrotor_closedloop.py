@@ -143,16 +143,37 @@ TUNING_GRIDS = {
 #: Where :func:`tune` starts: the presets (Appendix D ``sigma^2 = 0.1``, the GP's
 #: marginal-likelihood noise, L1 on the thrust channel only) and a middle value of the
 #: other grids; see :func:`tune` for the order and the passes.
-TUNING_START = {"ours_beta": 0.05, "ours_sigma2": 0.1, "gp_noise_scale": 1.0, "mlp_lr": 0.1,
-                "l1_cutoff": 40.0, "l1_cutoff_rates": 0.0, "l1_a_s": -2.0}
+TUNING_START = {
+    "ours_beta": 0.05,
+    "ours_sigma2": 0.1,
+    "gp_noise_scale": 1.0,
+    "mlp_lr": 0.1,
+    "l1_cutoff": 40.0,
+    "l1_cutoff_rates": 0.0,
+    "l1_a_s": -2.0,
+}
 #: The method each knob belongs to.
-TUNING_METHOD = {"ours_beta": "ours", "ours_sigma2": "ours", "gp_noise_scale": "gp",
-                 "mlp_lr": "mlp", "l1_cutoff": "l1", "l1_cutoff_rates": "l1", "l1_a_s": "l1"}
+TUNING_METHOD = {
+    "ours_beta": "ours",
+    "ours_sigma2": "ours",
+    "gp_noise_scale": "gp",
+    "mlp_lr": "mlp",
+    "l1_cutoff": "l1",
+    "l1_cutoff_rates": "l1",
+    "l1_a_s": "l1",
+}
 MAX_TUNING_PASSES = 4
 #: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
 #: the choice under "tuning"); used when the tuning is skipped (``quick``).
-TUNED_DEFAULTS = {"ours_beta": 0.05, "ours_sigma2": 0.0001, "gp_noise_scale": 0.01,
-                  "mlp_lr": 0.1, "l1_cutoff": 80.0, "l1_cutoff_rates": 0.0, "l1_a_s": -0.1}
+TUNED_DEFAULTS = {
+    "ours_beta": 0.05,
+    "ours_sigma2": 0.0001,
+    "gp_noise_scale": 0.01,
+    "mlp_lr": 0.1,
+    "l1_cutoff": 80.0,
+    "l1_cutoff_rates": 0.0,
+    "l1_a_s": -0.1,
+}
 
 
 # --------------------------------------------------------------------------- scenario
@@ -198,8 +219,12 @@ class Scenario:
 
     @property
     def figure_eight(self) -> FigureEight:
-        return FigureEight(center=self.center, half_length=self.half_length_m,
-                           half_width=self.half_width_m, speed=self.speed_mps)
+        return FigureEight(
+            center=self.center,
+            half_length=self.half_length_m,
+            half_width=self.half_width_m,
+            speed=self.speed_mps,
+        )
 
     @property
     def lap_s(self) -> float:
@@ -225,12 +250,20 @@ class Scenario:
     def path(self):
         """The reference as one pytree path (all numbers as arrays: no recompilation)."""
         f = jnp.asarray
-        fig = FigureEight(center=f(self.center), half_length=f(self.half_length_m),
-                          half_width=f(self.half_width_m), speed=f(self.speed_mps))
-        hover_then_fig = Chain(Hover(f(self.center)), RampedPath(fig, f(self.ramp_s)),
-                               f(self.hover_s))
-        return Chain(Takeoff(f(self.start), f(self.center), f(self.takeoff_s)),
-                     hover_then_fig, f(self.takeoff_s))
+        fig = FigureEight(
+            center=f(self.center),
+            half_length=f(self.half_length_m),
+            half_width=f(self.half_width_m),
+            speed=f(self.speed_mps),
+        )
+        hover_then_fig = Chain(
+            Hover(f(self.center)), RampedPath(fig, f(self.ramp_s)), f(self.hover_s)
+        )
+        return Chain(
+            Takeoff(f(self.start), f(self.center), f(self.takeoff_s)),
+            hover_then_fig,
+            f(self.takeoff_s),
+        )
 
 
 @jax.jit
@@ -282,16 +315,30 @@ def _nominal_step(x, u, model):
 
 
 def nominal_method() -> Method:
-    return Method("nominal", _nominal_step, lambda a, xp, up, x: a, lambda a: jnp.zeros(()),
-                  lambda a, x, u: None, _no_correction, _zero_info)
+    return Method(
+        "nominal",
+        _nominal_step,
+        lambda a, xp, up, x: a,
+        lambda a: jnp.zeros(()),
+        lambda a, x, u: None,
+        _no_correction,
+        _zero_info,
+    )
 
 
 def l1_method() -> Method:
     def learn(a, xp, up, x):
         return l1.update(a, x, up, DT)
 
-    return Method("l1", _nominal_step, learn, lambda a: jnp.zeros(()), lambda a, x, u: None,
-                  l1.correction, _zero_info)
+    return Method(
+        "l1",
+        _nominal_step,
+        learn,
+        lambda a: jnp.zeros(()),
+        lambda a, x, u: None,
+        l1.correction,
+        _zero_info,
+    )
 
 
 class Guard(NamedTuple):
@@ -356,8 +403,16 @@ def gp_method() -> Method:
         state, guard = a
         return gp.update(state, xp, up, x - f_nom(xp, up)), guard
 
-    return Method("gp", step_fn, learn, lambda a: a, lambda a, x, u: None, _no_correction,
-                  _zero_info, learned=True)
+    return Method(
+        "gp",
+        step_fn,
+        learn,
+        lambda a: a,
+        lambda a, x, u: None,
+        _no_correction,
+        _zero_info,
+        learned=True,
+    )
 
 
 def mlp_method() -> Method:
@@ -374,8 +429,9 @@ def mlp_method() -> Method:
         state, _ = a
         return mlp.predict(state, x, u)[1] / state.model.standardizer.out_scale**2
 
-    return Method("mlp", step_fn, learn, lambda a: a, sigma, _no_correction, _zero_info,
-                  learned=True)
+    return Method(
+        "mlp", step_fn, learn, lambda a: a, sigma, _no_correction, _zero_info, learned=True
+    )
 
 
 class BeamLearner(NamedTuple):
@@ -404,8 +460,9 @@ def beam_method(name: str = "ours") -> Method:
         z = _features(a.vld, a.guard, xp, up)
         dn = a.vld.normalise_residual(x - f_nom(xp, up))
         beam, info = adaptation.update(a.beam, z, dn, a.config)
-        return a._replace(beam=beam, changepoint=info.changepoint.astype(z.dtype),
-                          cp_prob=info.cp_prob)
+        return a._replace(
+            beam=beam, changepoint=info.changepoint.astype(z.dtype), cp_prob=info.cp_prob
+        )
 
     def model(a: BeamLearner):
         # Moment-matched beam marginal of the decoder (Eq. 9): its mean drives the rollout.
@@ -467,29 +524,45 @@ def initial_learner(name: str, models, dtype) -> Any:
     if name == "l1":
         # The rate channel (matched body-rate disturbance) is applied when it has a bandwidth.
         c, c_rates = tuned["l1_cutoff"], tuned["l1_cutoff_rates"]
-        return l1.init(l1.L1Params(mass=p.mass, gravity=p.gravity, rate_tau=p.rate_tau,
-                                   a_s=tuned["l1_a_s"],
-                                   cutoff_thrust=c, cutoff_rates=c_rates if c_rates > 0 else c,
-                                   rotational=c_rates > 0), dtype)
+        return l1.init(
+            l1.L1Params(
+                mass=p.mass,
+                gravity=p.gravity,
+                rate_tau=p.rate_tau,
+                a_s=tuned["l1_a_s"],
+                cutoff_thrust=c,
+                cutoff_rates=c_rates if c_rates > 0 else c,
+                rotational=c_rates > 0,
+            ),
+            dtype,
+        )
     guard = make_guard(models, dtype)
     if name == "gp":
         return cast(gp.init(scale_gp_noise(models.gp, tuned["gp_noise_scale"]), FIFO)), guard
     if name == "mlp":
         std = jnp.asarray(MLP_INPUT_STD, dtype)
-        return cast(mlp.init(cast(models.mlp), std[:13], std[13:], capacity=FIFO,
-                             learning_rate=tuned["mlp_lr"])), guard
-    cfg = adaptation.quadrotor_config()._replace(beta=tuned["ours_beta"],
-                                                 sigma2=tuned["ours_sigma2"])
+        return cast(
+            mlp.init(
+                cast(models.mlp), std[:13], std[13:], capacity=FIFO, learning_rate=tuned["mlp_lr"]
+            )
+        ), guard
+    cfg = adaptation.quadrotor_config()._replace(
+        beta=tuned["ours_beta"], sigma2=tuned["ours_sigma2"]
+    )
     if name == "ours_no_cp":
         cfg = no_cp_config(cfg)
     elif name.startswith("ours_K"):
-        cfg = cfg._replace(K=int(name[len("ours_K"):]))
+        cfg = cfg._replace(K=int(name[len("ours_K") :]))
     vld = cast(models.vld)
     beam = adaptation.init(vld.theta0, cfg)
     traced_cfg = adaptation.AdaptationConfig(
-        K=jnp.asarray(cfg.K), pi=jnp.asarray(cfg.pi, dtype), beta=jnp.asarray(cfg.beta, dtype),
-        tau2=jnp.asarray(cfg.tau2, dtype), sigma2=jnp.asarray(cfg.sigma2, dtype),
-        prior_floor=jnp.asarray(cfg.prior_floor, dtype))
+        K=jnp.asarray(cfg.K),
+        pi=jnp.asarray(cfg.pi, dtype),
+        beta=jnp.asarray(cfg.beta, dtype),
+        tau2=jnp.asarray(cfg.tau2, dtype),
+        sigma2=jnp.asarray(cfg.sigma2, dtype),
+        prior_floor=jnp.asarray(cfg.prior_floor, dtype),
+    )
     zero = jnp.zeros((), dtype)
     return BeamLearner(vld, beam, traced_cfg, guard, zero, zero)
 
@@ -513,8 +586,9 @@ def mpc_config(dtype) -> mpc.MPCConfig:
 
     v = load_vehicle()
     rate = tuple(float(r) for r in v["rate_loop"]["max_rate_rad_s"])
-    return mpc.quadrotor_mpc_config(dt=DT, rate_limit=rate, dtype=dtype,
-                                    max_thrust=4.0 * float(v["rotors"]["max_thrust_n"]))
+    return mpc.quadrotor_mpc_config(
+        dt=DT, rate_limit=rate, dtype=dtype, max_thrust=4.0 * float(v["rotors"]["max_thrust_n"])
+    )
 
 
 def thrust_reference(step_fn, model, x_ref: Array, u_ref: Array) -> Array:
@@ -533,8 +607,13 @@ def thrust_reference(step_fn, model, x_ref: Array, u_ref: Array) -> Array:
     def one(x, u):
         dv = (step_fn(x, u, model) - f_nom(x, u))[3:6]
         q = x[6:10]
-        z_b = jnp.stack([2 * (q[1] * q[3] + q[0] * q[2]), 2 * (q[2] * q[3] - q[0] * q[1]),
-                         1 - 2 * (q[1] ** 2 + q[2] ** 2)])
+        z_b = jnp.stack(
+            [
+                2 * (q[1] * q[3] + q[0] * q[2]),
+                2 * (q[2] * q[3] - q[0] * q[1]),
+                1 - 2 * (q[1] ** 2 + q[2] ** 2),
+            ]
+        )
         return u.at[0].add(-p.mass * jnp.dot(dv, z_b) / DT)
 
     return jax.vmap(one)(x_ref[:-1], u_ref)
@@ -570,16 +649,22 @@ def make_controller_step(method: Method, cfg: mpc.MPCConfig, hold_residual: bool
         sigma = method.sigma(learner, x, carry.u_warm[0])
         model = method.model(learner)
         if method.learned:
-            u_ref = jnp.clip(thrust_reference(method.step_fn, model, x_ref, u_ref),
-                             cfg.u_min, cfg.u_max)
+            u_ref = jnp.clip(
+                thrust_reference(method.step_fn, model, x_ref, u_ref), cfg.u_min, cfg.u_max
+            )
         if staged:
             model = mpc.residual_along(method.step_fn, f_nom, model, x, carry.u_warm)
         sol = controller.solve(x, x_ref, u_ref, carry.u_warm, carry.u_mpc, model, sigma)
         u_b = sol.u[0]
         u = jnp.clip(u_b + method.correction(learner, x), cfg.u_min, cfg.u_max)
         sig = jnp.zeros(13, x.dtype) if sigma is None else sigma
-        diag = jnp.concatenate([sig, method.info(learner).astype(x.dtype),
-                                jnp.stack([sol.iterations, sol.converged]).astype(x.dtype)])
+        diag = jnp.concatenate(
+            [
+                sig,
+                method.info(learner).astype(x.dtype),
+                jnp.stack([sol.iterations, sol.converged]).astype(x.dtype),
+            ]
+        )
         new = Carry(learner, mpc.shift_warm_start(sol.u), u_b, x, jnp.ones((), bool))
         return new, u, diag
 
@@ -623,7 +708,8 @@ class Runner:
     def step_fn(self, name: str) -> Callable:
         if name not in self._steps:
             self._steps[name] = make_controller_step(
-                make_method(name), self.cfg, hold_residual=name.endswith(HELD))
+                make_method(name), self.cfg, hold_residual=name.endswith(HELD)
+            )
         return self._steps[name]
 
     def fly(self, name: str, scenario: Scenario, seed: int = 0) -> Flight:
@@ -640,8 +726,11 @@ class Runner:
             k_release = -1
         N = self.cfg.N
         x_ref_all, u_ref_all = reference(scenario, n, N)
-        sim = QuadrotorSim(payload_mass=scenario.payload_g / 1000.0,
-                           cable_length=scenario.cable_length_m, seed=sim_seed)
+        sim = QuadrotorSim(
+            payload_mass=scenario.payload_g / 1000.0,
+            cable_length=scenario.cable_length_m,
+            seed=sim_seed,
+        )
         x = sim.reset(np.asarray(scenario.start) + offset)
         step = self.step_fn(name)
         dt = self.dtype
@@ -649,8 +738,9 @@ class Runner:
         # Warm start and smoothness reference: the nominal hover input (Appendix D U_0).
         p = qd.nominal_params()
         u0 = jnp.asarray([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0], dt)
-        carry = Carry(learner, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x, dt),
-                      jnp.zeros((), bool))
+        carry = Carry(
+            learner, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x, dt), jnp.zeros((), bool)
+        )
         u_applied = np.asarray(u0)
         X, U, D, T_ms = (np.zeros((n, 13)), np.zeros((n, 4)), np.zeros((n, 17)), np.zeros(n))
         x_ref_np = np.asarray(x_ref_all[:n])
@@ -661,22 +751,36 @@ class Runner:
                 sim.release_payload()
             X[k] = x
             t0 = time.perf_counter()
-            carry, u, diag = step(carry, jnp.asarray(x, dt), jnp.asarray(u_applied, dt),
-                                  k, x_ref_all, u_ref_all)
+            carry, u, diag = step(
+                carry, jnp.asarray(x, dt), jnp.asarray(u_applied, dt), k, x_ref_all, u_ref_all
+            )
             u = np.asarray(u)
             T_ms[k] = 1e3 * (time.perf_counter() - t0)
             D[k] = np.asarray(diag)
             u_applied = sim.set_setpoint(u)
             U[k] = u_applied
-            if (np.linalg.norm(x[:3] - x_ref_np[k, :3]) > CRASH_ERROR_M or x[2] < 0.02
-                    or not np.all(np.isfinite(x))):
+            if (
+                np.linalg.norm(x[:3] - x_ref_np[k, :3]) > CRASH_ERROR_M
+                or x[2] < 0.02
+                or not np.all(np.isfinite(x))
+            ):
                 crashed, n_done = True, k + 1
                 break
             x = sim.step(DT)
         t = np.arange(n_done) * DT
-        flight = Flight(name, scenario, seed, t, X[:n_done], x_ref_np[:n_done], U[:n_done],
-                        D[:n_done], k_release * DT if k_release >= 0 else float("nan"), crashed,
-                        T_ms[:n_done])
+        flight = Flight(
+            name,
+            scenario,
+            seed,
+            t,
+            X[:n_done],
+            x_ref_np[:n_done],
+            U[:n_done],
+            D[:n_done],
+            k_release * DT if k_release >= 0 else float("nan"),
+            crashed,
+            T_ms[:n_done],
+        )
         flight.metrics = flight_metrics(flight)
         return flight
 
@@ -697,9 +801,16 @@ def flight_metrics(f: Flight) -> dict[str, float]:
     inf = float("inf")
     beam = base_name(f.method).startswith("ours")
     if f.crashed:
-        return {"rmse_m": inf, "rmse_z_m": inf, "shift_m": inf, "settling_s": inf,
-                "thrust_increment_rms_n": inf, "rate_increment_rms_rad_s": inf,
-                "changepoint_rate": float("nan"), "crashed": 1.0}
+        return {
+            "rmse_m": inf,
+            "rmse_z_m": inf,
+            "shift_m": inf,
+            "settling_s": inf,
+            "thrust_increment_rms_n": inf,
+            "rate_increment_rms_rad_s": inf,
+            "changepoint_rate": float("nan"),
+            "crashed": 1.0,
+        }
     sel = f.t >= f.scenario.t_figure - 1e-9
     p, pr = jnp.asarray(f.x[sel, :3]), jnp.asarray(f.x_ref[sel, :3])
     e_z = jnp.asarray(f.error[:, 2])
@@ -712,8 +823,7 @@ def flight_metrics(f: Flight) -> dict[str, float]:
         "settling_s": float("nan"),
         "thrust_increment_rms_n": float(du[0]),
         "rate_increment_rms_rad_s": float(np.sqrt(np.mean(du[1:] ** 2))),
-        "changepoint_rate": float(np.mean(f.diag[sel, DIAG_CHANGEPOINT])) if beam
-        else float("nan"),
+        "changepoint_rate": float(np.mean(f.diag[sel, DIAG_CHANGEPOINT])) if beam else float("nan"),
         "crashed": 0.0,
     }
     if np.isfinite(f.t_release):
@@ -776,8 +886,11 @@ def tune(
         if key not in flown:
             models.closedloop = setting
             progress(f"tuning {method}: {knob} = {value:g}")
-            flown[key] = float(np.mean([runner.fly(method, scen, seed=sd).metrics["rmse_m"]
-                                        for sd in TUNING_SEEDS]))
+            flown[key] = float(
+                np.mean(
+                    [runner.fly(method, scen, seed=sd).metrics["rmse_m"] for sd in TUNING_SEEDS]
+                )
+            )
         return flown[key]
 
     models.closedloop = dict(TUNING_START)
@@ -795,8 +908,14 @@ def tune(
         if not changed:
             break
     chosen = {k: models.closedloop[k] for k in TUNING_GRIDS}
-    return {"chosen": chosen, "rmse_m": by_pass[-1], "cell": list(TUNING_CELL),
-            "seeds": list(TUNING_SEEDS), "passes": len(by_pass), "rmse_m_by_pass": by_pass}
+    return {
+        "chosen": chosen,
+        "rmse_m": by_pass[-1],
+        "cell": list(TUNING_CELL),
+        "seeds": list(TUNING_SEEDS),
+        "passes": len(by_pass),
+        "rmse_m_by_pass": by_pass,
+    }
 
 
 def run_closedloop(
@@ -840,36 +959,52 @@ def run_closedloop(
         scen = Scenario(payload_g=float(pay), speed_mps=float(speed))
         for name in methods:
             progress(f"{pay:g} g, {speed:g} m/s: {name} ({trials} trial(s))")
-            vals: dict[str, list[float]] = {k: [] for k in (*KEYS, *DIAGNOSTIC_KEYS,
-                                                            "crashed")}
+            vals: dict[str, list[float]] = {k: [] for k in (*KEYS, *DIAGNOSTIC_KEYS, "crashed")}
             step_ms = []
             for trial in range(trials):
                 f = runner.fly(name, scen, seed=seed * 1000 + trial)
                 step_ms.append(float(np.median(f.step_ms[1:])) if f.step_ms.size > 1 else 0.0)
                 for k in vals:
                     vals[k].append(f.metrics[k])
-                per_trial.append({"payload_g": pay, "speed_mps": speed, "method": name,
-                                  "trial": trial, **f.metrics})
+                per_trial.append(
+                    {
+                        "payload_g": pay,
+                        "speed_mps": speed,
+                        "method": name,
+                        "trial": trial,
+                        **f.metrics,
+                    }
+                )
                 if trial == 0 and (pay, speed) == (175.0, 2.5):
                     fig5[name] = f
             settled = [np.isfinite(v) for v in vals["settling_s"]]
-            rows.append({
-                "payload_g": pay, "speed_mps": speed, "method": name,
-                **{k: _mean(vals[k]) for k in KEYS},
-                **{k: _finite_mean(vals[k], empty=float("nan")) for k in DIAGNOSTIC_KEYS},
-                "rmse_m_finite_mean": _finite_mean(vals["rmse_m"]),
-                "settled_fraction": float(np.mean(settled)),
-                "crashed": float(np.mean(vals["crashed"])),
-                "step_ms_median": float(np.median(step_ms)),
-            })
+            rows.append(
+                {
+                    "payload_g": pay,
+                    "speed_mps": speed,
+                    "method": name,
+                    **{k: _mean(vals[k]) for k in KEYS},
+                    **{k: _finite_mean(vals[k], empty=float("nan")) for k in DIAGNOSTIC_KEYS},
+                    "rmse_m_finite_mean": _finite_mean(vals["rmse_m"]),
+                    "settled_fraction": float(np.mean(settled)),
+                    "crashed": float(np.mean(vals["crashed"])),
+                    "step_ms_median": float(np.median(step_ms)),
+                }
+            )
     result: dict[str, Any] = {
         "cells": rows,
         "trials": per_trial,
         "improvement_over_nominal": improvement(rows),
-        "settings": {"quick": quick, "trials": trials, "control_dt": DT, "horizon": 20,
-                     "dtype": str(jnp.dtype(runner.dtype)),
-                     "tuned": {**TUNED_DEFAULTS, **models.closedloop},
-                     "methods": list(methods), "cells": [list(c) for c in cells]},
+        "settings": {
+            "quick": quick,
+            "trials": trials,
+            "control_dt": DT,
+            "horizon": 20,
+            "dtype": str(jnp.dtype(runner.dtype)),
+            "tuned": {**TUNED_DEFAULTS, **models.closedloop},
+            "methods": list(methods),
+            "cells": [list(c) for c in cells],
+        },
         "tuning": tuning_result,
     }
     if out is not None:
@@ -881,9 +1016,14 @@ def run_closedloop(
         out.mkdir(parents=True, exist_ok=True)
         if fig5:
             figs.tracking_error_figure(out / "quadrotor_tracking_175g_2.5mps.png", fig5)
-            np.savez_compressed(out / "quadrotor_flights_175g_2.5mps.npz", **{
-                f"{m}_{k}": getattr(f, k) for m, f in fig5.items()
-                for k in ("t", "x", "x_ref", "u", "diag")})
+            np.savez_compressed(
+                out / "quadrotor_flights_175g_2.5mps.npz",
+                **{
+                    f"{m}_{k}": getattr(f, k)
+                    for m, f in fig5.items()
+                    for k in ("t", "x", "x_ref", "u", "diag")
+                },
+            )
         figs.metric_bars_figure(out / "quadrotor_metrics.png", per_trial)
     result["wall_time_s"] = time.perf_counter() - t_start
     return result
@@ -899,8 +1039,13 @@ def improvement(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         if "nominal" not in vals:
             continue
         base = vals["nominal"]
-        out.append({"payload_g": pay, "speed_mps": speed, **{
-            m: 100.0 * (base - v) / base for m, v in vals.items() if m != "nominal"}})
+        out.append(
+            {
+                "payload_g": pay,
+                "speed_mps": speed,
+                **{m: 100.0 * (base - v) / base for m, v in vals.items() if m != "nominal"},
+            }
+        )
     return out
 
 
@@ -935,11 +1080,23 @@ def run_beam_ablation(
         progress(f"beam ablation: K = {K}")
         flights = [runner.fly(name, scen, seed=seed * 1000 + i) for i in range(trials)]
         rmse = [f.metrics["rmse_m"] for f in flights]
-        rows.append({"K": int(K), "rmse_m": _mean(rmse),
-                     "adapt_ms_per_step": adaptation_time_ms(
-                         models.vld, int(K), tuned["ours_beta"], flights[0], runner.dtype)})
-    return {"rows": rows, "payload_g": payload_g, "speed_mps": speed_mps, "trials": trials,
-            "beta": tuned["ours_beta"], "machine": machine()}
+        rows.append(
+            {
+                "K": int(K),
+                "rmse_m": _mean(rmse),
+                "adapt_ms_per_step": adaptation_time_ms(
+                    models.vld, int(K), tuned["ours_beta"], flights[0], runner.dtype
+                ),
+            }
+        )
+    return {
+        "rows": rows,
+        "payload_g": payload_g,
+        "speed_mps": speed_mps,
+        "trials": trials,
+        "beta": tuned["ours_beta"],
+        "machine": machine(),
+    }
 
 
 def run_residual_ablation(
@@ -965,14 +1122,25 @@ def run_residual_ablation(
         for variant in (name, name + HELD):
             progress(f"residual ablation: {variant}")
             flights = [runner.fly(variant, scen, seed=seed * 1000 + i) for i in range(trials)]
-            rows.append({"method": name, "residual": "held" if variant != name else "rollout",
-                         "rmse_m": _mean([f.metrics["rmse_m"] for f in flights]),
-                         "rmse_z_m": _mean([f.metrics["rmse_z_m"] for f in flights]),
-                         "step_ms_median": float(np.median(np.concatenate(
-                             [f.step_ms[1:] for f in flights])))})
-    return {"rows": rows, "payload_g": payload_g, "speed_mps": speed_mps, "trials": trials,
-            "tuned": {**TUNED_DEFAULTS, **getattr(models, "closedloop", {})},
-            "machine": machine()}
+            rows.append(
+                {
+                    "method": name,
+                    "residual": "held" if variant != name else "rollout",
+                    "rmse_m": _mean([f.metrics["rmse_m"] for f in flights]),
+                    "rmse_z_m": _mean([f.metrics["rmse_z_m"] for f in flights]),
+                    "step_ms_median": float(
+                        np.median(np.concatenate([f.step_ms[1:] for f in flights]))
+                    ),
+                }
+            )
+    return {
+        "rows": rows,
+        "payload_g": payload_g,
+        "speed_mps": speed_mps,
+        "trials": trials,
+        "tuned": {**TUNED_DEFAULTS, **getattr(models, "closedloop", {})},
+        "machine": machine(),
+    }
 
 
 def adaptation_time_ms(vld: encoder.VLD, K: int, beta: float, flight: Flight, dtype) -> float:
@@ -1012,9 +1180,11 @@ def _cast(tree, dtype):
 
 def format_table(result: dict[str, Any]) -> str:
     """Human-readable Table III analogue."""
-    lines = ["Closed-loop tracking (mean over trials): RMSE / z-RMSE [m], shift [m], "
-             "settling [s]; RMS command increments per control period (dT, drate); "
-             "fraction of steps with a changepoint flagged (beam methods)"]
+    lines = [
+        "Closed-loop tracking (mean over trials): RMSE / z-RMSE [m], shift [m], "
+        "settling [s]; RMS command increments per control period (dT, drate); "
+        "fraction of steps with a changepoint flagged (beam methods)"
+    ]
     for r in result["cells"]:
         lines.append(
             f"  {r['payload_g']:5.0f} g {r['speed_mps']:.1f} m/s  {r['method']:11s} "
@@ -1022,14 +1192,24 @@ def format_table(result: dict[str, Any]) -> str:
             f"settle {r['settling_s']:.2f} ({100 * r['settled_fraction']:.0f} % settled)"
             f"  dT {r['thrust_increment_rms_n']:.2f} N  drate "
             f"{r['rate_increment_rms_rad_s']:.2f} rad/s"
-            + (f"  changepoints {r['changepoint_rate']:.2f}"
-               if np.isfinite(r["changepoint_rate"]) else "")
-            + (f"  CRASHED in {100 * r['crashed']:.0f} % of trials (mean RMSE of the others "
-               f"{r['rmse_m_finite_mean']:.3f})" if r["crashed"] > 0 else "")
+            + (
+                f"  changepoints {r['changepoint_rate']:.2f}"
+                if np.isfinite(r["changepoint_rate"])
+                else ""
+            )
+            + (
+                f"  CRASHED in {100 * r['crashed']:.0f} % of trials (mean RMSE of the others "
+                f"{r['rmse_m_finite_mean']:.3f})"
+                if r["crashed"] > 0
+                else ""
+            )
         )
     for imp in result["improvement_over_nominal"]:
-        lines.append(f"  improvement over nominal at {imp['payload_g']:g} g, "
-                     f"{imp['speed_mps']:g} m/s: " + ", ".join(
-                         f"{m} {v:.0f} %" for m, v in imp.items()
-                         if m not in ("payload_g", "speed_mps")))
+        lines.append(
+            f"  improvement over nominal at {imp['payload_g']:g} g, "
+            f"{imp['speed_mps']:g} m/s: "
+            + ", ".join(
+                f"{m} {v:.0f} %" for m, v in imp.items() if m not in ("payload_g", "speed_mps")
+            )
+        )
     return "\n".join(lines)

@@ -177,8 +177,7 @@ class ExpertPilot:
         p_ref, v_ref, a_ref, yaw = ref
         p, v, q = x[0:3], x[3:6], x[6:10]
         e_p = p_ref - p
-        self.integral = np.clip(self.integral + e_p * dt, -self.integral_limit,
-                                self.integral_limit)
+        self.integral = np.clip(self.integral + e_p * dt, -self.integral_limit, self.integral_limit)
         a = a_ref + self.kp * e_p + self.kd * (v_ref - v) + self.ki * self.integral
         a_z = max(a[2] + self.gravity, 0.3 * self.gravity)
         horiz = a[:2]
@@ -297,16 +296,20 @@ def _flights(
     progress,
 ) -> list[dict[str, np.ndarray]]:
     key = json.dumps(
-        {"kind": kind, "seed": seed, "min": minutes_per_payload,
-         "payloads": [float(p) for p in payloads_g], "version": DATA_VERSION},
+        {
+            "kind": kind,
+            "seed": seed,
+            "min": minutes_per_payload,
+            "payloads": [float(p) for p in payloads_g],
+            "version": DATA_VERSION,
+        },
         sort_keys=True,
     )
     path = _cache_dir() / f"quadrotor_{hashlib.sha256(key.encode()).hexdigest()[:16]}.npz"
     if cache and path.is_file():
         with np.load(path) as f:
             return [
-                {"t": f[f"t{i}"], "X": f[f"X{i}"], "U": f[f"U{i}"]}
-                for i in range(len(payloads_g))
+                {"t": f[f"t{i}"], "X": f[f"X{i}"], "U": f[f"U{i}"]} for i in range(len(payloads_g))
             ]
     # Training and validation seeds come from different branches: disjoint trajectories.
     branch = {"train": 0, "val": 1}[kind]
@@ -314,8 +317,9 @@ def _flights(
     flights = []
     for i, (pay, ss) in enumerate(zip(payloads_g, seqs)):
         if progress is not None:
-            progress(f"{kind} flight {i + 1}/{len(payloads_g)}: {pay:g} g, "
-                     f"{minutes_per_payload:g} min")
+            progress(
+                f"{kind} flight {i + 1}/{len(payloads_g)}: {pay:g} g, {minutes_per_payload:g} min"
+            )
         flights.append(fly_expert(pay, 60.0 * minutes_per_payload, ss))
     if cache:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -48,8 +48,12 @@ def gramian_figure(path: Path, curves: Mapping[str, Any]) -> Path:
         for key, value in curves.items():
             if key.startswith("window_lambda_min_W"):
                 w = key.rsplit("W", 1)[1]
-                a.plot(t, np.log(_curve(value)), label=rf"$\log\lambda_{{\min}}(G_t^{{({w})}})$",
-                       lw=0.8)
+                a.plot(
+                    t,
+                    np.log(_curve(value)),
+                    label=rf"$\log\lambda_{{\min}}(G_t^{{({w})}})$",
+                    lw=0.8,
+                )
     a.set_xlabel("time [s]")
     a.set_title("persistent excitation")
     a.legend(fontsize=8)
@@ -76,8 +80,13 @@ def tracking_error_figure(path: Path, flights: Mapping[str, Any], window_s: floa
         sel = (f.t >= t_rel - window_s) & (f.t <= t_rel + window_s)
         err = f.error
         for i, ax in enumerate(axes):
-            ax.plot(f.t[sel] - t_rel, err[sel, i], label=LABELS.get(name, name),
-                    color=COLORS.get(name), lw=1.2 if name == "ours" else 0.9)
+            ax.plot(
+                f.t[sel] - t_rel,
+                err[sel, i],
+                label=LABELS.get(name, name),
+                color=COLORS.get(name),
+                lw=1.2 if name == "ours" else 0.9,
+            )
     for i, ax in enumerate(axes):
         ax.axvline(0.0, color="k", ls="--", lw=0.8)
         ax.set_ylabel(f"e_{'xyz'[i]} [m]")
@@ -87,8 +96,10 @@ def tracking_error_figure(path: Path, flights: Mapping[str, Any], window_s: floa
     axes[0].legend(fontsize=8, ncol=3)
     if t_rel is not None:
         f0 = next(iter(flights.values()))
-        axes[0].set_title(f"{f0.scenario.payload_g:g} g, {f0.scenario.speed_mps:g} m/s: "
-                          "tracking errors around the payload release")
+        axes[0].set_title(
+            f"{f0.scenario.payload_g:g} g, {f0.scenario.speed_mps:g} m/s: "
+            "tracking errors around the payload release"
+        )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -103,8 +114,12 @@ def metric_bars_figure(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
     ones and is hatched; with no finite entry it is replaced by an "inf" mark.
     """
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    keys = [("rmse_m", "RMSE [m]"), ("rmse_z_m", "z-RMSE [m]"), ("shift_m", "shift [m]"),
-            ("settling_s", "settling [s]")]
+    keys = [
+        ("rmse_m", "RMSE [m]"),
+        ("rmse_z_m", "z-RMSE [m]"),
+        ("shift_m", "shift [m]"),
+        ("settling_s", "settling [s]"),
+    ]
     fig, axes = plt.subplots(1, 4, figsize=(13, 3.4))
     for ax, (key, label) in zip(axes, keys):
         means, hatched = [], []
@@ -120,8 +135,7 @@ def metric_bars_figure(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
             if h and means[i] == 0.0:
                 ax.text(i, 0.0, "inf", ha="center", va="bottom", fontsize=8)
         ax.set_xticks(range(len(methods)))
-        ax.set_xticklabels([LABELS.get(m, m) for m in methods], rotation=45, ha="right",
-                           fontsize=8)
+        ax.set_xticklabels([LABELS.get(m, m) for m in methods], rotation=45, ha="right", fontsize=8)
         ax.set_title(label)
         ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()

@@ -95,8 +95,9 @@ def prepare_models(
     net = mlp.init_model(k_mlp, x, u, delta, hidden=mlp.QUADROTOR_HIDDEN)
     net = mlp.train(net, x, u, delta, key=k_train, epochs=epochs, batch_size=256)
     progress("fitting the GP baseline hyperparameters")
-    gpm = gp.fit(x, u, delta, key=k_gp, num_points=200 if quick else 300,
-                 num_steps=100 if quick else 200)
+    gpm = gp.fit(
+        x, u, delta, key=k_gp, num_points=200 if quick else 300, num_steps=100 if quick else 200
+    )
     progress("fitting the SysID baseline")
     sid = sysid.fit(x, u, delta, degree=2, threshold=0.02)
     steps = 500 if quick else 3000
@@ -105,16 +106,26 @@ def prepare_models(
     tasks = tuple(float(p) for p in qd.TRAIN_PAYLOADS_G)
     task = jnp.asarray(np.searchsorted(np.asarray(tasks), pay))
     pm = proto.init_model(jax.random.fold_in(key, 1), x, u, delta, tasks)
-    pm = proto.train(pm, x, u, delta, task, jnp.asarray(data["transition_flight"]),
-                     key=jax.random.fold_in(key, 2), steps=steps)
+    pm = proto.train(
+        pm,
+        x,
+        u,
+        delta,
+        task,
+        jnp.asarray(data["transition_flight"]),
+        key=jax.random.fold_in(key, 2),
+        steps=steps,
+    )
 
     progress("tuning the MLP online learning rate on a separate flight")
-    tune = qd.make_validation(seed=seed + 1000, minutes_per_payload=0.5,
-                              payloads_g=(TUNING_PAYLOAD_G,), progress=progress)
+    tune = qd.make_validation(
+        seed=seed + 1000, minutes_per_payload=0.5, payloads_g=(TUNING_PAYLOAD_G,), progress=progress
+    )
     tuning = {}
     for lr in MLP_LR_GRID:
         xhat = jax.jit(lambda X, U, Xn, lr=lr: run_mlp(net, lr, X, U, Xn))(
-            *(jnp.asarray(tune[k]) for k in ("x", "u", "x_next")))
+            *(jnp.asarray(tune[k]) for k in ("x", "u", "x_next"))
+        )
         c = float(metrics.crmse(jnp.asarray(tune["x_next"]), xhat))
         tuning[f"{lr:g}"] = c if np.isfinite(c) else float("inf")
     best = min(tuning, key=tuning.get)
@@ -193,12 +204,14 @@ def predictors(m: Models) -> dict[str, Callable]:
         "ours": lambda X, U, Xn: run_beam(vld, cfg, X, U, Xn)[0],
         "ours_no_cp": lambda X, U, Xn: run_beam(vld, no_cp_config(cfg), X, U, Xn)[0],
         "ours_offline": lambda X, U, Xn: jax.vmap(
-            lambda x, u: f_nom(x, u) + vld.predict_residual(x, u))(X, U),
+            lambda x, u: f_nom(x, u) + vld.predict_residual(x, u)
+        )(X, U),
         "mlp": lambda X, U, Xn: run_mlp(m.mlp, m.mlp_lr, X, U, Xn),
         "mlp_paper_lr": lambda X, U, Xn: run_mlp(m.mlp, PAPER_MLP_LR, X, U, Xn),
         "gp": lambda X, U, Xn: run_gp(m.gp, X, U, Xn),
-        "sysid": lambda X, U, Xn: jax.vmap(
-            lambda x, u: f_nom(x, u) + sysid.predict(m.sysid, x, u))(X, U),
+        "sysid": lambda X, U, Xn: jax.vmap(lambda x, u: f_nom(x, u) + sysid.predict(m.sysid, x, u))(
+            X, U
+        ),
         "nominal": lambda X, U, Xn: jax.vmap(f_nom)(X, U),
     }
     if m.proto is not None:
@@ -243,7 +256,8 @@ def run_openloop(
             row["per_flight"][f"{pay:g}g"] = float(metrics.crmse(Xn, xhat))
             for g, sl in STATE_GROUPS.items():
                 row["per_group"].setdefault(g, []).append(
-                    float(metrics.crmse(Xn[:, sl], xhat[:, sl])))
+                    float(metrics.crmse(Xn[:, sl], xhat[:, sl]))
+                )
         if pay == GRAMIAN_PAYLOAD_G:
             z = jax.vmap(m.vld.features)(X, U)
             gram = metrics.gramian_diagnostics(z, (15, 30))
@@ -254,10 +268,18 @@ def run_openloop(
     result: dict[str, Any] = {
         "table": table,
         "order": sorted(table, key=lambda k: table[k]["crmse"]),
-        "mlp_learning_rate": {"chosen": m.mlp_lr, "paper": PAPER_MLP_LR,
-                              "tuning_crmse": m.mlp_tuning},
-        "settings": {"quick": quick, "seed": seed, "steps_per_flight": n_keep,
-                     "control_dt": qd.CONTROL_DT, **m.train_stats},
+        "mlp_learning_rate": {
+            "chosen": m.mlp_lr,
+            "paper": PAPER_MLP_LR,
+            "tuning_crmse": m.mlp_tuning,
+        },
+        "settings": {
+            "quick": quick,
+            "seed": seed,
+            "steps_per_flight": n_keep,
+            "control_dt": qd.CONTROL_DT,
+            **m.train_stats,
+        },
     }
     if gram is not None:
         lam = np.asarray(gram.lambda_min)
@@ -267,8 +289,11 @@ def run_openloop(
             "final_log_lambda_min": float(np.log(lam[-1])) if lam[-1] > 0 else None,
             "final_condition": float(np.asarray(gram.condition)[-1]),
             "final_logdet": float(np.asarray(gram.logdet)[-1]),
-            "logdet_monotone": bool(np.all(np.diff(np.asarray(gram.logdet)[
-                np.isfinite(np.asarray(gram.logdet))]) >= -1e-9)),
+            "logdet_monotone": bool(
+                np.all(
+                    np.diff(np.asarray(gram.logdet)[np.isfinite(np.asarray(gram.logdet))]) >= -1e-9
+                )
+            ),
             "window_lambda_min_min": {
                 f"W{int(w)}": float(np.nanmin(wmin[j])) for j, w in enumerate(gram.windows)
             },
@@ -277,8 +302,10 @@ def run_openloop(
             "lambda_min": _to_json_curve(lam),
             "condition": _to_json_curve(np.asarray(gram.condition)),
             "logdet": _to_json_curve(np.asarray(gram.logdet)),
-            **{f"window_lambda_min_W{int(w)}": _to_json_curve(wmin[j])
-               for j, w in enumerate(gram.windows)},
+            **{
+                f"window_lambda_min_W{int(w)}": _to_json_curve(wmin[j])
+                for j, w in enumerate(gram.windows)
+            },
             "dt": qd.CONTROL_DT,
         }
         if out is not None:

@@ -40,14 +40,17 @@ def _adapt_section(r: dict[str, Any]) -> list[str]:
         "| K | prior floor | median (µs) | p99 (µs) |",
         "|---|---|---|---|",
     ]
-    lines += [f"| {x['K']} | {x.get('prior_floor', 1.0):g} | {x['median_us']:.1f} | "
-              f"{x['p99_us']:.1f} |" for x in r["results"]]
+    lines += [
+        f"| {x['K']} | {x.get('prior_floor', 1.0):g} | {x['median_us']:.1f} | {x['p99_us']:.1f} |"
+        for x in r["results"]
+    ]
     for floor in sorted({x.get("prior_floor", 1.0) for x in r["results"]}, reverse=True):
-        by_k = {x["K"]: x["median_us"] for x in r["results"]
-                if x.get("prior_floor", 1.0) == floor}
+        by_k = {x["K"]: x["median_us"] for x in r["results"] if x.get("prior_floor", 1.0) == floor}
         if 5 in by_k and 30 in by_k:
-            lines += ["", f"Prior floor {floor:g}: K=30 / K=5 median ratio "
-                          f"{by_k[30] / by_k[5]:.2f}"]
+            lines += [
+                "",
+                f"Prior floor {floor:g}: K=30 / K=5 median ratio {by_k[30] / by_k[5]:.2f}",
+            ]
     return [*lines, ""]
 
 
@@ -63,8 +66,11 @@ def _mpc_section(runs: list[dict[str, Any]]) -> list[str]:
         "| residual | median (ms) | p99 (ms) | mean iterations | tracking RMSE (m) |",
         "|---|---|---|---|---|",
     ]
-    lines += [f"| {r['residual']} | {r['median_ms']:.2f} | {r['p99_ms']:.2f} | "
-              f"{r['mean_iterations']:.2f} | {r['tracking_rmse_m']:.4f} |" for r in runs]
+    lines += [
+        f"| {r['residual']} | {r['median_ms']:.2f} | {r['p99_ms']:.2f} | "
+        f"{r['mean_iterations']:.2f} | {r['tracking_rmse_m']:.4f} |"
+        for r in runs
+    ]
     lines.append("")
     for r in runs:
         keys = ", ".join(f"{k} = {v}" for k, v in r.items() if k not in ("machine",))
@@ -85,11 +91,17 @@ def _loop_section(r: dict[str, Any]) -> list[str]:
         f"| {r['hop_p50_ms']:.2f} | {r['hop_p99_ms']:.2f} | {r['sense_to_actuate_p99_ms']:.2f} "
         f"| {r['rate_hz']:.2f} | {r['missed_deadlines']} | {r['duration_s']:.0f} |",
         "",
-        "Conditions: " + ", ".join(
+        "Conditions: "
+        + ", ".join(
             f"{name} {c['policy']}"
-            + (f" + CPU wake-up latency {c['cpu_wakeup_latency_us']} µs"
-               if c["cpu_wakeup_latency_us"] is not None else " (idle CPUs may sleep)")
-            for name, c in r["realtime"].items()) + ".",
+            + (
+                f" + CPU wake-up latency {c['cpu_wakeup_latency_us']} µs"
+                if c["cpu_wakeup_latency_us"] is not None
+                else " (idle CPUs may sleep)"
+            )
+            for name, c in r["realtime"].items()
+        )
+        + ".",
         "",
         f"Sense-to-actuate stage by stage (MPC solve p50/p99 {r['mpc_p50_ms']:.2f}/"
         f"{r['mpc_p99_ms']:.2f} ms, inside the controller's stage):",
@@ -163,8 +175,12 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
         "Tuning: each adaptive method's online knobs, chosen by mean CRMSE on separate "
         f"tuning trajectories: Ours beta = {t['ours']['chosen']:g} (paper 0.9)"
         + (f", pi = {t['ours_pi']['chosen']:g} (paper 0.05)" if "ours_pi" in t else "")
-        + (f", tau^2 = {t['ours_tau2']['chosen']:g} (paper 0.1; one knob after the other, "
-           f"{t['ours_passes']} passes)" if "ours_tau2" in t else "")
+        + (
+            f", tau^2 = {t['ours_tau2']['chosen']:g} (paper 0.1; one knob after the other, "
+            f"{t['ours_passes']} passes)"
+            if "ours_tau2" in t
+            else ""
+        )
         + f", Ours w/o CP tau^2 = {t['ours_no_cp']['chosen']:g} (paper 0.1; with one hypothesis "
         "only tau^2 / sigma^2 matters), MLP learning rate = "
         f"{t['mlp_last_layer']['chosen']:g} (paper 1e-6); the GP's hyperparameters are fitted "
@@ -172,14 +188,20 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
         "(it is of `ours_detection_tuned`, below). "
         "Rows `*_paper_*` use the paper's settings; "
         "`oracle_true_model` knows the true dynamics and shows the noise floor"
-        + ("; `ours_known_changepoints` is Ours with one hypothesis and the true "
-           "changepoints (tempered at the intervention steps and nowhere else, beta = "
-           f"{t['ours_known_changepoints']['chosen']:g}"
-           + (f", tau^2 = {t['ours_known_changepoints']['tau2']['chosen']:g}"
-              if "tau2" in t["ours_known_changepoints"] else "")
-           + " tuned the same way): a detector "
-           "that never misses and never false-alarms." if "ours_known_changepoints" in t
-           else "."),
+        + (
+            "; `ours_known_changepoints` is Ours with one hypothesis and the true "
+            "changepoints (tempered at the intervention steps and nowhere else, beta = "
+            f"{t['ours_known_changepoints']['chosen']:g}"
+            + (
+                f", tau^2 = {t['ours_known_changepoints']['tau2']['chosen']:g}"
+                if "tau2" in t["ours_known_changepoints"]
+                else ""
+            )
+            + " tuned the same way): a detector "
+            "that never misses and never false-alarms."
+            if "ours_known_changepoints" in t
+            else "."
+        ),
         "",
     ]
     cpp = r["changepoints_paper_config"]
@@ -194,9 +216,13 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
         f"Changepoint detection (Ours, tuned): hit rate within 3 steps {cp['hit_rate']:.0%}, "
         f"false alarms {cp['false_alarms_per_100_steps']:.2f} per 100 steps, mean delay "
         f"{cp['mean_delay_steps']:.2f} steps."
-        + ("" if "hit_rate_per_intervention" not in r else " Per intervention step: " + ", ".join(
-            f"step {k} {v:.0%}" for k, v in r["hit_rate_per_intervention"].items())
-           + " (at step 0 the beam has no earlier regime: it starts from the offline prior)."),
+        + (
+            ""
+            if "hit_rate_per_intervention" not in r
+            else " Per intervention step: "
+            + ", ".join(f"step {k} {v:.0%}" for k, v in r["hit_rate_per_intervention"].items())
+            + " (at step 0 the beam has no earlier regime: it starts from the offline prior)."
+        ),
         "",
     ]
     if "detection_tuning" in r:
@@ -214,8 +240,11 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
     if "ablations" in r:
         if "ours_config" in r:
             b = r["ours_config"]
-            lines += ["", f"Ablations vary one setting of the tuned configuration (K = {b['K']}, "
-                      f"beta = {b['beta']:g}, pi = {b['pi']:g}) on the evaluation trajectories."]
+            lines += [
+                "",
+                f"Ablations vary one setting of the tuned configuration (K = {b['K']}, "
+                f"beta = {b['beta']:g}, pi = {b['pi']:g}) on the evaluation trajectories.",
+            ]
         for name, rows in r["ablations"].items():
             lines += [
                 "",
@@ -245,7 +274,8 @@ def _cartpole_section(r: dict[str, Any], fig_dir: Path) -> list[str]:
             f"{x['ours_no_cp']['mean']:.3f} ± {x['ours_no_cp']['std']:.3f} | "
             f"{x['offline_only']['mean']:.3f} | {x['ratio_ours_no_cp']:.2f} | "
             f"{x['beta']:g}, {x['pi']:g}"
-            + (f", {x['ours_tau2']:g}" if "ours_tau2" in x else "") + f"; {x['tau2']:g} |"
+            + (f", {x['ours_tau2']:g}" if "ours_tau2" in x else "")
+            + f"; {x['tau2']:g} |"
             for x in r["latent_ablation"]
         ]
     lines += ["", "Figures:", ""]
@@ -265,12 +295,16 @@ def _cell_table(cells: list[dict[str, Any]], key: str, fmt: str, best=min) -> li
     for c in cells:
         by_cell.setdefault((c["payload_g"], c["speed_mps"]), {})[c["method"]] = c[key]
     methods = [m for m in METHODS if any(m in v for v in by_cell.values())]
-    lines = ["| payload (g) | speed (m/s) | " + " | ".join(methods) + " |",
-             "|---|---|" + "---|" * len(methods)]
+    lines = [
+        "| payload (g) | speed (m/s) | " + " | ".join(methods) + " |",
+        "|---|---|" + "---|" * len(methods),
+    ]
     for (pay, speed), vals in sorted(by_cell.items()):
         top = best(vals.values())
-        row = [(f"**{vals[m]:{fmt}}**" if vals[m] == top else f"{vals[m]:{fmt}}")
-               if m in vals else "-" for m in methods]
+        row = [
+            (f"**{vals[m]:{fmt}}**" if vals[m] == top else f"{vals[m]:{fmt}}") if m in vals else "-"
+            for m in methods
+        ]
         lines.append(f"| {pay:g} | {speed:g} | " + " | ".join(row) + " |")
     return lines
 
@@ -281,9 +315,16 @@ def _settling_per_trial(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
     by: dict[tuple[float, float, str], list[float]] = {}
     for t in trials:
         by.setdefault((t["payload_g"], t["speed_mps"], t["method"]), []).append(t["settling_s"])
-    return [{"payload_g": p, "speed_mps": v, "method": m,
-             "median": float(np.median(x)), "left_band": int(np.sum(np.asarray(x) > 0))}
-            for (p, v, m), x in by.items()]
+    return [
+        {
+            "payload_g": p,
+            "speed_mps": v,
+            "method": m,
+            "median": float(np.median(x)),
+            "left_band": int(np.sum(np.asarray(x) > 0)),
+        }
+        for (p, v, m), x in by.items()
+    ]
 
 
 def _diagnostics_tables(cells: list[dict[str, Any]]) -> list[str]:
@@ -313,11 +354,16 @@ def _quadrotor_section(path: Path) -> list[str]:
     """Tables of the stored quadrotor evaluation (its own command: ~1 h on 2 cores)."""
     head = ["## Quadrotor (`arcade eval quadrotor --json`; paper Sec. V-B, Tables II, III, V)", ""]
     if not path.is_file():
-        return [*head, f"No results yet: run `{QUADROTOR_COMMAND}` (40 minutes or more on 2 "
-                "cores), then `make benchmarks`.", ""]
+        return [
+            *head,
+            f"No results yet: run `{QUADROTOR_COMMAND}` (40 minutes or more on 2 "
+            "cores), then `make benchmarks`.",
+            "",
+        ]
     r = json.loads(path.read_text())
     when = r.get("generated") or time.strftime(
-        "%Y-%m-%d %H:%M", time.localtime(path.stat().st_mtime))
+        "%Y-%m-%d %H:%M", time.localtime(path.stat().st_mtime)
+    )
     s = r.get("settings", {})
     lines = [
         *head,
@@ -366,47 +412,77 @@ def _quadrotor_section(path: Path) -> list[str]:
     if tuning:
         cell = tuning.get("cell", ["?", "?"])
         n = len(tuning.get("seeds", [tuning.get("seed")]))
-        how = (f"{n} flight{'s' if n > 1 else ''} per grid value, lowest mean RMSE; one knob "
-               "after the other" + (f", {tuning['passes']} passes until none changed"
-                                    if "passes" in tuning else ""))
+        how = (
+            f"{n} flight{'s' if n > 1 else ''} per grid value, lowest mean RMSE; one knob "
+            "after the other"
+            + (f", {tuning['passes']} passes until none changed" if "passes" in tuning else "")
+        )
         lines.append(
             f"Knobs tuned on a cell that is not evaluated ({cell[0]:g} g, {cell[1]:g} m/s, "
-            f"{how}): " + ", ".join(
-                f"{k} = {v:g}" for k, v in tuning["chosen"].items())
-            + "; everything else at the paper's values.")
+            f"{how}): "
+            + ", ".join(f"{k} = {v:g}" for k, v in tuning["chosen"].items())
+            + "; everything else at the paper's values."
+        )
         lines.append("")
     for imp in r.get("improvement_over_nominal", []):
-        lines.append(f"- RMSE improvement over nominal MPC at {imp['payload_g']:g} g, "
-                     f"{imp['speed_mps']:g} m/s: " + ", ".join(
-                         f"{m} {v:.0f} %" for m, v in imp.items()
-                         if m not in ("payload_g", "speed_mps")))
+        lines.append(
+            f"- RMSE improvement over nominal MPC at {imp['payload_g']:g} g, "
+            f"{imp['speed_mps']:g} m/s: "
+            + ", ".join(
+                f"{m} {v:.0f} %" for m, v in imp.items() if m not in ("payload_g", "speed_mps")
+            )
+        )
     ol = r.get("openloop")
     if ol:
-        lines += ["", "Open loop with online updates (Table II analogue), CRMSE on the "
-                  "validation flights:", "", "| method | CRMSE |", "|---|---|"]
+        lines += [
+            "",
+            "Open loop with online updates (Table II analogue), CRMSE on the validation flights:",
+            "",
+            "| method | CRMSE |",
+            "|---|---|",
+        ]
         lines += [f"| {m} | {ol['table'][m]['crmse']:.4f} |" for m in ol["order"]]
         g = ol.get("gramian")
         if g:
-            lines += ["", "Gramian diagnostics (Fig. 4): " + ", ".join(
-                f"{k} = {v:.4g}" if isinstance(v, float) else f"{k} = {v}"
-                for k, v in g.items() if not isinstance(v, dict | list))]
+            lines += [
+                "",
+                "Gramian diagnostics (Fig. 4): "
+                + ", ".join(
+                    f"{k} = {v:.4g}" if isinstance(v, float) else f"{k} = {v}"
+                    for k, v in g.items()
+                    if not isinstance(v, dict | list)
+                ),
+            ]
     ab = r.get("beam_ablation")
     if ab:
-        lines += ["", f"Beam ablation (Table V) at {ab['payload_g']:g} g, "
-                  f"{ab['speed_mps']:g} m/s, beta = {ab['beta']:g}:", "",
-                  "| K | RMSE (m) | adaptation (ms/step) |", "|---|---|---|"]
-        lines += [f"| {row['K']} | {row['rmse_m']:.3f} | {row['adapt_ms_per_step']:.3f} |"
-                  for row in ab["rows"]]
+        lines += [
+            "",
+            f"Beam ablation (Table V) at {ab['payload_g']:g} g, "
+            f"{ab['speed_mps']:g} m/s, beta = {ab['beta']:g}:",
+            "",
+            "| K | RMSE (m) | adaptation (ms/step) |",
+            "|---|---|---|",
+        ]
+        lines += [
+            f"| {row['K']} | {row['rmse_m']:.3f} | {row['adapt_ms_per_step']:.3f} |"
+            for row in ab["rows"]
+        ]
     ra = r.get("residual_ablation")
     if ra:
-        lines += ["", f"Learned residual in the MPC at {ra['payload_g']:g} g, "
-                  f"{ra['speed_mps']:g} m/s ({ra['trials']} trials): inside the rollout "
-                  "(what the methods above fly) or held along the warm start:", "",
-                  "| method | residual | RMSE (m) | z-RMSE (m) | step (ms) |",
-                  "|---|---|---|---|---|"]
-        lines += [f"| {row['method']} | {row['residual']} | {row['rmse_m']:.3f} | "
-                  f"{row['rmse_z_m']:.3f} | {row['step_ms_median']:.2f} |"
-                  for row in ra["rows"]]
+        lines += [
+            "",
+            f"Learned residual in the MPC at {ra['payload_g']:g} g, "
+            f"{ra['speed_mps']:g} m/s ({ra['trials']} trials): inside the rollout "
+            "(what the methods above fly) or held along the warm start:",
+            "",
+            "| method | residual | RMSE (m) | z-RMSE (m) | step (ms) |",
+            "|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {row['method']} | {row['residual']} | {row['rmse_m']:.3f} | "
+            f"{row['rmse_z_m']:.3f} | {row['step_ms_median']:.2f} |"
+            for row in ra["rows"]
+        ]
     figs = sorted(path.parent.glob("*.png"))
     if figs:
         lines += ["", "Figures:", ""] + [f"- [{p.stem}]({p.as_posix()})" for p in figs]

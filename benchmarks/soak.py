@@ -102,9 +102,12 @@ def _stream_step(key, k, theta, dtype):
     z = jnp.select([regime == 0, regime == 1], [full, low_rank], hover)
     z = z / jnp.maximum(1.0, jnp.linalg.norm(z) / R)
     noise = NOISE * jax.random.t(ks[4], TAIL_DF, (D,), dtype)
-    outlier = (jax.random.uniform(ks[5]) < OUTLIER_P) * OUTLIER * jax.nn.one_hot(
-        jax.random.randint(ks[6], (), 0, D), D, dtype=dtype) * jnp.sign(
-        jax.random.normal(ks[7], (), dtype))
+    outlier = (
+        (jax.random.uniform(ks[5]) < OUTLIER_P)
+        * OUTLIER
+        * jax.nn.one_hot(jax.random.randint(ks[6], (), 0, D), D, dtype=dtype)
+        * jnp.sign(jax.random.normal(ks[7], (), dtype))
+    )
     delta = theta @ z + noise + outlier
     return z, delta, theta, jump
 
@@ -217,8 +220,14 @@ def _floor(config: Any) -> float:
     return float(getattr(config, "prior_floor", 0.0))
 
 
-def soak(steps: int = 1_000_000, dtype: str = "float32", chunk: int = 10_000, seed: int = 0,
-         config: Any = None, prior_floor: float | None = None) -> dict[str, Any]:
+def soak(
+    steps: int = 1_000_000,
+    dtype: str = "float32",
+    chunk: int = 10_000,
+    seed: int = 0,
+    config: Any = None,
+    prior_floor: float | None = None,
+) -> dict[str, Any]:
     """Run the soak in this process; returns the statistics (see the module docstring).
 
     ``config``: the adaptation hyperparameters (default: the quadrotor preset);
@@ -289,8 +298,11 @@ def soak(steps: int = 1_000_000, dtype: str = "float32", chunk: int = 10_000, se
             "violations": s["stated_viol"],
             "steps_with_violation": s["stated_steps"],
             "fraction_of_steps": s["stated_steps"] / n,
-            "worst": {"step": s["worst_step"], "segment_samples": s["worst_t"],
-                      "changepoints_on_path": s["worst_m"]},
+            "worst": {
+                "step": s["worst_step"],
+                "segment_samples": s["worst_t"],
+                "changepoints_on_path": s["worst_m"],
+            },
         },
     }
     result["ok"] = bool(
@@ -304,8 +316,9 @@ def soak(steps: int = 1_000_000, dtype: str = "float32", chunk: int = 10_000, se
     return result
 
 
-def run(quick: bool = False, steps: int | None = None,
-        dtypes: tuple[str, ...] = ("float32", "float64")) -> dict[str, Any]:
+def run(
+    quick: bool = False, steps: int | None = None, dtypes: tuple[str, ...] = ("float32", "float64")
+) -> dict[str, Any]:
     """``arcade bench soak``: 10^6 steps per dtype (``quick``: 2 x 10^4) with the quadrotor
     preset, and with Eq. 5 as written (no prior floor) if the preset has a floor."""
     from arcade import jaxsetup
@@ -319,8 +332,12 @@ def run(quick: bool = False, steps: int | None = None,
         floors.append(0.0)
     with jaxsetup.x64():  # float64 runs need it; float32 arrays stay float32
         results = [soak(n, dt, chunk=chunk, prior_floor=f) for f in floors for dt in dtypes]
-    return {"machine": machine(), "steps": n, "results": results,
-            "ok": all(r["ok"] for r in results)}
+    return {
+        "machine": machine(),
+        "steps": n,
+        "results": results,
+        "ok": all(r["ok"] for r in results),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -96,8 +96,11 @@ class StackConfig:
         """The adapter's posterior checkpoint (restored by a restarted adapter). Without
         ``checkpoint`` it is the run folder's own, removed at start: a new flight starts
         at the prior, a restarted adapter continues from it."""
-        return Path(self.checkpoint) if self.checkpoint is not None else (
-            Path(self.out) / "adapter_checkpoint.npz")
+        return (
+            Path(self.checkpoint)
+            if self.checkpoint is not None
+            else (Path(self.out) / "adapter_checkpoint.npz")
+        )
 
     def services(self) -> tuple[str, ...]:
         """The processes of this configuration, in start order."""
@@ -106,14 +109,32 @@ class StackConfig:
         return SERVICES
 
     def args(self, service: str) -> list[str]:
-        common = ["--vehicle", self.vehicle, "--hub", self.hub, "--out", str(self.out),
-                  "--rate", f"{self.rate:g}", "--log-level", self.log_level]
+        common = [
+            "--vehicle",
+            self.vehicle,
+            "--hub",
+            self.hub,
+            "--out",
+            str(self.out),
+            "--rate",
+            f"{self.rate:g}",
+            "--log-level",
+            self.log_level,
+        ]
         if self.lockstep:
             common.append("--lockstep")
         if self.x64:
             common.append("--x64")
-        plan = ["--payload-g", f"{self.payload_g:g}", "--speed", f"{self.speed:g}",
-                "--seed", str(self.seed), "--release", f"{self.release:g}"]
+        plan = [
+            "--payload-g",
+            f"{self.payload_g:g}",
+            "--speed",
+            f"{self.speed:g}",
+            "--seed",
+            str(self.seed),
+            "--release",
+            f"{self.release:g}",
+        ]
         if self.duration is not None:
             plan += ["--duration", f"{self.duration:g}"]
         if self.hover_s is not None:
@@ -134,8 +155,12 @@ class StackConfig:
             if self.truth_state:
                 own.append("--truth-state")
         if not self.lockstep and self.realtime_priority and service in REALTIME_PRIORITY:
-            own += ["--realtime-priority", str(REALTIME_PRIORITY[service]),
-                    "--cpu-wakeup-latency-us", str(CPU_WAKEUP_LATENCY_US)]
+            own += [
+                "--realtime-priority",
+                str(REALTIME_PRIORITY[service]),
+                "--cpu-wakeup-latency-us",
+                str(CPU_WAKEUP_LATENCY_US),
+            ]
         if not self.lockstep and service in NICE:
             own += ["--nice", str(NICE[service])]
         return [*common, *own, *self.extra.get(service, [])]
@@ -156,8 +181,12 @@ class Stack:
     supervisor's own), from a background thread.
     """
 
-    def __init__(self, config: StackConfig, services: tuple[str, ...] | None = None,
-                 on_event: Callable[[dict[str, Any]], None] | None = None):
+    def __init__(
+        self,
+        config: StackConfig,
+        services: tuple[str, ...] | None = None,
+        on_event: Callable[[dict[str, Any]], None] | None = None,
+    ):
         if config.profile not in PROFILES:
             raise ValueError(f"unknown profile {config.profile!r} (one of {PROFILES})")
         if config.profile == "px4" and not hasattr(config, "vehicle_process"):
@@ -209,11 +238,17 @@ class Stack:
             cmd += ["--incarnation", str(n)]
         with (self.out / "logs" / f"{name}.out").open("a" if n else "w") as log:
             proc = subprocess.Popen(
-                cmd, cwd=REPO, env=self._env, stdout=log, stderr=subprocess.STDOUT,
-                start_new_session=True)  # Ctrl-C goes to the launcher, which stops them
+                cmd,
+                cwd=REPO,
+                env=self._env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )  # Ctrl-C goes to the launcher, which stops them
         self.procs[name] = proc
-        threading.Thread(target=self._watch, args=(name, proc), daemon=True,
-                         name=f"watch-{name}").start()
+        threading.Thread(
+            target=self._watch, args=(name, proc), daemon=True, name=f"watch-{name}"
+        ).start()
 
     def _watch(self, name: str, proc: subprocess.Popen) -> None:
         """Wait for ``proc`` to end; restart it (back-off) unless the stack is stopping."""
@@ -228,19 +263,37 @@ class Stack:
             with self._changed:
                 self._failed = self._failed or f"service {name} {how} (after {n} restarts)"
                 self._changed.notify_all()
-            self.emit("fault", f"{name} {how}; no restart left ({n} used): stopping",
-                      "critical", service=name, code=code, restarts=n)
+            self.emit(
+                "fault",
+                f"{name} {how}; no restart left ({n} used): stopping",
+                "critical",
+                service=name,
+                code=code,
+                restarts=n,
+            )
             return
         delay = min(self.config.restart_backoff_s * 2.0**n, self.config.restart_backoff_max_s)
-        self.emit("fault", f"{name} {how}: restarting in {delay:.1f} s", "error",
-                  service=name, code=code, restarts=n, backoff_s=delay)
+        self.emit(
+            "fault",
+            f"{name} {how}: restarting in {delay:.1f} s",
+            "error",
+            service=name,
+            code=code,
+            restarts=n,
+            backoff_s=delay,
+        )
         if self._stopping.wait(delay):
             return
         self.restarts[name] = n + 1
         self._spawn(name)
-        self.emit("restart", f"{name} restarted (restart {n + 1} of "
-                  f"{self.config.max_restarts})", "warning", service=name, restarts=n + 1,
-                  pid=self.procs[name].pid)
+        self.emit(
+            "restart",
+            f"{name} restarted (restart {n + 1} of {self.config.max_restarts})",
+            "warning",
+            service=name,
+            restarts=n + 1,
+            pid=self.procs[name].pid,
+        )
 
     # -- events
     def emit(self, kind: str, text: str, severity: str = "info", **data: Any) -> None:
@@ -248,14 +301,19 @@ class Stack:
         from services.messages import Event
 
         stamp = self._event_stamp = max(self._event_stamp, self.last_stamp)
-        rec = {"stamp": stamp, "src": "launcher", "kind": kind, "severity": severity,
-               "text": text, "data": data}
+        rec = {
+            "stamp": stamp,
+            "src": "launcher",
+            "kind": kind,
+            "severity": severity,
+            "text": text,
+            "data": data,
+        }
         self._record(rec)
         bus = self._bus
         if bus is not None:
             with contextlib.suppress(Exception):  # the bus may close under a late watcher
-                bus.put(Event(kind=kind, severity=severity, text=text, data=data,
-                              stamp=stamp))
+                bus.put(Event(kind=kind, severity=severity, text=text, data=data, stamp=stamp))
 
     def _record(self, rec: dict[str, Any]) -> None:
         with self._events_lock:
@@ -269,8 +327,16 @@ class Stack:
     def _on_event(self, e: Any) -> None:
         if e.src.startswith("launcher/"):
             return  # our own, recorded when emitted
-        self._record({"stamp": e.stamp, "src": e.src, "kind": e.kind, "severity": e.severity,
-                      "text": e.text, "data": dict(e.data)})
+        self._record(
+            {
+                "stamp": e.stamp,
+                "src": e.src,
+                "kind": e.kind,
+                "severity": e.severity,
+                "text": e.text,
+                "data": dict(e.data),
+            }
+        )
 
     def _on_state(self, s: Any) -> None:
         self.last_stamp = s.stamp
@@ -324,8 +390,9 @@ class Stack:
                 self._bus.wait_alive(pending, timeout=min(left, 0.5))
         return time.monotonic() - t0
 
-    def wait(self, timeout: float | None = None,
-             progress: Callable[[float], None] | None = None) -> int:
+    def wait(
+        self, timeout: float | None = None, progress: Callable[[float], None] | None = None
+    ) -> int:
         """Wait for the vehicle process (the flight) to end; returns its exit code.
 
         Crashed services are restarted meanwhile; :class:`StackError` when one has no
@@ -337,8 +404,9 @@ class Stack:
             raise StackError("no vehicle process to wait for")
         while True:
             with self._changed:  # woken by any process end; 0.5 s slices for progress
-                self._changed.wait_for(lambda: sim.poll() is not None
-                                       or self._failed is not None, 0.5)
+                self._changed.wait_for(
+                    lambda: sim.poll() is not None or self._failed is not None, 0.5
+                )
             code = sim.poll()
             if code is not None:
                 break
@@ -387,11 +455,14 @@ class Stack:
         self.stop()
 
 
-def run_flight(config: StackConfig, progress: Callable[[str], None] = lambda m: None,
-               on_time: Callable[[float], None] | None = None,
-               timeout: float | None = None,
-               on_event: Callable[[dict[str, Any]], None] | None = None,
-               on_ready: Callable[[Stack], None] | None = None) -> dict[str, Any]:
+def run_flight(
+    config: StackConfig,
+    progress: Callable[[str], None] = lambda m: None,
+    on_time: Callable[[float], None] | None = None,
+    timeout: float | None = None,
+    on_event: Callable[[dict[str, Any]], None] | None = None,
+    on_ready: Callable[[Stack], None] | None = None,
+) -> dict[str, Any]:
     """Start the stack, fly the plan to the end, stop; returns codes, events and timings.
 
     ``on_event``: see :class:`Stack`; ``on_ready(stack)`` runs once every service is up
@@ -409,6 +480,11 @@ def run_flight(config: StackConfig, progress: Callable[[str], None] = lambda m: 
         flight_s = time.monotonic() - t0
         codes = stack.stop()
     codes[stack.vehicle_process] = sim_code
-    return {"codes": codes, "events": list(stack.events), "ready_s": ready_s,
-            "flight_wall_s": flight_s, "out": str(config.out),
-            "restarts": {k: v for k, v in stack.restarts.items() if v}}
+    return {
+        "codes": codes,
+        "events": list(stack.events),
+        "ready_s": ready_s,
+        "flight_wall_s": flight_s,
+        "out": str(config.out),
+        "restarts": {k: v for k, v in stack.restarts.items() if v},
+    }

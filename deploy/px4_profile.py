@@ -71,21 +71,43 @@ class Px4StackConfig(StackConfig):
 
     def args(self, service: str) -> list[str]:
         if service == "px4sim":
-            own = [*super().args("sim"), "--px4", self.sim_url(),
-                   "--of-loss-s", f"{self.of_loss_s:g}", "--of-loss-action", self.of_loss_action]
+            own = [
+                *super().args("sim"),
+                "--px4",
+                self.sim_url(),
+                "--of-loss-s",
+                f"{self.of_loss_s:g}",
+                "--of-loss-action",
+                self.of_loss_action,
+            ]
             if self.on_ground:
                 own.append("--on-ground")
             return [*own, *self.extra.get("px4sim", [])]
         if service != "bridge":
             return super().args(service)
-        common = ["--vehicle", self.vehicle, "--hub", self.hub, "--out", str(self.out),
-                  "--rate", f"{self.rate:g}", "--log-level", self.log_level,
-                  "--connect", self.connect]
+        common = [
+            "--vehicle",
+            self.vehicle,
+            "--hub",
+            self.hub,
+            "--out",
+            str(self.out),
+            "--rate",
+            f"{self.rate:g}",
+            "--log-level",
+            self.log_level,
+            "--connect",
+            self.connect,
+        ]
         if self.simulate:  # the simulator clocks the estimator and the mission itself
             common += ["--imu", "off", "--no-start-mission"]
         if not self.lockstep and self.realtime_priority:
-            common += ["--realtime-priority", str(REALTIME_PRIORITY["sim"]),
-                       "--cpu-wakeup-latency-us", str(CPU_WAKEUP_LATENCY_US)]
+            common += [
+                "--realtime-priority",
+                str(REALTIME_PRIORITY["sim"]),
+                "--cpu-wakeup-latency-us",
+                str(CPU_WAKEUP_LATENCY_US),
+            ]
         return [*common, *self.bridge_args, *self.extra.get("bridge", [])]
 
 
@@ -105,9 +127,11 @@ class EventWaiter:
         with self._cond:
             return len(self.events)
 
-    def wait(self, pred: Callable[[dict[str, Any]], bool], timeout: float,
-             after: int = 0) -> dict[str, Any] | None:
+    def wait(
+        self, pred: Callable[[dict[str, Any]], bool], timeout: float, after: int = 0
+    ) -> dict[str, Any] | None:
         """The first record from index ``after`` on that satisfies ``pred`` (or None)."""
+
         def find() -> dict[str, Any] | None:
             return next((r for r in self.events[after:] if pred(r)), None)
 
@@ -116,8 +140,13 @@ class EventWaiter:
             return find()
 
 
-def arm(events: EventWaiter, config: Px4StackConfig, timeout: float = 60.0,
-        say: Callable[[str], None] = lambda msg: None, min_stream_s: float = 1.0) -> bool:
+def arm(
+    events: EventWaiter,
+    config: Px4StackConfig,
+    timeout: float = 60.0,
+    say: Callable[[str], None] = lambda msg: None,
+    min_stream_s: float = 1.0,
+) -> bool:
     """Send ``arm`` once the bridge reports a steady setpoint stream; True once offboard
     is engaged. Retried while the bridge refuses for lack of a steady stream (start-up).
 
@@ -127,13 +156,17 @@ def arm(events: EventWaiter, config: Px4StackConfig, timeout: float = 60.0,
     from services.messages import Command
 
     def steady(r: dict[str, Any]) -> bool:
-        return (r["kind"] == "vehicle_status" and bool(r["data"].get("setpoints_fresh"))
-                and float(r["data"].get("stream_s", 0.0)) >= min_stream_s)
+        return (
+            r["kind"] == "vehicle_status"
+            and bool(r["data"].get("setpoints_fresh"))
+            and float(r["data"].get("stream_s", 0.0)) >= min_stream_s
+        )
 
     def answer(r: dict[str, Any]) -> bool:
         return r["src"].startswith("bridge/") and (
-            r["kind"] in ("offboard", "fault") or r["text"].startswith(("arm refused",
-                                                                        "offboard refused")))
+            r["kind"] in ("offboard", "fault")
+            or r["text"].startswith(("arm refused", "offboard refused"))
+        )
 
     args = {} if config.takeoff_m is None else {"takeoff_m": float(config.takeoff_m)}
     deadline = time.monotonic() + timeout
@@ -149,7 +182,8 @@ def arm(events: EventWaiter, config: Px4StackConfig, timeout: float = 60.0,
             bus.put(Command(name="arm", target="bridge", args=args, stamp=time.monotonic()))
             say("arm command sent")
             wait_s = max(0.0, deadline - time.monotonic()) + (
-                120.0 if config.takeoff_m is not None else 5.0)
+                120.0 if config.takeoff_m is not None else 5.0
+            )
             rec = events.wait(answer, wait_s, after=mark)
             if rec is None:
                 say("the bridge did not answer the arm command")
@@ -168,21 +202,41 @@ def arm(events: EventWaiter, config: Px4StackConfig, timeout: float = 60.0,
 def add_arguments(p: Any) -> None:
     """The ``arcade up`` options of the px4 profile."""
     g = p.add_argument_group("profile px4 (PX4 vehicle through MAVSDK)")
-    g.add_argument("--connect", default=None, metavar="URL",
-                   help="MAVSDK URL of the vehicle (default udpin://0.0.0.0:14540; "
-                        "e.g. serial:///dev/ttyACM0:921600)")
-    g.add_argument("--simulate", action="store_true",
-                   help="a simulated PX4 (MuJoCo on MAVLink over loopback UDP) instead of "
-                        "a real vehicle")
-    g.add_argument("--arm", action="store_true",
-                   help="arm and engage offboard once every service is ready (default: "
-                        "ask on the terminal)")
-    g.add_argument("--takeoff-m", type=float, default=None,
-                   help="on the ground: PX4 takes off to this height before offboard")
-    g.add_argument("--on-ground", action="store_true",
-                   help="--simulate: start disarmed on the floor (use with --takeoff-m)")
-    g.add_argument("--bridge-arg", action="append", default=[], metavar="ARG",
-                   help="extra option for the bridge, e.g. --bridge-arg=--geofence=-3,3,-3,3,0,3")
+    g.add_argument(
+        "--connect",
+        default=None,
+        metavar="URL",
+        help="MAVSDK URL of the vehicle (default udpin://0.0.0.0:14540; "
+        "e.g. serial:///dev/ttyACM0:921600)",
+    )
+    g.add_argument(
+        "--simulate",
+        action="store_true",
+        help="a simulated PX4 (MuJoCo on MAVLink over loopback UDP) instead of a real vehicle",
+    )
+    g.add_argument(
+        "--arm",
+        action="store_true",
+        help="arm and engage offboard once every service is ready (default: ask on the terminal)",
+    )
+    g.add_argument(
+        "--takeoff-m",
+        type=float,
+        default=None,
+        help="on the ground: PX4 takes off to this height before offboard",
+    )
+    g.add_argument(
+        "--on-ground",
+        action="store_true",
+        help="--simulate: start disarmed on the floor (use with --takeoff-m)",
+    )
+    g.add_argument(
+        "--bridge-arg",
+        action="append",
+        default=[],
+        metavar="ARG",
+        help="extra option for the bridge, e.g. --bridge-arg=--geofence=-3,3,-3,3,0,3",
+    )
 
 
 def config_from_args(args: Any, base: StackConfig) -> Px4StackConfig:
@@ -193,13 +247,19 @@ def config_from_args(args: Any, base: StackConfig) -> Px4StackConfig:
         raise ValueError("profile px4 runs on the wall clock: drop --lockstep")
     connect = args.connect
     if connect is None:
-        connect = f"udpin://127.0.0.1:{_free_udp_port()}" if args.simulate else \
-            "udpin://0.0.0.0:14540"
+        connect = (
+            f"udpin://127.0.0.1:{_free_udp_port()}" if args.simulate else "udpin://0.0.0.0:14540"
+        )
     fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(StackConfig)}
     fields["profile"] = "px4"
-    return Px4StackConfig(**fields, connect=connect, simulate=args.simulate,
-                          takeoff_m=args.takeoff_m, on_ground=args.on_ground,
-                          bridge_args=list(args.bridge_arg))
+    return Px4StackConfig(
+        **fields,
+        connect=connect,
+        simulate=args.simulate,
+        takeoff_m=args.takeoff_m,
+        on_ground=args.on_ground,
+        bridge_args=list(args.bridge_arg),
+    )
 
 
 def _free_udp_port() -> int:
@@ -210,8 +270,7 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def flight_hooks(args: Any, config: Px4StackConfig,
-                 say: Callable[[str], None]) -> dict[str, Any]:
+def flight_hooks(args: Any, config: Px4StackConfig, say: Callable[[str], None]) -> dict[str, Any]:
     """``on_event``/``on_ready`` for :func:`deploy.launcher.run_flight`: arm with ``--arm``,
     else an operator console on the terminal (``arm``, ``hold``, ``land``, ``disarm``)."""
     import sys
@@ -220,13 +279,17 @@ def flight_hooks(args: Any, config: Px4StackConfig,
 
     def on_ready(stack: Any) -> None:
         if args.arm:
-            threading.Thread(target=arm, args=(events, config), kwargs={"say": say},
-                             daemon=True, name="arm").start()
+            threading.Thread(
+                target=arm, args=(events, config), kwargs={"say": say}, daemon=True, name="arm"
+            ).start()
         elif sys.stdin is not None and sys.stdin.isatty():
-            say("ready: type arm + Enter to engage offboard control (hold, land, disarm "
-                "too); Ctrl-C stops everything")
-            threading.Thread(target=_console, args=(events, config, say), daemon=True,
-                             name="console").start()
+            say(
+                "ready: type arm + Enter to engage offboard control (hold, land, disarm "
+                "too); Ctrl-C stops everything"
+            )
+            threading.Thread(
+                target=_console, args=(events, config, say), daemon=True, name="console"
+            ).start()
         else:
             say("ready: not arming (no --arm and no terminal)")
 
@@ -252,5 +315,13 @@ def _console(events: EventWaiter, config: Px4StackConfig, say: Callable[[str], N
             say("commands: arm, hold, land, disarm")
 
 
-__all__ = ["PX4_SERVICES", "PX4_STOP_ORDER", "EventWaiter", "Px4StackConfig", "add_arguments",
-           "arm", "config_from_args", "flight_hooks"]
+__all__ = [
+    "PX4_SERVICES",
+    "PX4_STOP_ORDER",
+    "EventWaiter",
+    "Px4StackConfig",
+    "add_arguments",
+    "arm",
+    "config_from_args",
+    "flight_hooks",
+]

@@ -113,8 +113,7 @@ def stack_knobs() -> dict[str, Any]:
     ``sigma^2`` moves): 0.05, tuning-cell RMSE 0.054 m against 0.057 m at 0.2."""
     from arcade_core import adaptation
 
-    return {"ours_sigma2": float(adaptation.quadrotor_config().sigma2),
-            "ours_beta": STACK_BETA}
+    return {"ours_sigma2": float(adaptation.quadrotor_config().sigma2), "ours_beta": STACK_BETA}
 
 
 def load_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
@@ -128,8 +127,7 @@ def load_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
     from benchmarks import quadrotor_closedloop as cl
 
     vld, _, extra = load_model(weights)
-    models = SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra),
-                             closedloop=stack_knobs())
+    models = SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra), closedloop=stack_knobs())
     learner = cl.initial_learner("ours", models, dtype)
     return learner, cl.make_method("ours")
 
@@ -208,15 +206,17 @@ class Adapter(runtime.Service):
             # first order): its normalised variance adds to the observation noise sigma_j^2.
             J = jax.jacfwd(lambda xx: quadrotor_step(xx, up, params, h))(xp)
             var_res = var_x + jnp.einsum("ij,j,ij->i", J, var_p, J)
-            learner = learner._replace(config=learner.config._replace(
-                sigma2=base_sigma2 + var_res / vld.delta_scale**2))
+            learner = learner._replace(
+                config=learner.config._replace(sigma2=base_sigma2 + var_res / vld.delta_scale**2)
+            )
             pred = adaptation.predict(learner.beam, z, vld.latent_variance(xp, up))
             if exact:
                 new = self.method.learn(learner, xp, up, x)
             else:
                 beam, info = adaptation.update(learner.beam, z, dn, learner.config)
-                new = learner._replace(beam=beam, changepoint=info.changepoint.astype(z.dtype),
-                                     cp_prob=info.cp_prob)
+                new = learner._replace(
+                    beam=beam, changepoint=info.changepoint.astype(z.dtype), cp_prob=info.cp_prob
+                )
             new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, learner)
             cp = (new.changepoint > 0) & learn
             theta, cov, sig = marginal(new, x, up)
@@ -234,7 +234,9 @@ class Adapter(runtime.Service):
                 elif Path(a.checkpoint).is_file():
                     self.log.warning(
                         "checkpoint %s does not match this learner (weights, preset or "
-                        "beam layout): starting from the prior", a.checkpoint)
+                        "beam layout): starting from the prior",
+                        a.checkpoint,
+                    )
         self._cond = threading.Condition()
         self._setpoints: dict[float, Setpoint] = {}
         self._latest_sp: Setpoint | None = None
@@ -262,11 +264,18 @@ class Adapter(runtime.Service):
 
     def ready(self) -> None:
         if self.learner is None:
-            self.event("degraded", f"no weights file at {self.weights}: no adaptation, the "
-                       "controller runs the nominal model", "warning")
+            self.event(
+                "degraded",
+                f"no weights file at {self.weights}: no adaptation, the "
+                "controller runs the nominal model",
+                "warning",
+            )
         elif self._restored is not None:
-            self.event("restart", f"restored the posterior from {self.args.checkpoint} "
-                       f"(step {self._restored})", steps=self._restored)
+            self.event(
+                "restart",
+                f"restored the posterior from {self.args.checkpoint} (step {self._restored})",
+                steps=self._restored,
+            )
 
     def on_command(self, cmd) -> None:
         if cmd.name == "start" and not self._applied:
@@ -297,8 +306,14 @@ class Adapter(runtime.Service):
     def _input_for(self, prev: State) -> Setpoint | None:
         with self._cond:
             if self.args.lockstep:
-                self._cond.wait_for(lambda: prev.stamp in self._setpoints or self.stop.is_set()
-                                    or not self._controller_alive(), self.args.step_timeout)
+                self._cond.wait_for(
+                    lambda: (
+                        prev.stamp in self._setpoints
+                        or self.stop.is_set()
+                        or not self._controller_alive()
+                    ),
+                    self.args.step_timeout,
+                )
                 return self._setpoints.get(prev.stamp)
             return self._setpoints.get(prev.stamp, self._latest_sp)
 
@@ -308,13 +323,17 @@ class Adapter(runtime.Service):
             # state's comes too late for it either way): let it have the CPU first and
             # update once its setpoint is out (bounded: half a period).
             with self._cond:
-                self._cond.wait_for(lambda: s.stamp in self._setpoints or self.stop.is_set(),
-                                    0.5 / self.args.rate)
+                self._cond.wait_for(
+                    lambda: s.stamp in self._setpoints or self.stop.is_set(), 0.5 / self.args.rate
+                )
         t0 = self.now()
         prev, self._prev = self._prev, s
         if self.learner is None:
-            self.pub_model.put(Model(theta=np.zeros((13, 1)), sigma_tot2=np.zeros(13),
-                                     state_seq=s.seq, stamp=s.stamp))
+            self.pub_model.put(
+                Model(
+                    theta=np.zeros((13, 1)), sigma_tot2=np.zeros(13), state_seq=s.seq, stamp=s.stamp
+                )
+            )
             return
         # A gap in the states (a restarted estimator, a stall) is no transition to learn.
         h = s.stamp - prev.stamp if prev is not None else 0.0
@@ -323,8 +342,9 @@ class Adapter(runtime.Service):
             prev = None
         sp = self._input_for(prev) if prev is not None else None
         if sp is None:
-            theta, cov, sig = self._marginal(self.learner, _same_hemisphere(s.x, s.x)[0],
-                                             self._u_hover())
+            theta, cov, sig = self._marginal(
+                self.learner, _same_hemisphere(s.x, s.x)[0], self._u_hover()
+            )
             self.stats["skipped"] += prev is not None
         else:
             learn = self._applied and not s.predicted_through_dropout
@@ -339,31 +359,55 @@ class Adapter(runtime.Service):
             self.learner, dn, pred, cp_prob, cp, theta, cov, sig = out
             self.stats["learned"] += learn
             pred_np = type(pred)(*(np.asarray(p, dtype=float) for p in pred))
-            pred_np = pred_np._replace(**{f: np.clip(v, 0.0, MAX_VARIANCE) for f, v in
-                                          pred_np._asdict().items() if f != "mean"})
-            if np.all(np.isfinite(np.asarray(dn))) and all(
-                    np.all(np.isfinite(p)) for p in pred_np):
-                self.pub_res.put(Residual.from_prediction(
-                    np.clip(np.asarray(dn, float), -1e6, 1e6), pred_np,
-                    cp_prob=float(np.clip(cp_prob, 0.0, 1.0)), changepoint=bool(cp),
-                    state_seq=s.seq, stamp=s.stamp))
+            pred_np = pred_np._replace(
+                **{
+                    f: np.clip(v, 0.0, MAX_VARIANCE)
+                    for f, v in pred_np._asdict().items()
+                    if f != "mean"
+                }
+            )
+            if np.all(np.isfinite(np.asarray(dn))) and all(np.all(np.isfinite(p)) for p in pred_np):
+                self.pub_res.put(
+                    Residual.from_prediction(
+                        np.clip(np.asarray(dn, float), -1e6, 1e6),
+                        pred_np,
+                        cp_prob=float(np.clip(cp_prob, 0.0, 1.0)),
+                        changepoint=bool(cp),
+                        state_seq=s.seq,
+                        stamp=s.stamp,
+                    )
+                )
             if bool(cp):
                 self.stats["changepoints"] += 1
-                self.event("changepoint", "changepoint detected", stamp=s.stamp,
-                           cp_prob=float(cp_prob), step=int(self.learner.beam.step),
-                           state_seq=s.seq)
+                self.event(
+                    "changepoint",
+                    "changepoint detected",
+                    stamp=s.stamp,
+                    cp_prob=float(cp_prob),
+                    step=int(self.learner.beam.step),
+                    state_seq=s.seq,
+                )
         theta, cov, sig = (np.asarray(v, dtype=float) for v in (theta, cov, sig))
         # Huge but finite state variances (a long dropout) must not make the message invalid.
         cov = np.clip(cov, -MAX_VARIANCE, MAX_VARIANCE)
         sig = np.clip(sig, 0.0, MAX_VARIANCE)
-        if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(cov))
-                and np.all(np.isfinite(sig))):
+        if not (
+            np.all(np.isfinite(theta)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(sig))
+        ):
             self.log.error("non-finite posterior: resetting the beam to the prior")
             self.learner = self._prior
             return
-        self.pub_model.put(Model.from_marginal(
-            theta, cov, np.maximum(sig, 0.0), step=int(self.learner.beam.step),
-            changepoints=self.stats["changepoints"], state_seq=s.seq, stamp=s.stamp))
+        self.pub_model.put(
+            Model.from_marginal(
+                theta,
+                cov,
+                np.maximum(sig, 0.0),
+                step=int(self.learner.beam.step),
+                changepoints=self.stats["changepoints"],
+                state_seq=s.seq,
+                stamp=s.stamp,
+            )
+        )
         self.stats["steps"] += 1
         self._lat.append(self.now() - t0)
         every = self.args.checkpoint_every
@@ -393,16 +437,36 @@ def _same_hemisphere(xp: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def _extra(p) -> None:
-    p.add_argument("--weights", type=Path, default=None,
-                   help="VLD weights (default deploy/weights/quadrotor_vld.eqx)")
-    p.add_argument("--checkpoint", type=Path, default=None,
-                   help="posterior checkpoint file (restored at start if it matches)")
-    p.add_argument("--checkpoint-every", type=int, default=20,
-                   help="steps between checkpoints (0: only at shutdown)")
-    p.add_argument("--step-timeout", type=float, default=5.0,
-                   help="lockstep: longest wait for the setpoint of the previous state [s]")
-    p.add_argument("--max-gap-periods", type=float, default=2.5,
-                   help="states further apart (in control periods) are not learned from")
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        help="VLD weights (default deploy/weights/quadrotor_vld.eqx)",
+    )
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        help="posterior checkpoint file (restored at start if it matches)",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=20,
+        help="steps between checkpoints (0: only at shutdown)",
+    )
+    p.add_argument(
+        "--step-timeout",
+        type=float,
+        default=5.0,
+        help="lockstep: longest wait for the setpoint of the previous state [s]",
+    )
+    p.add_argument(
+        "--max-gap-periods",
+        type=float,
+        default=2.5,
+        help="states further apart (in control periods) are not learned from",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -474,7 +474,9 @@ class Bus:
 
         handler = safe_handler(decode, callback, self.rejects, topic=topic)
         sub = Subscription(
-            self.session.declare_subscriber(self.key(topic), handler), topic, receiver,
+            self.session.declare_subscriber(self.key(topic), handler),
+            topic,
+            receiver,
             transit,
         )
         self._subscriptions.append(sub)

@@ -71,9 +71,13 @@ def one_hypothesis_beam(beam, theta, cov):
     jitter = 10 * jnp.finfo(theta.dtype).eps * scale  # keeps the Cholesky factor finite
     sqrt = jnp.linalg.cholesky(cov + jitter * jnp.eye(l, dtype=theta.dtype))
     return beam._replace(
-        means=theta[None], sqrt_covariances=sqrt[None], log_scores=jnp.zeros(1, theta.dtype),
-        num_changepoints=beam.num_changepoints[:1], last_changepoint=beam.last_changepoint[:1],
-        is_changepoint=beam.is_changepoint[:1])
+        means=theta[None],
+        sqrt_covariances=sqrt[None],
+        log_scores=jnp.zeros(1, theta.dtype),
+        num_changepoints=beam.num_changepoints[:1],
+        last_changepoint=beam.last_changepoint[:1],
+        is_changepoint=beam.is_changepoint[:1],
+    )
 
 
 def moment_matched(method):
@@ -139,8 +143,11 @@ class Controller(runtime.Service):
         self.learner0 = None
         # The in-process per-step update, with learning left to the adapter.
         no_learn = {"learn": lambda learner, x_prev, u_prev, x: learner}
-        self._step_nominal = jax.jit(with_finite_flag(cl.make_controller_step(
-            cl.make_method("nominal")._replace(**no_learn), cfg)))
+        self._step_nominal = jax.jit(
+            with_finite_flag(
+                cl.make_controller_step(cl.make_method("nominal")._replace(**no_learn), cfg)
+            )
+        )
         self._learner_nominal = jnp.zeros((), dtype)
         if weights.is_file():
             self.learner0, method = load_learner(weights, dtype)
@@ -155,12 +162,17 @@ class Controller(runtime.Service):
             self._step_learned = jax.jit(with_finite_flag(learned))
             d, l = self.learner0.vld.theta0.shape
             self._theta0 = np.asarray(adaptation.marginal_decoder(self.learner0.beam)[0])
-            self._cov0 = np.broadcast_to(np.asarray(self.learner0.beam.covariances[0]),
-                                         (d, l, l)).copy()
+            self._cov0 = np.broadcast_to(
+                np.asarray(self.learner0.beam.covariances[0]), (d, l, l)
+            ).copy()
         u0 = jnp.asarray(self.u_hover, dtype)
-        self.carry = cl.Carry(self.learner0 if self.learner0 is not None else self._learner_nominal,
-                              jnp.broadcast_to(u0, (N, 4)), u0, jnp.zeros(13, dtype),
-                              jnp.zeros((), bool))
+        self.carry = cl.Carry(
+            self.learner0 if self.learner0 is not None else self._learner_nominal,
+            jnp.broadcast_to(u0, (N, 4)),
+            u0,
+            jnp.zeros(13, dtype),
+            jnp.zeros((), bool),
+        )
         self.t0: float | None = None
         self._model: Model | None = None
         self._cond = threading.Condition()
@@ -169,8 +181,9 @@ class Controller(runtime.Service):
         self._stale_model = False
         self._thrust_hover = float(self.u_hover[0])  # learned while tracking
         self._solve_s: list[float] = []
-        self.stats.update(setpoints=0, deadline_misses=0, hover=0, nominal_model=0,
-                          solver_failures=0)
+        self.stats.update(
+            setpoints=0, deadline_misses=0, hover=0, nominal_model=0, solver_failures=0
+        )
         bus.subscribe("model", self.on_model)
         self._state_sub = bus.subscribe("state", self.on_state)
         self._react_s: list[float] = []  # state received -> setpoint put
@@ -197,13 +210,11 @@ class Controller(runtime.Service):
         carry = self.carry
         if posterior is None:
             carry = with_learner(carry, self._learner_nominal)
-            new, u, _ = self._step_nominal(carry, x, carry.u_mpc, k, self.x_ref_all,
-                                           self.u_ref_all)
+            new, u, _ = self._step_nominal(carry, x, carry.u_mpc, k, self.x_ref_all, self.u_ref_all)
         else:
             carry = with_learner(carry, self.learner0)
             theta, cov = (np.asarray(v, dt) for v in posterior)
-            new, u, _ = self._step_learned(carry, x, k, theta, cov, self.x_ref_all,
-                                           self.u_ref_all)
+            new, u, _ = self._step_learned(carry, x, k, theta, cov, self.x_ref_all, self.u_ref_all)
         self._new_carry = new
         return np.asarray(u, dtype=float)  # (5,): the input and the finite-solution flag
 
@@ -259,13 +270,16 @@ class Controller(runtime.Service):
 
     def model_for(self, s: State) -> Model | None:
         a = self.args
+
         def current() -> bool:
             return self._model is not None and self._model.stamp >= s.stamp
 
         with self._cond:
             if a.lockstep and self.learner0 is not None:
-                self._cond.wait_for(lambda: current() or self.stop.is_set()
-                                    or not self._adapter_alive(), a.model_timeout)
+                self._cond.wait_for(
+                    lambda: current() or self.stop.is_set() or not self._adapter_alive(),
+                    a.model_timeout,
+                )
             m = self._model
         if m is None or self.learner0 is None or m.theta.shape != self._theta0.shape:
             return None
@@ -278,8 +292,14 @@ class Controller(runtime.Service):
         if stale != self._stale_model:
             self._stale_model = stale
             if stale:
-                self.event("degraded", f"model {age:.2f} s old: flying on the last one",
-                           "warning", stamp=s.stamp, flag="stale_model", age_s=float(age))
+                self.event(
+                    "degraded",
+                    f"model {age:.2f} s old: flying on the last one",
+                    "warning",
+                    stamp=s.stamp,
+                    flag="stale_model",
+                    age_s=float(age),
+                )
             else:
                 self.event("info", "fresh models again", stamp=s.stamp, flag="stale_model")
         return m
@@ -288,8 +308,13 @@ class Controller(runtime.Service):
         """Level hover: nominal hover thrust, body rates that level the vehicle."""
         q = s.q
         # World z axis in body coordinates (third row of R).
-        g_b = np.array([2 * (q[1] * q[3] - q[0] * q[2]), 2 * (q[2] * q[3] + q[0] * q[1]),
-                        1 - 2 * (q[1] ** 2 + q[2] ** 2)])
+        g_b = np.array(
+            [
+                2 * (q[1] * q[3] - q[0] * q[2]),
+                2 * (q[2] * q[3] + q[0] * q[1]),
+                1 - 2 * (q[1] ** 2 + q[2] ** 2),
+            ]
+        )
         rates = 2.0 * np.array([g_b[1], -g_b[0], 0.0])
         thrust = self._thrust_hover / max(g_b[2], 0.5)
         return np.clip(np.r_[thrust, rates], self.u_min, self.u_max)
@@ -303,8 +328,11 @@ class Controller(runtime.Service):
         meas_age = s.stamp - s.meas_stamp if s.meas_stamp is not None else 0.0
         if age > a.max_state_age or meas_age > a.max_meas_age:
             self.stats["hover"] += 1
-            why = (f"state {age * 1e3:.0f} ms old" if age > a.max_state_age
-                   else f"newest mocap {meas_age:.2f} s old")
+            why = (
+                f"state {age * 1e3:.0f} ms old"
+                if age > a.max_state_age
+                else f"newest mocap {meas_age:.2f} s old"
+            )
             self._set_mode("hover", why, s.stamp)
             self.publish(s, self.hover(s), "hover", 0.0)
             return
@@ -320,8 +348,11 @@ class Controller(runtime.Service):
             u = self._solve(s.x, k, None)
         else:
             mode = "track"
-            cov = m.theta_cov if m.theta_cov is not None else np.zeros(
-                (*m.theta.shape, m.theta.shape[1]))
+            cov = (
+                m.theta_cov
+                if m.theta_cov is not None
+                else np.zeros((*m.theta.shape, m.theta.shape[1]))
+            )
             u = self._solve(s.x, k, (m.theta, cov))
         solve_s = time.perf_counter() - t0
         self._solve_s.append(solve_s)
@@ -339,8 +370,7 @@ class Controller(runtime.Service):
             q = s.q
             tilt = 1 - 2 * (q[1] ** 2 + q[2] ** 2)
             self._thrust_hover += 0.02 * (float(u[0]) * max(tilt, 0.5) - self._thrust_hover)
-        self._set_mode(mode, "model available" if m is not None else "no current model",
-                       s.stamp)
+        self._set_mode(mode, "model available" if m is not None else "no current model", s.stamp)
         if not a.lockstep and self.now() - t_recv > 1.0 / a.rate:
             self.stats["deadline_misses"] += 1
 
@@ -354,8 +384,9 @@ class Controller(runtime.Service):
         # that an answer to a late state is not rejected as out of order downstream.
         stamp = max(s.stamp, self._last_stamp)
         self._last_stamp = stamp
-        self.pub.put(Setpoint(u=u, state_seq=s.seq, stamp=stamp, mode=mode,
-                              solve_ms=min(solve_s * 1e3, 1e6)))
+        self.pub.put(
+            Setpoint(u=u, state_seq=s.seq, stamp=stamp, mode=mode, solve_ms=min(solve_s * 1e3, 1e6))
+        )
         self.stats["setpoints"] += 1
 
     _last_stamp = 0.0
@@ -371,18 +402,42 @@ class Controller(runtime.Service):
 
 def _extra(p) -> None:
     runtime.add_plan_arguments(p)
-    p.add_argument("--weights", type=Path, default=None,
-                   help="VLD weights (default deploy/weights/quadrotor_vld.eqx)")
-    p.add_argument("--model-timeout", type=float, default=5.0,
-                   help="lockstep: longest wait for the model of the current state [s]")
-    p.add_argument("--max-model-age", type=float, default=0.5,
-                   help="older models are not used (nominal MPC instead) [s]")
-    p.add_argument("--stale-model-s", type=float, default=0.15,
-                   help="older models are still used but flagged (stale_model event) [s]")
-    p.add_argument("--max-state-age", type=float, default=0.1,
-                   help="realtime: older states on arrival give a hover setpoint [s]")
-    p.add_argument("--max-meas-age", type=float, default=0.2,
-                   help="states whose newest mocap frame is older give a hover setpoint [s]")
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        help="VLD weights (default deploy/weights/quadrotor_vld.eqx)",
+    )
+    p.add_argument(
+        "--model-timeout",
+        type=float,
+        default=5.0,
+        help="lockstep: longest wait for the model of the current state [s]",
+    )
+    p.add_argument(
+        "--max-model-age",
+        type=float,
+        default=0.5,
+        help="older models are not used (nominal MPC instead) [s]",
+    )
+    p.add_argument(
+        "--stale-model-s",
+        type=float,
+        default=0.15,
+        help="older models are still used but flagged (stale_model event) [s]",
+    )
+    p.add_argument(
+        "--max-state-age",
+        type=float,
+        default=0.1,
+        help="realtime: older states on arrival give a hover setpoint [s]",
+    )
+    p.add_argument(
+        "--max-meas-age",
+        type=float,
+        default=0.2,
+        help="states whose newest mocap frame is older give a hover setpoint [s]",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -97,11 +97,14 @@ class Estimator(runtime.Service):
         self._lag: float | None = None  # usual lag of the newest frame behind the control instant
         self._rejected_seen = 0
         self._outlier_event_t = -np.inf
-        self.stats.update(states=0, frames=0, dropped_frames=0, frozen_frames=0,
-                          restamped_frames=0)
+        self.stats.update(states=0, frames=0, dropped_frames=0, frozen_frames=0, restamped_frames=0)
         # One ordered stream: the frames of a period arrive before its imu sample.
-        self._subs = runtime.subscribe_ordered(bus, {"mocap": self.on_mocap, "imu": self.on_imu},
-                                               seq_only=("mocap",), transit=self._transit)
+        self._subs = runtime.subscribe_ordered(
+            bus,
+            {"mocap": self.on_mocap, "imu": self.on_imu},
+            seq_only=("mocap",),
+            transit=self._transit,
+        )
         self.pub = bus.publisher("state")
 
     def warmup(self) -> None:
@@ -135,8 +138,11 @@ class Estimator(runtime.Service):
         fresh = []
         for m in sorted(batch, key=lambda m: m.capture_stamp):
             last = self._last_pose
-            repeat = (last is not None and np.array_equal(m.position, last[0])
-                      and np.array_equal(m.quaternion, last[1]))
+            repeat = (
+                last is not None
+                and np.array_equal(m.position, last[0])
+                and np.array_equal(m.quaternion, last[1])
+            )
             self._last_pose = (m.position, m.quaternion)
             if repeat:
                 self.stats["frozen_frames"] += 1
@@ -145,8 +151,13 @@ class Estimator(runtime.Service):
         if batch:
             frozen = not fresh
             if frozen and not self._frozen:
-                self.event("fault", "mocap frozen: repeated poses dropped, predicting",
-                           "warning", stamp=t, fault="mocap_frozen")
+                self.event(
+                    "fault",
+                    "mocap frozen: repeated poses dropped, predicting",
+                    "warning",
+                    stamp=t,
+                    fault="mocap_frozen",
+                )
             elif fresh and self._frozen:
                 self.event("info", "mocap poses change again", stamp=t, fault="mocap_frozen")
             self._frozen = frozen
@@ -175,11 +186,19 @@ class Estimator(runtime.Service):
             offset = newest - (t - (self._lag if self._lag is not None else 0.0))
             self.stats["restamped_frames"] += len(bad)
             if self._jump is None:
-                self.event("fault", f"mocap clock off by {offset:+.3f} s: re-stamping frames",
-                           "warning", stamp=t, fault="mocap_clock_jump", offset_s=float(offset))
+                self.event(
+                    "fault",
+                    f"mocap clock off by {offset:+.3f} s: re-stamping frames",
+                    "warning",
+                    stamp=t,
+                    fault="mocap_clock_jump",
+                    offset_s=float(offset),
+                )
             self._jump = offset
-            bad = [dataclasses.replace(m, capture_stamp=max(m.capture_stamp - offset, 0.0))
-                   for m in bad]
+            bad = [
+                dataclasses.replace(m, capture_stamp=max(m.capture_stamp - offset, 0.0))
+                for m in bad
+            ]
         elif batch and self._jump is not None:
             self.event("info", "mocap clock consistent again", stamp=t, fault="mocap_clock_jump")
             self._jump = None
@@ -197,15 +216,22 @@ class Estimator(runtime.Service):
             batch, self._pending = self._pending, []
         self.stats["frames"] += len(batch)
         batch = self._restamp(self._drop_frozen(batch, imu.stamp), imu.stamp)
-        self.filter, packed = self._step(self.filter, self._frames(batch), imu.stamp, imu.gyro,
-                                         self.config)
+        self.filter, packed = self._step(
+            self.filter, self._frames(batch), imu.stamp, imu.gyro, self.config
+        )
         out = Unpacked(np.asarray(packed, dtype=float))  # one device-to-host copy
         if not out.initialised:
             return
         rejected = out.rejected
         if rejected > self._rejected_seen and imu.stamp - self._outlier_event_t >= 1.0:
-            self.event("fault", f"mocap outliers rejected ({rejected} so far)", "warning",
-                       stamp=imu.stamp, fault="mocap_outliers", rejected=rejected)
+            self.event(
+                "fault",
+                f"mocap outliers rejected ({rejected} so far)",
+                "warning",
+                stamp=imu.stamp,
+                fault="mocap_outliers",
+                rejected=rejected,
+            )
             self._outlier_event_t = imu.stamp
         self._rejected_seen = rejected
         x = out.x
@@ -215,17 +241,23 @@ class Estimator(runtime.Service):
             return
         dropout = out.dropout
         if dropout and not self._dropout_reported:
-            self.event("degraded", "mocap dropout: predicting", "warning", stamp=imu.stamp,
-                       age_s=out.age)
+            self.event(
+                "degraded", "mocap dropout: predicting", "warning", stamp=imu.stamp, age_s=out.age
+            )
         elif not dropout and self._dropout_reported:
             self.event("info", "mocap recovered", stamp=imu.stamp)
         self._dropout_reported = dropout
         x[6:10] /= np.linalg.norm(x[6:10])
-        self.pub.put(State(
-            x=x, cov_diag=np.clip(out.var, 0.0, MAX_VARIANCE),
-            mocap_stale=out.fused == 0, predicted_through_dropout=dropout,
-            meas_stamp=out.t, stamp=imu.stamp,
-        ))
+        self.pub.put(
+            State(
+                x=x,
+                cov_diag=np.clip(out.var, 0.0, MAX_VARIANCE),
+                mocap_stale=out.fused == 0,
+                predicted_through_dropout=dropout,
+                meas_stamp=out.t,
+                stamp=imu.stamp,
+            )
+        )
         self.stats["states"] += 1
 
     def teardown(self) -> None:
@@ -239,12 +271,20 @@ class Estimator(runtime.Service):
 
 
 def _extra(p) -> None:
-    p.add_argument("--max-frame-lag", type=float, default=0.25,
-                   help="frames captured longer than this before the control instant have a "
-                        "jumped clock and are re-stamped [s]")
-    p.add_argument("--stamp-tolerance", type=float, default=0.005,
-                   help="frames captured later than the control instant by more than this "
-                        "have a jumped clock and are re-stamped [s]")
+    p.add_argument(
+        "--max-frame-lag",
+        type=float,
+        default=0.25,
+        help="frames captured longer than this before the control instant have a "
+        "jumped clock and are re-stamped [s]",
+    )
+    p.add_argument(
+        "--stamp-tolerance",
+        type=float,
+        default=0.005,
+        help="frames captured later than the control instant by more than this "
+        "have a jumped clock and are re-stamped [s]",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

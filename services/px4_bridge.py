@@ -94,8 +94,7 @@ def attitude_rate_command(u: Any, limits: Limits) -> tuple[np.ndarray, float, bo
     rates = np.clip(u[1:], -limits.max_rate, limits.max_rate)
     s = float(limits.curve.throttle(u[0]))
     throttle = min(max(s, 0.0), limits.max_throttle)
-    clamped = bool(np.any(rates != u[1:]) or throttle != s
-                   or u[0] > limits.curve.max_thrust_n)
+    clamped = bool(np.any(rates != u[1:]) or throttle != s or u[0] > limits.curve.max_thrust_n)
     return fr.rad_to_deg(fr.flu_to_frd(rates)), throttle, clamped
 
 
@@ -155,9 +154,18 @@ class Px4Bridge(runtime.Service):
         self._tel_cond = threading.Condition()
         self._commands: list[Command] = []
         self._cmd_cond = threading.Condition()
-        self.stats.update(setpoints=0, sent=0, clamped=0, send_errors=0, mocap_forwarded=0,
-                          imu=0, failsafes=0, engagements=0, mode_changes=0,
-                          connect=a.connect)
+        self.stats.update(
+            setpoints=0,
+            sent=0,
+            clamped=0,
+            send_errors=0,
+            mocap_forwarded=0,
+            imu=0,
+            failsafes=0,
+            engagements=0,
+            mode_changes=0,
+            connect=a.connect,
+        )
         self._fwd: list[float] = []
         self._connect()
         bus.subscribe("setpoint", self.on_setpoint)
@@ -179,16 +187,19 @@ class Px4Bridge(runtime.Service):
         self.mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
         result = self.mavsdk.add_any_connection(a.connect)
         if result != ConnectionResult.SUCCESS:
-            raise RuntimeError(f"cannot open the MAVLink connection {a.connect!r}: "
-                               f"{ConnectionResult(result).name}")
-        self.log.info("waiting up to %.0f s for a PX4 autopilot on %s", a.connect_timeout,
-                      a.connect)
+            raise RuntimeError(
+                f"cannot open the MAVLink connection {a.connect!r}: {ConnectionResult(result).name}"
+            )
+        self.log.info(
+            "waiting up to %.0f s for a PX4 autopilot on %s", a.connect_timeout, a.connect
+        )
         system = self.mavsdk.first_autopilot(a.connect_timeout)
         if system is None:
             raise RuntimeError(
                 f"no autopilot heard on {a.connect} within {a.connect_timeout:g} s: is PX4 "
                 "powered and running, is the URL right (udpin:// port, serial device and "
-                "baud rate), does PX4 send MAVLink on that link (MAV_x_CONFIG, SER_x_BAUD)?")
+                "baud rate), does PX4 send MAVLink on that link (MAV_x_CONFIG, SER_x_BAUD)?"
+            )
         self.system = system
         self._offboard_cls = Offboard
         self.telemetry = Telemetry(system)
@@ -210,7 +221,8 @@ class Px4Bridge(runtime.Service):
         fast = max(50.0, 2.0 * a.rate)
         for name, hz in (("attitude_quaternion", fast), ("position_velocity_ned", 30.0)):
             getattr(t, f"set_rate_{name}_async")(
-                hz, lambda r, _ud, name=name: self.log.info("rate of %s: %s", name, r.name))
+                hz, lambda r, _ud, name=name: self.log.info("rate of %s: %s", name, r.name)
+            )
 
     # -- telemetry (MAVSDK's callback thread: store and notify, nothing slow)
     def _set_tel(self, **kv: Any) -> None:
@@ -231,8 +243,9 @@ class Px4Bridge(runtime.Service):
     def _on_rates(self, w: Any, _ud: Any) -> None:
         w = np.array([w.roll_rad_s, w.pitch_rad_s, w.yaw_rad_s], dtype=float)
         if np.all(np.isfinite(w)):
-            self._set_tel(gyro_flu=np.clip(fr.frd_to_flu(w), -MAX_GYRO, MAX_GYRO),
-                          gyro_rx=time.monotonic())
+            self._set_tel(
+                gyro_flu=np.clip(fr.frd_to_flu(w), -MAX_GYRO, MAX_GYRO), gyro_rx=time.monotonic()
+            )
 
     def _on_position(self, pv: Any, _ud: Any) -> None:
         p = np.array([pv.position.north_m, pv.position.east_m, pv.position.down_m])
@@ -251,15 +264,25 @@ class Px4Bridge(runtime.Service):
         self._set_tel(landed=state.name)
 
     def _on_health(self, h: Any, _ud: Any) -> None:
-        health = {k: bool(getattr(h, k)) for k in (
-            "is_gyrometer_calibration_ok", "is_accelerometer_calibration_ok",
-            "is_local_position_ok", "is_armable")}
+        health = {
+            k: bool(getattr(h, k))
+            for k in (
+                "is_gyrometer_calibration_ok",
+                "is_accelerometer_calibration_ok",
+                "is_local_position_ok",
+                "is_armable",
+            )
+        }
         prev = self._telemetry.get("health")
         self._set_tel(health=health)
         if prev is not None and prev != health:
             bad = [k for k, ok in health.items() if not ok]
-            self.event("vehicle", f"PX4 health: {'ok' if not bad else 'not ok: ' + ', '.join(bad)}",
-                       "info" if not bad else "warning", **health)
+            self.event(
+                "vehicle",
+                f"PX4 health: {'ok' if not bad else 'not ok: ' + ', '.join(bad)}",
+                "info" if not bad else "warning",
+                **health,
+            )
 
     def _on_flight_mode(self, mode: Any, _ud: Any) -> None:
         name = mode.name
@@ -268,19 +291,22 @@ class Px4Bridge(runtime.Service):
         if name == prev:
             return
         self.stats["mode_changes"] += 1
-        self.event("mode_change", f"PX4 flight mode {prev} -> {name}", mode=name,
-                   previous=prev)
+        self.event("mode_change", f"PX4 flight mode {prev} -> {name}", mode=name, previous=prev)
         if prev == OFFBOARD and name != OFFBOARD:
             # PX4 left offboard by itself (pilot, its own failsafe) or on our request.
             with self._lock:
                 engaged, self._engaged = self._engaged, False
             if engaged:
                 # Not on this (MAVSDK's) thread: the plugin's destructor may wait for it.
-                threading.Thread(target=self._silence_offboard, name="silence",
-                                 daemon=True).start()
+                threading.Thread(target=self._silence_offboard, name="silence", daemon=True).start()
                 self.stats["failsafes"] += 1
-                self.event("failsafe", f"PX4 left offboard ({name}): setpoint stream stopped",
-                           "warning", reason="px4_mode", mode=name)
+                self.event(
+                    "failsafe",
+                    f"PX4 left offboard ({name}): setpoint stream stopped",
+                    "warning",
+                    reason="px4_mode",
+                    mode=name,
+                )
 
     # -- readiness
     def _health_problems(self) -> list[str]:
@@ -305,20 +331,29 @@ class Px4Bridge(runtime.Service):
             ok = self._tel_cond.wait_for(lambda: not self._health_problems(), timeout)
             problems = self._health_problems()
         if not ok:
-            raise RuntimeError(f"PX4 on {self.args.connect} not healthy after {timeout:g} s: "
-                               + "; ".join(problems))
-        self.log.info("PX4 connected and healthy: mode %s, armed %s",
-                      self._telemetry.get("mode"), self._telemetry.get("armed"))
+            raise RuntimeError(
+                f"PX4 on {self.args.connect} not healthy after {timeout:g} s: "
+                + "; ".join(problems)
+            )
+        self.log.info(
+            "PX4 connected and healthy: mode %s, armed %s",
+            self._telemetry.get("mode"),
+            self._telemetry.get("armed"),
+        )
 
     def ready(self) -> None:
         t = self._telemetry
-        self.event("ready", f"PX4 bridge connected on {self.args.connect}; send 'arm' to fly",
-                   mode=t.get("mode"), armed=t.get("armed"))
-        self._cmd_thread = threading.Thread(target=self._command_worker, name="commands",
-                                            daemon=True)
+        self.event(
+            "ready",
+            f"PX4 bridge connected on {self.args.connect}; send 'arm' to fly",
+            mode=t.get("mode"),
+            armed=t.get("armed"),
+        )
+        self._cmd_thread = threading.Thread(
+            target=self._command_worker, name="commands", daemon=True
+        )
         self._cmd_thread.start()
-        self._watchdog = threading.Thread(target=self._watchdog_loop, name="watchdog",
-                                          daemon=True)
+        self._watchdog = threading.Thread(target=self._watchdog_loop, name="watchdog", daemon=True)
         self._watchdog.start()
 
     # -- bus inputs
@@ -342,8 +377,9 @@ class Px4Bridge(runtime.Service):
         from mavsdk.plugins.offboard import AttitudeRate
 
         try:
-            self.offboard.set_attitude_rate(AttitudeRate(float(deg_s[0]), float(deg_s[1]),
-                                                         float(deg_s[2]), float(throttle)))
+            self.offboard.set_attitude_rate(
+                AttitudeRate(float(deg_s[0]), float(deg_s[1]), float(deg_s[2]), float(throttle))
+            )
             self.stats["sent"] += 1
         except Exception as err:
             self.stats["send_errors"] += 1
@@ -356,20 +392,30 @@ class Px4Bridge(runtime.Service):
         self._check_geofence(m.position, "mocap")
         p, q = odometry_from_mocap(m)
         nan = float("nan")
-        frame = (mc.Odometry.MavFrame.LOCAL_FRD if self.args.vision_frame == "local_frd"
-                 else mc.Odometry.MavFrame.MOCAP_NED)
-        est = (mc.Odometry.MavEstimatorType.VISION if self.args.vision == "odometry"
-               else mc.Odometry.MavEstimatorType.MOCAP)
+        frame = (
+            mc.Odometry.MavFrame.LOCAL_FRD
+            if self.args.vision_frame == "local_frd"
+            else mc.Odometry.MavFrame.MOCAP_NED
+        )
+        est = (
+            mc.Odometry.MavEstimatorType.VISION
+            if self.args.vision == "odometry"
+            else mc.Odometry.MavEstimatorType.MOCAP
+        )
         # Pose only: velocity and rates unknown (NaN), covariances from PX4's EKF2_EVP/EVA
         # noise parameters (first element NaN). Time on the monotonic clock, which
         # MAVSDK's TIMESYNC shares with PX4.
         odom = mc.Odometry(
-            time_usec=int(m.capture_stamp * 1e6), frame_id=frame,
-            position_body=mc.PositionBody(*map(float, p)), q=mc.Quaternion(*map(float, q)),
+            time_usec=int(m.capture_stamp * 1e6),
+            frame_id=frame,
+            position_body=mc.PositionBody(*map(float, p)),
+            q=mc.Quaternion(*map(float, q)),
             speed_body=mc.SpeedBody(nan, nan, nan),
             angular_velocity_body=mc.AngularVelocityBody(nan, nan, nan),
-            pose_covariance=mc.Covariance([nan]), velocity_covariance=mc.Covariance([nan]),
-            estimator_type=est)
+            pose_covariance=mc.Covariance([nan]),
+            velocity_covariance=mc.Covariance([nan]),
+            estimator_type=est,
+        )
         try:
             self.mocap.set_odometry(odom)
             self.stats["mocap_forwarded"] += 1
@@ -386,8 +432,11 @@ class Px4Bridge(runtime.Service):
 
     def _on_alive_change(self, service: str, up: bool) -> None:
         if service == "controller" and not up:
-            self.leave_offboard("the controller's liveliness token disappeared",
-                                self.args.failsafe, reason="controller_lost")
+            self.leave_offboard(
+                "the controller's liveliness token disappeared",
+                self.args.failsafe,
+                reason="controller_lost",
+            )
 
     # -- offboard control
     def _silence_offboard(self) -> None:
@@ -399,8 +448,16 @@ class Px4Bridge(runtime.Service):
             old, self.offboard = self.offboard, self._offboard_cls(self.system)
             old.destroy()
 
-    def leave_offboard(self, why: str, action: str, *, reason: str, failsafe: bool = True,
-                       wait: bool = False, **data: Any) -> bool:
+    def leave_offboard(
+        self,
+        why: str,
+        action: str,
+        *,
+        reason: str,
+        failsafe: bool = True,
+        wait: bool = False,
+        **data: Any,
+    ) -> bool:
         """Stop streaming and command Hold (then Land if ``action == "land"``).
 
         The stream ends before this returns; the mode commands' answers are awaited on a
@@ -424,8 +481,14 @@ class Px4Bridge(runtime.Service):
             self._cond.notify_all()
         if failsafe:
             self.stats["failsafes"] += 1
-        self.event("failsafe" if failsafe else "info", f"leaving offboard: {why} -> {action}",
-                   "warning" if failsafe else "info", reason=reason, action=action, **data)
+        self.event(
+            "failsafe" if failsafe else "info",
+            f"leaving offboard: {why} -> {action}",
+            "warning" if failsafe else "info",
+            reason=reason,
+            action=action,
+            **data,
+        )
 
         def finish() -> None:
             if not done.wait(self.args.command_timeout):
@@ -447,8 +510,11 @@ class Px4Bridge(runtime.Service):
     def _check_geofence(self, p_enu: np.ndarray, source: str) -> None:
         if self._engaged and not self.geofence.contains(p_enu):
             x, y, z = (float(v) for v in p_enu)
-            self.leave_offboard(f"{source} ({x:.2f}, {y:.2f}, {z:.2f}) m outside the geofence",
-                                self.args.geofence_action, reason="geofence")
+            self.leave_offboard(
+                f"{source} ({x:.2f}, {y:.2f}, {z:.2f}) m outside the geofence",
+                self.args.geofence_action,
+                reason="geofence",
+            )
 
     def _watchdog_loop(self) -> None:
         """Leave offboard once setpoints are older than ``--setpoint-timeout``."""
@@ -463,8 +529,12 @@ class Px4Bridge(runtime.Service):
                     self._cond.wait(left)
                     continue
                 age = time.monotonic() - self._last_rx
-            self.leave_offboard(f"no controller setpoint for {age:.3f} s", self.args.failsafe,
-                                reason="setpoint_timeout", age_s=age)
+            self.leave_offboard(
+                f"no controller setpoint for {age:.3f} s",
+                self.args.failsafe,
+                reason="setpoint_timeout",
+                age_s=age,
+            )
 
     def _command_worker(self) -> None:
         while not self.stop.is_set():
@@ -484,14 +554,19 @@ class Px4Bridge(runtime.Service):
             self.engage(float(takeoff) if isinstance(takeoff, int | float) else None)
         elif cmd.name in ("hold", "stop", "land"):
             action = "land" if cmd.name == "land" else "hold"
-            if not self.leave_offboard(f"{cmd.name} command", action, reason="command",
-                                       failsafe=False) and cmd.name == "land":
+            if (
+                not self.leave_offboard(
+                    f"{cmd.name} command", action, reason="command", failsafe=False
+                )
+                and cmd.name == "land"
+            ):
                 self.action.land()  # not in offboard: land from whatever mode PX4 is in
         elif cmd.name == "disarm":
             landed = self._telemetry.get("landed")
             if landed != "ON_GROUND":
-                self.event("info", f"disarm refused: vehicle not on the ground ({landed})",
-                           "warning")
+                self.event(
+                    "info", f"disarm refused: vehicle not on the ground ({landed})", "warning"
+                )
                 return
             self.action.disarm()
             self.event("info", "disarmed on command")
@@ -512,8 +587,9 @@ class Px4Bridge(runtime.Service):
                 return
             problems = self._engage_problems()
             if problems:
-                self.event("info", "offboard refused after take-off: " + "; ".join(problems),
-                           "warning")
+                self.event(
+                    "info", "offboard refused after take-off: " + "; ".join(problems), "warning"
+                )
                 return
         with self._lock:
             self._engaged = True  # setpoints stream to PX4 from now on; the watchdog runs
@@ -549,8 +625,10 @@ class Px4Bridge(runtime.Service):
         if self._latest is None or age > self.args.setpoint_timeout:
             problems.append("controller setpoints are not streaming")
         elif steady < self.args.min_stream:
-            problems.append(f"controller setpoints are not streaming steadily yet "
-                            f"({steady:.2f} of {self.args.min_stream:g} s without a gap)")
+            problems.append(
+                f"controller setpoints are not streaming steadily yet "
+                f"({steady:.2f} of {self.args.min_stream:g} s without a gap)"
+            )
         p = self._telemetry.get("p_enu")
         if p is not None and not self.geofence.contains(p):
             problems.append("vehicle outside the geofence")
@@ -571,12 +649,23 @@ class Px4Bridge(runtime.Service):
         self.event("info", f"PX4 taking off to {altitude_m:g} m")
         with self._tel_cond:
             ok = self._tel_cond.wait_for(
-                lambda: self.stop.is_set() or (self._telemetry.get("mode") == HOLD
-                                               and self._telemetry.get("landed") == "IN_AIR"),
-                self.args.takeoff_timeout)
+                lambda: (
+                    self.stop.is_set()
+                    or (
+                        self._telemetry.get("mode") == HOLD
+                        and self._telemetry.get("landed") == "IN_AIR"
+                    )
+                ),
+                self.args.takeoff_timeout,
+            )
         if not ok or self.stop.is_set():
-            self.event("fault", "PX4 take-off did not complete: offboard not engaged", "error",
-                       mode=self._telemetry.get("mode"), landed=self._telemetry.get("landed"))
+            self.event(
+                "fault",
+                "PX4 take-off did not complete: offboard not engaged",
+                "error",
+                mode=self._telemetry.get("mode"),
+                landed=self._telemetry.get("landed"),
+            )
             return False
         return True
 
@@ -608,8 +697,11 @@ class Px4Bridge(runtime.Service):
             tick = min(next_tick, now)  # the scheduled instant: periodic stamps, no jitter
             t = self._telemetry
             gyro = t.get("gyro_flu")
-            if (self.args.imu == "px4" and gyro is not None
-                    and now - t.get("gyro_rx", -math.inf) < self.args.max_gyro_age):
+            if (
+                self.args.imu == "px4"
+                and gyro is not None
+                and now - t.get("gyro_rx", -math.inf) < self.args.max_gyro_age
+            ):
                 self.pub_imu.put(Imu(gyro=gyro, stamp=tick))
                 self.stats["imu"] += 1
             if now >= next_status:
@@ -622,22 +714,29 @@ class Px4Bridge(runtime.Service):
 
     def _status(self, now: float) -> None:
         t = dict(self._telemetry)
-        data: dict[str, Any] = {"armed": t.get("armed"), "mode": t.get("mode"),
-                                "landed": t.get("landed"), "engaged": self._engaged,
-                                "setpoints_fresh": now - self._last_rx
-                                <= self.args.setpoint_timeout,
-                                "stream_s": max(0.0, now - self._stream_since)}
-        for key, names in (("p_enu", ("px", "py", "pz")), ("v_enu", ("vx", "vy", "vz")),
-                           ("q_enu_flu", ("qw", "qx", "qy", "qz")),
-                           ("gyro_flu", ("wx", "wy", "wz"))):
+        data: dict[str, Any] = {
+            "armed": t.get("armed"),
+            "mode": t.get("mode"),
+            "landed": t.get("landed"),
+            "engaged": self._engaged,
+            "setpoints_fresh": now - self._last_rx <= self.args.setpoint_timeout,
+            "stream_s": max(0.0, now - self._stream_since),
+        }
+        for key, names in (
+            ("p_enu", ("px", "py", "pz")),
+            ("v_enu", ("vx", "vy", "vz")),
+            ("q_enu_flu", ("qw", "qx", "qy", "qz")),
+            ("gyro_flu", ("wx", "wy", "wz")),
+        ):
             if key in t:
                 data.update({n: float(v) for n, v in zip(names, t[key]) if math.isfinite(v)})
         self.event("vehicle_status", "PX4 state (ENU/FLU)", "debug", stamp=now, **data)
 
     def teardown(self) -> None:
         # Hold, never disarm: the vehicle may be in the air.
-        self.leave_offboard("bridge shutting down", "hold", reason="shutdown", failsafe=False,
-                            wait=True)
+        self.leave_offboard(
+            "bridge shutting down", "hold", reason="shutdown", failsafe=False, wait=True
+        )
         self.stats["forward_latency"] = runtime.percentiles_ms(self._fwd)
         self.stats["final_mode"] = self._telemetry.get("mode")
         self._closed = True  # late bus callbacks must not touch the destroyed plugins
@@ -645,53 +744,127 @@ class Px4Bridge(runtime.Service):
 
 
 def _extra(p) -> None:
-    p.add_argument("--connect", default=DEFAULT_URL,
-                   help="MAVSDK connection URL, e.g. udpin://0.0.0.0:14540 or "
-                        "serial:///dev/ttyACM0:921600")
-    p.add_argument("--vehicle-file", default=None,
-                   help="vehicle file (thrust curve, rate limits); default: the shipped one")
-    p.add_argument("--connect-timeout", type=float, default=30.0,
-                   help="longest wait for an autopilot heartbeat [s]")
-    p.add_argument("--health-timeout", type=float, default=60.0,
-                   help="longest wait for PX4 to be healthy and armable [s]")
-    p.add_argument("--command-timeout", type=float, default=3.0,
-                   help="longest wait for PX4 to accept offboard / answer a mode command [s]")
-    p.add_argument("--setpoint-timeout", type=float, default=0.3,
-                   help="leave offboard when no setpoint arrived for this long [s]")
-    p.add_argument("--min-stream", type=float, default=1.0,
-                   help="arm only after setpoints streamed this long without a gap [s]")
-    p.add_argument("--failsafe", choices=("hold", "land"), default="hold",
-                   help="what PX4 does when setpoints stop")
-    p.add_argument("--geofence", default="-5,5,-5,5,-0.5,4",
-                   help="xmin,xmax,ymin,ymax,zmin,zmax of the allowed box, ENU metres")
-    p.add_argument("--geofence-action", choices=("hold", "land"), default="hold",
-                   help="what PX4 does when the vehicle leaves the box")
-    p.add_argument("--max-throttle", type=float, default=1.0,
-                   help="upper clamp of the normalised thrust sent to PX4 (0, 1]")
-    p.add_argument("--vision", choices=("odometry", "mocap", "off"), default="odometry",
-                   help="forward mocap to PX4 as ODOMETRY for EKF2 (estimator type vision), "
-                        "as mocap-type ODOMETRY, or not at all")
-    p.add_argument("--vision-frame", choices=("local_frd", "mocap_ned"), default="local_frd",
-                   help="ODOMETRY world frame id (local_frd: heading arbitrary)")
-    p.add_argument("--no-require-local-position", dest="require_local_position",
-                   action="store_false",
-                   help="be ready without PX4 reporting a local position")
-    p.add_argument("--no-start-mission", dest="start_mission", action="store_false",
-                   help="do not send the controller's 'start' command when engaged")
-    p.add_argument("--takeoff-timeout", type=float, default=30.0,
-                   help="longest wait for PX4's take-off (arm command with takeoff_m) [s]")
-    p.add_argument("--status-rate", type=float, default=2.0,
-                   help="vehicle_status events per second (0: none)")
-    p.add_argument("--imu", choices=("px4", "off"), default="px4",
-                   help="publish PX4's body rates as imu at the control rate (the estimator's "
-                        "clock), or not (a simulator on the bus does it)")
-    p.add_argument("--max-gyro-age", type=float, default=0.2,
-                   help="older PX4 rate telemetry is not published as imu [s]")
+    p.add_argument(
+        "--connect",
+        default=DEFAULT_URL,
+        help="MAVSDK connection URL, e.g. udpin://0.0.0.0:14540 or serial:///dev/ttyACM0:921600",
+    )
+    p.add_argument(
+        "--vehicle-file",
+        default=None,
+        help="vehicle file (thrust curve, rate limits); default: the shipped one",
+    )
+    p.add_argument(
+        "--connect-timeout",
+        type=float,
+        default=30.0,
+        help="longest wait for an autopilot heartbeat [s]",
+    )
+    p.add_argument(
+        "--health-timeout",
+        type=float,
+        default=60.0,
+        help="longest wait for PX4 to be healthy and armable [s]",
+    )
+    p.add_argument(
+        "--command-timeout",
+        type=float,
+        default=3.0,
+        help="longest wait for PX4 to accept offboard / answer a mode command [s]",
+    )
+    p.add_argument(
+        "--setpoint-timeout",
+        type=float,
+        default=0.3,
+        help="leave offboard when no setpoint arrived for this long [s]",
+    )
+    p.add_argument(
+        "--min-stream",
+        type=float,
+        default=1.0,
+        help="arm only after setpoints streamed this long without a gap [s]",
+    )
+    p.add_argument(
+        "--failsafe",
+        choices=("hold", "land"),
+        default="hold",
+        help="what PX4 does when setpoints stop",
+    )
+    p.add_argument(
+        "--geofence",
+        default="-5,5,-5,5,-0.5,4",
+        help="xmin,xmax,ymin,ymax,zmin,zmax of the allowed box, ENU metres",
+    )
+    p.add_argument(
+        "--geofence-action",
+        choices=("hold", "land"),
+        default="hold",
+        help="what PX4 does when the vehicle leaves the box",
+    )
+    p.add_argument(
+        "--max-throttle",
+        type=float,
+        default=1.0,
+        help="upper clamp of the normalised thrust sent to PX4 (0, 1]",
+    )
+    p.add_argument(
+        "--vision",
+        choices=("odometry", "mocap", "off"),
+        default="odometry",
+        help="forward mocap to PX4 as ODOMETRY for EKF2 (estimator type vision), "
+        "as mocap-type ODOMETRY, or not at all",
+    )
+    p.add_argument(
+        "--vision-frame",
+        choices=("local_frd", "mocap_ned"),
+        default="local_frd",
+        help="ODOMETRY world frame id (local_frd: heading arbitrary)",
+    )
+    p.add_argument(
+        "--no-require-local-position",
+        dest="require_local_position",
+        action="store_false",
+        help="be ready without PX4 reporting a local position",
+    )
+    p.add_argument(
+        "--no-start-mission",
+        dest="start_mission",
+        action="store_false",
+        help="do not send the controller's 'start' command when engaged",
+    )
+    p.add_argument(
+        "--takeoff-timeout",
+        type=float,
+        default=30.0,
+        help="longest wait for PX4's take-off (arm command with takeoff_m) [s]",
+    )
+    p.add_argument(
+        "--status-rate", type=float, default=2.0, help="vehicle_status events per second (0: none)"
+    )
+    p.add_argument(
+        "--imu",
+        choices=("px4", "off"),
+        default="px4",
+        help="publish PX4's body rates as imu at the control rate (the estimator's "
+        "clock), or not (a simulator on the bus does it)",
+    )
+    p.add_argument(
+        "--max-gyro-age",
+        type=float,
+        default=0.2,
+        help="older PX4 rate telemetry is not published as imu [s]",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     return runtime.main_for(Px4Bridge, argv, _extra)
 
 
-__all__ = ["Geofence", "Limits", "Px4Bridge", "attitude_rate_command", "main",
-           "odometry_from_mocap"]
+__all__ = [
+    "Geofence",
+    "Limits",
+    "Px4Bridge",
+    "attitude_rate_command",
+    "main",
+    "odometry_from_mocap",
+]

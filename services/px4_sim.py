@@ -43,8 +43,16 @@ from simulator.px4.modes import FlightMode
 
 LOSS_ACTIONS = {"position": 0, "land": 4, "hold": 5}
 #: STATUSTEXT severity (MAV_SEVERITY) -> event severity.
-_SEVERITY = {0: "critical", 1: "critical", 2: "critical", 3: "error", 4: "warning",
-             5: "info", 6: "info", 7: "debug"}
+_SEVERITY = {
+    0: "critical",
+    1: "critical",
+    2: "critical",
+    3: "error",
+    4: "warning",
+    5: "info",
+    6: "info",
+    7: "debug",
+}
 
 
 class Px4SimNode(SimNode):
@@ -61,16 +69,22 @@ class Px4SimNode(SimNode):
         super().setup(bus)
         start = self.sim.state()[0:3]
         self.px4 = Px4Sim(
-            a.px4, vehicle=a.vehicle_file, payload_g=self.scen.payload_g,
-            cable_length=self.scen.cable_length_m, start=start, airborne=not a.on_ground,
-            vision_required=not a.no_vision_required, vision_timeout_s=a.vision_timeout,
-            params={"COM_OF_LOSS_T": a.of_loss_s,
-                    "COM_OBL_RC_ACT": LOSS_ACTIONS[a.of_loss_action]},
-            seed=self.trial.sim_seed, substep=a.substep, on_text=self._on_text)
+            a.px4,
+            vehicle=a.vehicle_file,
+            payload_g=self.scen.payload_g,
+            cable_length=self.scen.cable_length_m,
+            start=start,
+            airborne=not a.on_ground,
+            vision_required=not a.no_vision_required,
+            vision_timeout_s=a.vision_timeout,
+            params={"COM_OF_LOSS_T": a.of_loss_s, "COM_OBL_RC_ACT": LOSS_ACTIONS[a.of_loss_action]},
+            seed=self.trial.sim_seed,
+            substep=a.substep,
+            on_text=self._on_text,
+        )
         self.px4.stop = self.stop
         self.sim = self.px4.vehicle.sim  # the helpers of SimNode work on this airframe
-        self.stats.update(ignored_setpoints=0, px4_failsafes=[], offboard_at=None,
-                          link=a.px4)
+        self.stats.update(ignored_setpoints=0, px4_failsafes=[], offboard_at=None, link=a.px4)
 
     # -- inputs: MAVLink only
     def on_setpoint(self, sp: Setpoint) -> None:
@@ -82,8 +96,9 @@ class Px4SimNode(SimNode):
             self.stats["px4_failsafes"].append({"t": v.time, "mode": v.mode.name})
             self.event("failsafe", text, "error", sim_time=float(v.time), mode=v.mode.name)
         else:
-            self.event("info", f"PX4: {text}", _SEVERITY.get(severity, "info"),
-                       sim_time=float(v.time))
+            self.event(
+                "info", f"PX4: {text}", _SEVERITY.get(severity, "info"), sim_time=float(v.time)
+            )
 
     # -- loop
     def main(self) -> None:
@@ -94,16 +109,24 @@ class Px4SimNode(SimNode):
             self._realtime()
         finally:
             self.stats["wall_s"] = time.perf_counter() - t0
-        self.event("info", "flight finished", stamp=max(self._last_stamp, 0.0),
-                   steps=self.stats["steps"])
+        self.event(
+            "info", "flight finished", stamp=max(self._last_stamp, 0.0), steps=self.stats["steps"]
+        )
 
     def _lockstep(self) -> None:  # refused in setup; kept explicit
         raise RuntimeError("px4sim has no lockstep mode")
 
     def _realtime(self) -> None:
         px4, v, sim = self.px4, self.px4.vehicle, self.sim
-        st = {"n": 0, "t_next": 0.0, "k": -1, "t_start": 0.0, "prev_sp": None,
-              "t_tick": math.nan, "seen_sp": None}
+        st = {
+            "n": 0,
+            "t_next": 0.0,
+            "k": -1,
+            "t_start": 0.0,
+            "prev_sp": None,
+            "t_tick": math.nan,
+            "seen_sp": None,
+        }
         delays: list[float] = []  # control instant -> first new SET_ATTITUDE_TARGET [s]
 
         def mono(t_sim: float) -> float:
@@ -181,26 +204,52 @@ def _extra(p) -> None:
     for action in p._actions:
         if action.dest in _UNUSED:
             action.help = argparse.SUPPRESS
-    p.add_argument("--px4", default="udpout://127.0.0.1:14540", metavar="URL",
-                   help="MAVLink link: udpout://HOST:PORT (PX4 SITL style, the bridge "
-                        "listens) or udpin://HOST:PORT")
-    p.add_argument("--vehicle-file", default=None,
-                   help="vehicle file (TOML; default: the shipped one)")
-    p.add_argument("--on-ground", action="store_true",
-                   help="start disarmed on the floor instead of hovering armed in Hold")
-    p.add_argument("--no-vision-required", action="store_true",
-                   help="PX4's estimator counts as valid without mocap over MAVLink")
-    p.add_argument("--vision-timeout", type=float, default=0.5,
-                   help="mocap older than this gives no valid position [s]")
-    p.add_argument("--of-loss-s", type=float, default=1.0,
-                   help="offboard loss timeout COM_OF_LOSS_T [s]")
-    p.add_argument("--of-loss-action", choices=sorted(LOSS_ACTIONS), default="hold",
-                   help="mode after an offboard loss (COM_OBL_RC_ACT)")
-    p.add_argument("--no-imu", action="store_true",
-                   help="do not publish imu (the PX4 bridge publishes PX4's rates instead, "
-                        "as with a real vehicle)")
-    p.add_argument("--no-start-command", action="store_true",
-                   help="do not put the mission's start command (the PX4 bridge does)")
+    p.add_argument(
+        "--px4",
+        default="udpout://127.0.0.1:14540",
+        metavar="URL",
+        help="MAVLink link: udpout://HOST:PORT (PX4 SITL style, the bridge "
+        "listens) or udpin://HOST:PORT",
+    )
+    p.add_argument(
+        "--vehicle-file", default=None, help="vehicle file (TOML; default: the shipped one)"
+    )
+    p.add_argument(
+        "--on-ground",
+        action="store_true",
+        help="start disarmed on the floor instead of hovering armed in Hold",
+    )
+    p.add_argument(
+        "--no-vision-required",
+        action="store_true",
+        help="PX4's estimator counts as valid without mocap over MAVLink",
+    )
+    p.add_argument(
+        "--vision-timeout",
+        type=float,
+        default=0.5,
+        help="mocap older than this gives no valid position [s]",
+    )
+    p.add_argument(
+        "--of-loss-s", type=float, default=1.0, help="offboard loss timeout COM_OF_LOSS_T [s]"
+    )
+    p.add_argument(
+        "--of-loss-action",
+        choices=sorted(LOSS_ACTIONS),
+        default="hold",
+        help="mode after an offboard loss (COM_OBL_RC_ACT)",
+    )
+    p.add_argument(
+        "--no-imu",
+        action="store_true",
+        help="do not publish imu (the PX4 bridge publishes PX4's rates instead, "
+        "as with a real vehicle)",
+    )
+    p.add_argument(
+        "--no-start-command",
+        action="store_true",
+        help="do not put the mission's start command (the PX4 bridge does)",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

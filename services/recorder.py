@@ -67,31 +67,56 @@ class Recorder(runtime.Service):
         self._channels: dict[str, int] = {}
         for topic, cls in MESSAGE_TYPES.items():
             schema = self.writer.register_schema(
-                name=cls.SCHEMA, encoding="jsonschema",
-                data=json.dumps(json_schema(cls)).encode())
+                name=cls.SCHEMA, encoding="jsonschema", data=json.dumps(json_schema(cls)).encode()
+            )
             self._channels[topic] = self.writer.register_channel(
-                topic=bus.key(topic), message_encoding="json", schema_id=schema)
+                topic=bus.key(topic), message_encoding="json", schema_id=schema
+            )
         self._csv_file = (out / f"flight_log{suffix}.csv").open("w", newline="")
         self.csv = csv.writer(self._csv_file)
-        self.csv.writerow(["t", "px", "py", "pz", "vx", "vy", "vz", "qw", "qx", "qy", "qz",
-                           "wx", "wy", "wz", "u0", "u1", "u2", "u3", "mode"])
+        self.csv.writerow(
+            [
+                "t",
+                "px",
+                "py",
+                "pz",
+                "vx",
+                "vy",
+                "vz",
+                "qw",
+                "qx",
+                "qy",
+                "qz",
+                "wx",
+                "wy",
+                "wz",
+                "u0",
+                "u1",
+                "u2",
+                "u3",
+                "mode",
+            ]
+        )
         self._states: dict[int, State] = {}
         self._unpaired: dict[int, Setpoint] = {}
         self._rows: list[list[Any]] = []
         self._t0: float | None = None
         self.stats["messages"] = dict.fromkeys(MESSAGE_TYPES, 0)
         for topic in MESSAGE_TYPES:
-            bus.subscribe(topic, lambda m, topic=topic: self.record(topic, m),
-                          check_order=False)
+            bus.subscribe(topic, lambda m, topic=topic: self.record(topic, m), check_order=False)
 
     def record(self, topic: str, m: Message) -> None:
         data = json.dumps(m.to_wire()).encode()
         with self._lock:
             if self.writer is None:
                 return
-            self.writer.add_message(self._channels[topic], log_time=time.time_ns(), data=data,
-                                    publish_time=min(int(m.stamp * 1e9), 2**64 - 1),
-                                    sequence=m.seq % 2**32)
+            self.writer.add_message(
+                self._channels[topic],
+                log_time=time.time_ns(),
+                data=data,
+                publish_time=min(int(m.stamp * 1e9), 2**64 - 1),
+                sequence=m.seq % 2**32,
+            )
             self.stats["messages"][topic] += 1
             # State and setpoint come from different publishers: pair whichever is second.
             # By stamp (a setpoint carries the stamp of the state it answers), not by

@@ -35,27 +35,52 @@ def common_parser(name: str, description: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=f"python -m services {name}", description=description)
     p.add_argument("--vehicle", default="default", help="vehicle name on the bus (key prefix)")
     p.add_argument("--hub", default=DEFAULT_HUB, help="Zenoh hub endpoint (peer mode)")
-    p.add_argument("--out", type=Path, default=None,
-                   help="run folder: logs/<service>.log and stats/<service>.json go here")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="run folder: logs/<service>.log and stats/<service>.json go here",
+    )
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ...")
     p.add_argument("--x64", action="store_true", help="compute in float64 (default float32)")
-    p.add_argument("--lockstep", action="store_true",
-                   help="lockstep clock (simulated time, deterministic); default realtime")
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="lockstep clock (simulated time, deterministic); default realtime",
+    )
     p.add_argument("--rate", type=float, default=20.0, help="control rate [Hz]")
-    p.add_argument("--nice", type=int, default=0,
-                   help="scheduling priority change (negative: higher; needs privileges, "
-                        "ignored with a warning otherwise)")
-    p.add_argument("--realtime-priority", type=int, default=0, metavar="P",
-                   help="after warm-up, run every thread of the process under SCHED_FIFO at "
-                        "priority P (1-99; 0: the normal policy). Needs CAP_SYS_NICE or an "
-                        "rtprio limit; without, a warning and the normal policy")
-    p.add_argument("--cpu-wakeup-latency-us", type=int, default=None, metavar="US",
-                   help="after warm-up, ask the kernel (PM QoS, /dev/cpu_dma_latency) to keep "
-                        "every CPU's wake-up latency <= US microseconds while this process "
-                        "runs (0: idle CPUs poll instead of sleeping; costs power). Needs "
-                        "root; without, a warning")
-    p.add_argument("--incarnation", type=int, default=0,
-                   help="restart count given by the supervisor (0: first start)")
+    p.add_argument(
+        "--nice",
+        type=int,
+        default=0,
+        help="scheduling priority change (negative: higher; needs privileges, "
+        "ignored with a warning otherwise)",
+    )
+    p.add_argument(
+        "--realtime-priority",
+        type=int,
+        default=0,
+        metavar="P",
+        help="after warm-up, run every thread of the process under SCHED_FIFO at "
+        "priority P (1-99; 0: the normal policy). Needs CAP_SYS_NICE or an "
+        "rtprio limit; without, a warning and the normal policy",
+    )
+    p.add_argument(
+        "--cpu-wakeup-latency-us",
+        type=int,
+        default=None,
+        metavar="US",
+        help="after warm-up, ask the kernel (PM QoS, /dev/cpu_dma_latency) to keep "
+        "every CPU's wake-up latency <= US microseconds while this process "
+        "runs (0: idle CPUs poll instead of sleeping; costs power). Needs "
+        "root; without, a warning",
+    )
+    p.add_argument(
+        "--incarnation",
+        type=int,
+        default=0,
+        help="restart count given by the supervisor (0: first start)",
+    )
     return p
 
 
@@ -93,8 +118,12 @@ def percentiles_ms(samples_s: list[float]) -> dict[str, float]:
     if not samples_s:
         return {"n": 0, "p50_ms": 0.0, "p99_ms": 0.0, "max_ms": 0.0}
     a = np.asarray(samples_s) * 1e3
-    return {"n": int(a.size), "p50_ms": float(np.median(a)),
-            "p99_ms": float(np.percentile(a, 99)), "max_ms": float(a.max())}
+    return {
+        "n": int(a.size),
+        "p50_ms": float(np.median(a)),
+        "p99_ms": float(np.percentile(a, 99)),
+        "max_ms": float(a.max()),
+    }
 
 
 def _seq_only(receiver: Any) -> Any:
@@ -109,8 +138,9 @@ def _seq_only(receiver: Any) -> Any:
         with lock:
             prev = last.get(record.src)
             if prev is not None and record.seq <= prev:
-                raise MessageError(Reason.OUT_OF_ORDER,
-                                   f"seq {record.seq} after {prev} from {record.src!r}")
+                raise MessageError(
+                    Reason.OUT_OF_ORDER, f"seq {record.seq} after {prev} from {record.src!r}"
+                )
             last[record.src] = record.seq
             if len(last) > 64:
                 last.pop(next(iter(last)))
@@ -119,8 +149,12 @@ def _seq_only(receiver: Any) -> Any:
     return decode
 
 
-def subscribe_ordered(bus: Bus, topics: dict[str, Any], seq_only: tuple[str, ...] = (),
-                      transit: dict[str, Any] | None = None) -> list[Any]:
+def subscribe_ordered(
+    bus: Bus,
+    topics: dict[str, Any],
+    seq_only: tuple[str, ...] = (),
+    transit: dict[str, Any] | None = None,
+) -> list[Any]:
     """Subscribe ``{topic: callback}`` with callbacks run on Zenoh's receiving thread.
 
     :meth:`Bus.subscribe` runs each subscription's callback on its own thread, so two
@@ -142,8 +176,9 @@ def subscribe_ordered(bus: Bus, topics: dict[str, Any], seq_only: tuple[str, ...
 
     subs = []
     for topic, callback in topics.items():
-        receiver = (_seq_only(Receiver(topic, check_order=False)) if topic in seq_only
-                    else Receiver(topic))
+        receiver = (
+            _seq_only(Receiver(topic, check_order=False)) if topic in seq_only else Receiver(topic)
+        )
         hops = None
         if transit is not None:
             hops = transit.setdefault(topic, deque(maxlen=TRANSIT_SAMPLES))
@@ -154,8 +189,11 @@ def subscribe_ordered(bus: Bus, topics: dict[str, Any], seq_only: tuple[str, ...
             return r(sample.payload.to_bytes())
 
         handler = safe_handler(decode, callback, bus.rejects, topic=topic)
-        subs.append(bus.session.declare_subscriber(
-            bus.key(topic), zenoh.handlers.Callback(handler, indirect=False)))
+        subs.append(
+            bus.session.declare_subscriber(
+                bus.key(topic), zenoh.handlers.Callback(handler, indirect=False)
+            )
+        )
     return subs
 
 
@@ -179,8 +217,10 @@ class GcPauses:
             gc.callbacks.remove(self._callback)
 
     def summary(self) -> dict[str, Any]:
-        return {f"gen{g}": {"n": len(v), "max_ms": 1e3 * max(v, default=0.0),
-                            "total_ms": 1e3 * sum(v)} for g, v in self.pauses.items()}
+        return {
+            f"gen{g}": {"n": len(v), "max_ms": 1e3 * max(v, default=0.0), "total_ms": 1e3 * sum(v)}
+            for g, v in self.pauses.items()
+        }
 
 
 class Service:
@@ -221,8 +261,9 @@ class Service:
     def now(self) -> float:
         return time.monotonic()
 
-    def event(self, kind: str, text: str, severity: str = "info", stamp: float | None = None,
-              **data: Any) -> None:
+    def event(
+        self, kind: str, text: str, severity: str = "info", stamp: float | None = None, **data: Any
+    ) -> None:
         """Publish an :class:`~services.messages.Event` and log it."""
         from services.messages import Event
 
@@ -235,8 +276,9 @@ class Service:
         # Never older than the previous event: receivers reject out-of-order stamps.
         stamp = self._event_stamp = max(stamp, self._event_stamp)
         try:
-            self.bus.put(Event(kind=kind, severity=severity, text=text[:1024], data=data,
-                               stamp=stamp))
+            self.bus.put(
+                Event(kind=kind, severity=severity, text=text[:1024], data=data, stamp=stamp)
+            )
         except Exception:
             self.log.exception("could not publish event %s", kind)
 
@@ -288,11 +330,13 @@ class Service:
                 gc.freeze()
                 self._gc = GcPauses()  # the pauses while serving
                 if getattr(self.args, "realtime_priority", 0):
-                    self.stats["scheduling"] = realtime_scheduling(self.args.realtime_priority,
-                                                                   self.log)
+                    self.stats["scheduling"] = realtime_scheduling(
+                        self.args.realtime_priority, self.log
+                    )
                 if getattr(self.args, "cpu_wakeup_latency_us", None) is not None:
                     self._pm_qos, self.stats["cpu_wakeup_latency"] = cpu_wakeup_latency(
-                        self.args.cpu_wakeup_latency_us, self.log)
+                        self.args.cpu_wakeup_latency_us, self.log
+                    )
                 bus.declare_alive()
                 self.log.info("ready after %.1f s", time.perf_counter() - t0)
                 self.ready()
@@ -327,8 +371,9 @@ def realtime_scheduling(priority: int, log: logging.Logger = log) -> dict[str, A
     Applied after warm-up, so that XLA's compilation does not starve the other services.
     """
     param = os.sched_param(priority)
-    tids = [int(t) for t in os.listdir("/proc/self/task")] if os.path.isdir(
-        "/proc/self/task") else [0]
+    tids = (
+        [int(t) for t in os.listdir("/proc/self/task")] if os.path.isdir("/proc/self/task") else [0]
+    )
     done, errors = 0, []
     for tid in tids:
         try:
@@ -339,16 +384,27 @@ def realtime_scheduling(priority: int, log: logging.Logger = log) -> dict[str, A
         except (OSError, AttributeError) as err:
             errors.append(str(err))
     if errors:
-        log.warning("SCHED_FIFO %d refused for %d of %d threads (%s): normal scheduling, "
-                    "expect more latency jitter", priority, len(errors), len(tids), errors[0])
+        log.warning(
+            "SCHED_FIFO %d refused for %d of %d threads (%s): normal scheduling, "
+            "expect more latency jitter",
+            priority,
+            len(errors),
+            len(tids),
+            errors[0],
+        )
     else:
         log.info("SCHED_FIFO priority %d on %d threads", priority, done)
-    return {"policy": "fifo" if not errors else "partial" if done else "normal",
-            "priority": priority, "threads": done, "refused": len(errors)}
+    return {
+        "policy": "fifo" if not errors else "partial" if done else "normal",
+        "priority": priority,
+        "threads": done,
+        "refused": len(errors),
+    }
 
 
-def cpu_wakeup_latency(us: int, log: logging.Logger = log,
-                       device: str = "/dev/cpu_dma_latency") -> tuple[int | None, dict[str, Any]]:
+def cpu_wakeup_latency(
+    us: int, log: logging.Logger = log, device: str = "/dev/cpu_dma_latency"
+) -> tuple[int | None, dict[str, Any]]:
     """Request a CPU wake-up latency of at most ``us`` microseconds (Linux PM QoS); returns
     the descriptor that holds the request (close it to withdraw) and what was applied.
 
@@ -361,8 +417,11 @@ def cpu_wakeup_latency(us: int, log: logging.Logger = log,
     try:
         fd = os.open(device, os.O_WRONLY)
     except OSError as err:
-        log.warning("CPU wake-up latency request refused (%s): idle CPUs may sleep deeply, "
-                    "expect more latency jitter", err)
+        log.warning(
+            "CPU wake-up latency request refused (%s): idle CPUs may sleep deeply, "
+            "expect more latency jitter",
+            err,
+        )
         return None, {"requested_us": us, "applied": False, "error": str(err)}
     try:
         os.write(fd, struct.pack("i", us))
@@ -374,8 +433,9 @@ def cpu_wakeup_latency(us: int, log: logging.Logger = log,
     return fd, {"requested_us": us, "applied": True}
 
 
-def main_for(cls: type[Service], argv: list[str] | None = None,
-             extra: Any = None, *, x64: bool = False) -> int:
+def main_for(
+    cls: type[Service], argv: list[str] | None = None, extra: Any = None, *, x64: bool = False
+) -> int:
     """Parse the options of ``cls`` (``extra(parser)`` adds its own) and run it.
 
     ``x64`` forces float64 whatever ``--x64`` says (for numerics that need it).
@@ -402,16 +462,33 @@ def add_plan_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--payload-g", type=float, default=175.0, help="swinging payload [g]")
     p.add_argument("--speed", type=float, default=2.5, help="figure-eight mean speed [m/s]")
     p.add_argument("--seed", type=int, default=0, help="trial seed (noise, start, release)")
-    p.add_argument("--duration", type=float, default=None,
-                   help="flight duration [s] (default: take-off, hover, two laps)")
-    p.add_argument("--release", type=float, default=0.95,
-                   help="release the payload at this fraction of the first lap "
-                        "(negative: only on a release_payload command)")
-    p.add_argument("--hover-s", type=float, default=1.5,
-                   help="hover this long at the centre before the figure-eight [s] "
-                        "(longer than the flight: a take-off and hover plan)")
-    p.add_argument("--origin", type=_xy, default=(0.0, 0.0), metavar="X,Y",
-                   help="horizontal offset of the whole plan [m] (one per vehicle on a bus)")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="flight duration [s] (default: take-off, hover, two laps)",
+    )
+    p.add_argument(
+        "--release",
+        type=float,
+        default=0.95,
+        help="release the payload at this fraction of the first lap "
+        "(negative: only on a release_payload command)",
+    )
+    p.add_argument(
+        "--hover-s",
+        type=float,
+        default=1.5,
+        help="hover this long at the centre before the figure-eight [s] "
+        "(longer than the flight: a take-off and hover plan)",
+    )
+    p.add_argument(
+        "--origin",
+        type=_xy,
+        default=(0.0, 0.0),
+        metavar="X,Y",
+        help="horizontal offset of the whole plan [m] (one per vehicle on a bus)",
+    )
 
 
 def _xy(text: str) -> tuple[float, float]:
@@ -425,11 +502,14 @@ def scenario(args: argparse.Namespace) -> Any:
 
     ox, oy = getattr(args, "origin", (0.0, 0.0))
     base = Scenario()
-    return Scenario(payload_g=float(args.payload_g), speed_mps=float(args.speed),
-                    release_fraction=float(args.release),
-                    hover_s=float(getattr(args, "hover_s", base.hover_s)),
-                    start=(base.start[0] + ox, base.start[1] + oy, base.start[2]),
-                    center=(base.center[0] + ox, base.center[1] + oy, base.center[2]))
+    return Scenario(
+        payload_g=float(args.payload_g),
+        speed_mps=float(args.speed),
+        release_fraction=float(args.release),
+        hover_s=float(getattr(args, "hover_s", base.hover_s)),
+        start=(base.start[0] + ox, base.start[1] + oy, base.start[2]),
+        center=(base.center[0] + ox, base.center[1] + oy, base.center[2]),
+    )
 
 
 class Trial(NamedTuple):

@@ -72,8 +72,26 @@ from services import runtime
 from services.messages import Command, Event, Imu, Mocap, Setpoint, State
 
 MAX_GYRO = 99.0
-FLIGHT_COLUMNS = ("t", "px", "py", "pz", "vx", "vy", "vz", "qw", "qx", "qy", "qz",
-                  "wx", "wy", "wz", "u0", "u1", "u2", "u3")
+FLIGHT_COLUMNS = (
+    "t",
+    "px",
+    "py",
+    "pz",
+    "vx",
+    "vy",
+    "vz",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "wx",
+    "wy",
+    "wz",
+    "u0",
+    "u1",
+    "u2",
+    "u3",
+)
 #: Position error [m] or height [m] at which a flight counts as crashed and stops.
 CRASH_ERROR_M = 2.0
 CRASH_HEIGHT_M = 0.02
@@ -81,8 +99,10 @@ CRASH_HEIGHT_M = 0.02
 #: attitude gain [1/s] (tilt error -> body rates).
 HOLD_KP, HOLD_KD, HOLD_MAX_ACC, HOLD_K_ATT = 4.0, 3.0, 4.0, 6.0
 
-_FAULT = re.compile(r"(dropout|freeze|outliers|clockjump)@([0-9.]+)(?:\+([0-9.]+))?"
-                    r"((?:,\w+=[-0-9.e]+)*)")
+_FAULT = re.compile(
+    r"(dropout|freeze|outliers|clockjump)@([0-9.]+)(?:\+([0-9.]+))?"
+    r"((?:,\w+=[-0-9.e]+)*)"
+)
 
 
 @dataclass(frozen=True)
@@ -101,8 +121,10 @@ class MocapFault:
         """``KIND@START[+DURATION][,key=value...]`` (see the module docstring)."""
         m = _FAULT.fullmatch(spec.strip())
         if m is None:
-            raise ValueError(f"bad mocap fault {spec!r}: KIND@START[+DURATION][,key=value...] "
-                             "with KIND dropout|freeze|outliers|clockjump")
+            raise ValueError(
+                f"bad mocap fault {spec!r}: KIND@START[+DURATION][,key=value...] "
+                "with KIND dropout|freeze|outliers|clockjump"
+            )
         kw = {k: float(v) for k, v in (item.split("=") for item in m[4].split(",") if item)}
         unknown = set(kw) - {"p", "m", "offset"}
         if unknown:
@@ -149,8 +171,9 @@ class MocapFaults:
         return out
 
 
-def hold_setpoint(x: np.ndarray, p_hold: np.ndarray, hover_thrust: float,
-                  mass: float, max_thrust: float) -> np.ndarray:
+def hold_setpoint(
+    x: np.ndarray, p_hold: np.ndarray, hover_thrust: float, mass: float, max_thrust: float
+) -> np.ndarray:
     """Position hold at ``p_hold`` on state ``x``: ``[thrust N, body rates rad/s]``.
 
     Desired acceleration ``kp (p_hold - p) - kd v`` (horizontal part limited) plus
@@ -166,11 +189,13 @@ def hold_setpoint(x: np.ndarray, p_hold: np.ndarray, hover_thrust: float,
     acc[2] = np.clip(acc[2], -0.5 * g, g)
     f_world = mass * (acc + np.array([0.0, 0.0, g]))
     w, xq, yq, zq = q
-    R = np.array([
-        [1 - 2 * (yq * yq + zq * zq), 2 * (xq * yq - w * zq), 2 * (xq * zq + w * yq)],
-        [2 * (xq * yq + w * zq), 1 - 2 * (xq * xq + zq * zq), 2 * (yq * zq - w * xq)],
-        [2 * (xq * zq - w * yq), 2 * (yq * zq + w * xq), 1 - 2 * (xq * xq + yq * yq)],
-    ])
+    R = np.array(
+        [
+            [1 - 2 * (yq * yq + zq * zq), 2 * (xq * yq - w * zq), 2 * (xq * zq + w * yq)],
+            [2 * (xq * yq + w * zq), 1 - 2 * (xq * xq + zq * zq), 2 * (yq * zq - w * xq)],
+            [2 * (xq * zq - w * yq), 2 * (yq * zq + w * xq), 1 - 2 * (xq * xq + yq * yq)],
+        ]
+    )
     f_body = R.T @ f_world
     thrust = float(np.clip(f_body[2], 0.0, max_thrust))
     d = f_body / max(np.linalg.norm(f_body), 1e-6)  # desired thrust axis, body frame
@@ -202,9 +227,11 @@ class SimNode(runtime.Service):
         x_ref, _ = reference(self.scen, n_ref, 0)
         self._ref_t = np.arange(x_ref.shape[0]) * DT
         self._ref_p = np.asarray(x_ref[:, :3], dtype=float)
-        self.sim = QuadrotorSim(payload_mass=self.scen.payload_g / 1000.0,
-                                cable_length=self.scen.cable_length_m,
-                                seed=self.trial.sim_seed)
+        self.sim = QuadrotorSim(
+            payload_mass=self.scen.payload_g / 1000.0,
+            cable_length=self.scen.cable_length_m,
+            seed=self.trial.sim_seed,
+        )
         self.sim.reset(np.asarray(self.scen.start) + self.trial.start_offset)
         self._cond = threading.Condition()
         self._setpoints: dict[float, Setpoint] = {}
@@ -222,11 +249,20 @@ class SimNode(runtime.Service):
         self._hold: np.ndarray | None = None  # hold position while in failsafe
         self._answered_run = 0
         self._mission0 = 0.0 if a.lockstep else math.inf  # sim time of the mission start
-        self.faults = MocapFaults([MocapFault.parse(f) for f in a.mocap_fault or []],
-                                  self.trial.sim_seed)
-        self.stats.update(steps=0, timeouts=0, missed_deadlines=0, released_at=None,
-                          crashed=False, mode="lockstep" if a.lockstep else "realtime",
-                          rate_hz=a.rate, failsafes=[], mocap_faults=self.faults.counts)
+        self.faults = MocapFaults(
+            [MocapFault.parse(f) for f in a.mocap_fault or []], self.trial.sim_seed
+        )
+        self.stats.update(
+            steps=0,
+            timeouts=0,
+            missed_deadlines=0,
+            released_at=None,
+            crashed=False,
+            mode="lockstep" if a.lockstep else "realtime",
+            rate_hz=a.rate,
+            failsafes=[],
+            mocap_faults=self.faults.counts,
+        )
         self.pub_mocap = bus.publisher("mocap")
         self.pub_imu = bus.publisher("imu")
         self._sp_sub = bus.subscribe("setpoint", self.on_setpoint)
@@ -255,8 +291,7 @@ class SimNode(runtime.Service):
     def _on_alive(self, service: str, up: bool) -> None:
         """A controller that (re)joins after the mission started gets its clock again."""
         if service == "controller" and up and math.isfinite(self._flight_stamp):
-            self.bus.put(Command(name="start", args={"t0": self._flight_stamp},
-                                 stamp=self.now()))
+            self.bus.put(Command(name="start", args={"t0": self._flight_stamp}, stamp=self.now()))
 
     # -- failsafe
     def _engage_failsafe(self, stamp: float, since: float) -> None:
@@ -265,21 +300,40 @@ class SimNode(runtime.Service):
         self._answered_run = 0
         rec = {"t": self.sim.time - self._mission0, "since_last_setpoint_s": since}
         self.stats["failsafes"].append(rec)
-        self.event("failsafe", f"no setpoint for {since:.3f} s: holding position", "error",
-                   stamp=stamp, mode="hold", since_last_setpoint_s=float(since),
-                   sim_time=float(rec["t"]), px=float(x[0]), py=float(x[1]), pz=float(x[2]))
+        self.event(
+            "failsafe",
+            f"no setpoint for {since:.3f} s: holding position",
+            "error",
+            stamp=stamp,
+            mode="hold",
+            since_last_setpoint_s=float(since),
+            sim_time=float(rec["t"]),
+            px=float(x[0]),
+            py=float(x[1]),
+            pz=float(x[2]),
+        )
 
     def _clear_failsafe(self, stamp: float) -> None:
         self._hold = None
         self.stats["failsafes"][-1]["cleared_t"] = self.sim.time - self._mission0
-        self.event("failsafe_cleared", "setpoints resumed: failsafe cleared", stamp=stamp,
-                   sim_time=float(self.sim.time - self._mission0))
+        self.event(
+            "failsafe_cleared",
+            "setpoints resumed: failsafe cleared",
+            stamp=stamp,
+            sim_time=float(self.sim.time - self._mission0),
+        )
 
     def _hold_u(self) -> np.ndarray:
         sim = self.sim
-        return self.sim.set_setpoint(hold_setpoint(
-            sim.state(), self._hold, sim.hover_thrust(), sim.carried_mass(),
-            4.0 * sim.max_thrust))
+        return self.sim.set_setpoint(
+            hold_setpoint(
+                sim.state(),
+                self._hold,
+                sim.hover_thrust(),
+                sim.carried_mass(),
+                4.0 * sim.max_thrust,
+            )
+        )
 
     # -- helpers
     def _ref(self, t: float) -> np.ndarray:
@@ -289,9 +343,14 @@ class SimNode(runtime.Service):
         if self.faults.faults:
             frames = self.faults.apply(frames, lambda t: t - self._mission0)
         for f in frames:
-            self.pub_mocap.put(Mocap(position=f.position, quaternion=f.quaternion,
-                                     capture_stamp=to_stamp(f.stamp),
-                                     stamp=to_stamp(f.arrival)))
+            self.pub_mocap.put(
+                Mocap(
+                    position=f.position,
+                    quaternion=f.quaternion,
+                    capture_stamp=to_stamp(f.stamp),
+                    stamp=to_stamp(f.arrival),
+                )
+            )
 
     def _tick(self, stamp: float, gyro_samples, sampled: float | None = None) -> None:
         """Publish the control instant ``stamp``; sense-to-actuate latency counts from
@@ -313,24 +372,32 @@ class SimNode(runtime.Service):
             self._release_at = math.inf
             if self.sim.release_payload():
                 self.stats["released_at"] = self.sim.time
-                self.event("info", "payload released", stamp=stamp, sim_time=self.sim.time,
-                           step=k)
+                self.event("info", "payload released", stamp=stamp, sim_time=self.sim.time, step=k)
 
     def _record(self, u: np.ndarray, t: float | None = None) -> bool:
         """Log ground truth at flight time ``t``; returns False when the flight crashed."""
         x = self.sim.state()
         t = self.sim.time if t is None else t
         ref = self._ref(t)
-        self.rows.append([t, *x, *u, *ref, float(not self.sim.payload_attached),
-                          float(self._hold is not None)])
+        self.rows.append(
+            [t, *x, *u, *ref, float(not self.sim.payload_attached), float(self._hold is not None)]
+        )
         # In failsafe the vehicle holds its position instead of following the reference.
         goal = ref if self._hold is None else self._hold
-        crashed = (np.linalg.norm(x[:3] - goal) > CRASH_ERROR_M or x[2] < CRASH_HEIGHT_M
-                   or not np.all(np.isfinite(x)))
+        crashed = (
+            np.linalg.norm(x[:3] - goal) > CRASH_ERROR_M
+            or x[2] < CRASH_HEIGHT_M
+            or not np.all(np.isfinite(x))
+        )
         if crashed:
             self.stats["crashed"] = True
-            self.event("fault", "vehicle crashed or left the flight envelope: stopping",
-                       "error", stamp=max(t, 0.0), sim_time=t)
+            self.event(
+                "fault",
+                "vehicle crashed or left the flight envelope: stopping",
+                "error",
+                stamp=max(t, 0.0),
+                sim_time=t,
+            )
         return not crashed
 
     def _wait_consumers(self) -> None:
@@ -350,8 +417,9 @@ class SimNode(runtime.Service):
                 self._realtime()
         finally:
             self.stats["wall_s"] = time.perf_counter() - t0
-        self.event("info", "flight finished", stamp=max(self._last_stamp, 0.0),
-                   steps=self.stats["steps"])
+        self.event(
+            "info", "flight finished", stamp=max(self._last_stamp, 0.0), steps=self.stats["steps"]
+        )
 
     _last_stamp = 0.0
 
@@ -370,8 +438,9 @@ class SimNode(runtime.Service):
             self._publish_frames(frames, float)
             self._tick(t, gyro)
             with self._cond:
-                ok = self._cond.wait_for(lambda t=t: t in self._setpoints or self.stop.is_set(),
-                                         self.args.step_timeout)
+                ok = self._cond.wait_for(
+                    lambda t=t: t in self._setpoints or self.stop.is_set(), self.args.step_timeout
+                )
                 sp = self._setpoints.pop(t, None)
                 self._setpoints = {s: v for s, v in self._setpoints.items() if s > t}
             if sp is not None:
@@ -387,9 +456,15 @@ class SimNode(runtime.Service):
                 if self._hold is None and since >= self.args.failsafe_after - 1e-9:
                     self._engage_failsafe(t, since)
                 elif self._hold is None:
-                    self.event("deadline_miss", f"no setpoint for t={t:.3f} within "
-                               f"{self.args.step_timeout} s: holding the last one",
-                               "warning", stamp=t, step=k, ok=bool(ok))
+                    self.event(
+                        "deadline_miss",
+                        f"no setpoint for t={t:.3f} within "
+                        f"{self.args.step_timeout} s: holding the last one",
+                        "warning",
+                        stamp=t,
+                        step=k,
+                        ok=bool(ok),
+                    )
             u_applied = self._hold_u() if self._hold is not None else sim.set_setpoint(u)
             if not self._record(u_applied):
                 break
@@ -446,8 +521,9 @@ class SimNode(runtime.Service):
                     if self._answered_run >= self.args.failsafe_resume:
                         self._clear_failsafe(stamp)
                         applied = None  # apply the newest setpoint again
-                self._tick(stamp, sim.gyro.read(math.inf) if n == 0 else sim.read_gyro(),
-                           sampled=stamp)
+                self._tick(
+                    stamp, sim.gyro.read(math.inf) if n == 0 else sim.read_gyro(), sampled=stamp
+                )
                 self._last_stamp = stamp
                 prev_tick = stamp
                 if k >= 0:
@@ -487,39 +563,77 @@ class SimNode(runtime.Service):
             path.parent.mkdir(parents=True, exist_ok=True)
             with path.open("w", newline="") as f:
                 w = csv.writer(f)
-                w.writerow([*FLIGHT_COLUMNS, "ref_px", "ref_py", "ref_pz", "released",
-                            "failsafe"])
+                w.writerow([*FLIGHT_COLUMNS, "ref_px", "ref_py", "ref_pz", "released", "failsafe"])
                 w.writerows(self.rows)
 
 
 def _extra(p) -> None:
     runtime.add_plan_arguments(p)
-    p.add_argument("--step-timeout", type=float, default=5.0,
-                   help="lockstep: longest wait for a setpoint before holding the last [s]")
-    p.add_argument("--preroll", type=float, default=1.0,
-                   help="realtime: hover this long at the start pose before the mission [s]")
-    p.add_argument("--substep", type=float, default=0.005,
-                   help="realtime: physics chunk between setpoint checks [s]")
-    p.add_argument("--wait-for", default="estimator,adapter,controller",
-                   help="comma-separated services that must be alive before take-off")
-    p.add_argument("--truth-state", action="store_true",
-                   help="diagnostic: publish the ground-truth state (run without the "
-                        "estimator; this is what the in-process evaluation controls on)")
-    p.add_argument("--ready-timeout", type=float, default=600.0,
-                   help="longest wait for those services [s]")
-    p.add_argument("--failsafe-after", type=float, default=0.3,
-                   help="no fresh setpoint for this long -> position hold (realtime: wall "
-                        "clock; lockstep: simulated time) [s]")
-    p.add_argument("--failsafe-resume", type=int, default=3,
-                   help="consecutive answered control instants that end the failsafe")
-    p.add_argument("--mocap-fault", action="append", default=None, metavar="SPEC",
-                   help="inject a mocap fault: dropout@T+D, freeze@T+D, "
-                        "outliers@T+D,p=P,m=M, clockjump@T[+D],offset=S (mission time)")
+    p.add_argument(
+        "--step-timeout",
+        type=float,
+        default=5.0,
+        help="lockstep: longest wait for a setpoint before holding the last [s]",
+    )
+    p.add_argument(
+        "--preroll",
+        type=float,
+        default=1.0,
+        help="realtime: hover this long at the start pose before the mission [s]",
+    )
+    p.add_argument(
+        "--substep",
+        type=float,
+        default=0.005,
+        help="realtime: physics chunk between setpoint checks [s]",
+    )
+    p.add_argument(
+        "--wait-for",
+        default="estimator,adapter,controller",
+        help="comma-separated services that must be alive before take-off",
+    )
+    p.add_argument(
+        "--truth-state",
+        action="store_true",
+        help="diagnostic: publish the ground-truth state (run without the "
+        "estimator; this is what the in-process evaluation controls on)",
+    )
+    p.add_argument(
+        "--ready-timeout", type=float, default=600.0, help="longest wait for those services [s]"
+    )
+    p.add_argument(
+        "--failsafe-after",
+        type=float,
+        default=0.3,
+        help="no fresh setpoint for this long -> position hold (realtime: wall "
+        "clock; lockstep: simulated time) [s]",
+    )
+    p.add_argument(
+        "--failsafe-resume",
+        type=int,
+        default=3,
+        help="consecutive answered control instants that end the failsafe",
+    )
+    p.add_argument(
+        "--mocap-fault",
+        action="append",
+        default=None,
+        metavar="SPEC",
+        help="inject a mocap fault: dropout@T+D, freeze@T+D, "
+        "outliers@T+D,p=P,m=M, clockjump@T[+D],offset=S (mission time)",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     return runtime.main_for(SimNode, argv, _extra)
 
 
-__all__ = ["FLIGHT_COLUMNS", "Event", "MocapFault", "MocapFaults", "SimNode", "hold_setpoint",
-           "main"]
+__all__ = [
+    "FLIGHT_COLUMNS",
+    "Event",
+    "MocapFault",
+    "MocapFaults",
+    "SimNode",
+    "hold_setpoint",
+    "main",
+]

@@ -71,8 +71,9 @@ class Tap:
 
 
 def _mocap(stamp: float = 0.0) -> Mocap:
-    return Mocap(position=[0.0, 0.0, 1.0], quaternion=[1.0, 0, 0, 0], capture_stamp=stamp,
-                 stamp=stamp)
+    return Mocap(
+        position=[0.0, 0.0, 1.0], quaternion=[1.0, 0, 0, 0], capture_stamp=stamp, stamp=stamp
+    )
 
 
 def _setpoint(thrust: float) -> Setpoint:
@@ -88,8 +89,11 @@ def _acl_router(tmp_path: Path, enabled: bool = True):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     cfg = load_config(
         zbus.config_path("router-acl.json5"),
-        {"listen/endpoints": [endpoint], "transport/auth/usrpwd/dictionary_file": str(users),
-         "access_control/enabled": enabled},
+        {
+            "listen/endpoints": [endpoint],
+            "transport/auth/usrpwd/dictionary_file": str(users),
+            "access_control/enabled": enabled,
+        },
     )
     return zenoh.open(cfg), endpoint
 
@@ -124,8 +128,7 @@ def test_acl_setpoint_only_from_the_controller(acl_router):
         # An operator (may put commands only).
         operator.put(_setpoint(8.0))
         operator.put(Command(name="hold", stamp=0.0))
-        assert not [m for m in tap.until(lambda m: isinstance(m, Command))
-                    if m.TOPIC == "setpoint"]
+        assert not [m for m in tap.until(lambda m: isinstance(m, Command)) if m.TOPIC == "setpoint"]
         # The controller's setpoint is delivered.
         ctl.put(_setpoint(1.0))
         assert tap.until(lambda m: isinstance(m, Setpoint) and m.src == ctl.src) == []
@@ -211,18 +214,62 @@ def _openssl(*args: str, cwd: Path) -> None:
 
 
 def _ca(d: Path, name: str) -> None:
-    _openssl("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes",
-             "-days", "2", "-subj", f"/CN={name}", "-keyout", f"{name}.key", "-out",
-             f"{name}.pem", cwd=d)
+    _openssl(
+        "req",
+        "-x509",
+        "-newkey",
+        "ec",
+        "-pkeyopt",
+        "ec_paramgen_curve:P-256",
+        "-nodes",
+        "-days",
+        "2",
+        "-subj",
+        f"/CN={name}",
+        "-keyout",
+        f"{name}.key",
+        "-out",
+        f"{name}.pem",
+        cwd=d,
+    )
 
 
 def _signed(d: Path, name: str, ca: str) -> None:
-    _openssl("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-subj",
-             f"/CN={name}", "-addext", "subjectAltName=DNS:localhost", "-keyout",
-             f"{name}.key", "-out", f"{name}.csr", cwd=d)
-    _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", f"{ca}.pem", "-CAkey", f"{ca}.key",
-             "-CAcreateserial", "-days", "2", "-copy_extensions", "copy", "-out", f"{name}.pem",
-             cwd=d)
+    _openssl(
+        "req",
+        "-newkey",
+        "ec",
+        "-pkeyopt",
+        "ec_paramgen_curve:P-256",
+        "-nodes",
+        "-subj",
+        f"/CN={name}",
+        "-addext",
+        "subjectAltName=DNS:localhost",
+        "-keyout",
+        f"{name}.key",
+        "-out",
+        f"{name}.csr",
+        cwd=d,
+    )
+    _openssl(
+        "x509",
+        "-req",
+        "-in",
+        f"{name}.csr",
+        "-CA",
+        f"{ca}.pem",
+        "-CAkey",
+        f"{ca}.key",
+        "-CAcreateserial",
+        "-days",
+        "2",
+        "-copy_extensions",
+        "copy",
+        "-out",
+        f"{name}.pem",
+        cwd=d,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -282,8 +329,11 @@ def test_mtls_requires_a_client_certificate_of_the_ca(certs: Path):
     with router:
 
         def mtls(name: str) -> dict:
-            return {"root_ca": certs / "ca.pem", "cert": certs / f"{name}.pem",
-                    "key": certs / f"{name}.key"}
+            return {
+                "root_ca": certs / "ca.pem",
+                "cert": certs / f"{name}.pem",
+                "key": certs / f"{name}.key",
+            }
 
         with (
             Bus(VEHICLE, "estimator", client_config(ep, **mtls("estimator"))) as a,
@@ -316,11 +366,20 @@ def test_acl_with_passwords_over_tls(certs: Path, tmp_path: Path):
     ep = [f"tls/localhost:{port}"]
 
     def client(user: str, password: str | None = None) -> Bus:
-        return Bus(VEHICLE, user, client_config(ep, user=user, password=password or
-                                                PASSWORDS[user], root_ca=certs / "ca.pem"))
+        return Bus(
+            VEHICLE,
+            user,
+            client_config(
+                ep, user=user, password=password or PASSWORDS[user], root_ca=certs / "ca.pem"
+            ),
+        )
 
-    with zenoh.open(cfg), client("recorder") as rec, client("controller") as ctl, \
-            client("estimator") as rogue:
+    with (
+        zenoh.open(cfg),
+        client("recorder") as rec,
+        client("controller") as ctl,
+        client("estimator") as rogue,
+    ):
         tap = Tap(rec)
         rec.declare_alive()
         ctl.wait_alive(["recorder"], TIMEOUT)
@@ -364,12 +423,20 @@ def test_acl_by_certificate_common_name_over_mtls(certs: Path):
     ep = [f"tls/localhost:{port}"]
 
     def client(name: str) -> Bus:
-        return Bus(VEHICLE, name, client_config(ep, root_ca=certs / "ca.pem",
-                                                cert=certs / f"{name}.pem",
-                                                key=certs / f"{name}.key"))
+        return Bus(
+            VEHICLE,
+            name,
+            client_config(
+                ep, root_ca=certs / "ca.pem", cert=certs / f"{name}.pem", key=certs / f"{name}.key"
+            ),
+        )
 
-    with zenoh.open(cfg), client("recorder") as rec, client("controller") as ctl, \
-            client("estimator") as est:
+    with (
+        zenoh.open(cfg),
+        client("recorder") as rec,
+        client("controller") as ctl,
+        client("estimator") as est,
+    ):
         tap = Tap(rec)
         rec.declare_alive()
         ctl.wait_alive(["recorder"], TIMEOUT)

@@ -135,8 +135,9 @@ def test_repeated_changepoints_and_the_prior_precision_floor(floor):
     still learns (its variance falls well below ``tau^2``).
     """
     d, l, tau2, beta, T = 2, 3, 0.1, 0.7, 30
-    cfg = A.AdaptationConfig(K=2, pi=1.0 - 1e-9, beta=beta, tau2=tau2, sigma2=0.1,
-                             prior_floor=floor)
+    cfg = A.AdaptationConfig(
+        K=2, pi=1.0 - 1e-9, beta=beta, tau2=tau2, sigma2=0.1, prior_floor=floor
+    )
     z = np.array([1.0, 0.0, 0.0])
     D = np.random.default_rng(0).normal(size=(T, d))
     state, _ = run(A.init(np.zeros((d, l)), cfg), [z] * T, D, cfg)
@@ -158,12 +159,12 @@ def test_a_full_reset_restarts_from_the_offline_prior():
     d, l, tau2, sigma2 = 2, 3, 0.1, 0.1
     theta0, Z, D = random_problem(3, d, l, T=12, tau2=tau2, sigma2=sigma2, switch=6)
     D = D + 5.0  # earlier segments far from theta0
-    cfg = A.AdaptationConfig(K=2, pi=1.0, beta=1e-6, tau2=tau2, sigma2=sigma2,
-                             prior_floor=1.0)
+    cfg = A.AdaptationConfig(K=2, pi=1.0, beta=1e-6, tau2=tau2, sigma2=sigma2, prior_floor=1.0)
     state, _ = run(A.init(theta0, cfg), Z, D, cfg)
     assert int(state.num_changepoints[0]) == len(Z)
-    mean, w = A.posterior_update(jnp.asarray(theta0), np.sqrt(tau2) * jnp.eye(l)[None],
-                                 Z[-1], D[-1], sigma2)
+    mean, w = A.posterior_update(
+        jnp.asarray(theta0), np.sqrt(tau2) * jnp.eye(l)[None], Z[-1], D[-1], sigma2
+    )
     np.testing.assert_allclose(state.means[0], mean, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(state.covariances[0, 0], w[0] @ w[0].T, rtol=1e-6, atol=1e-12)
 

@@ -8,22 +8,42 @@ from benchmarks import report
 
 
 def _cell(pay, speed, method, rmse, settling):
-    return {"payload_g": pay, "speed_mps": speed, "method": method, "rmse_m": rmse,
-            "rmse_z_m": rmse / 2, "shift_m": 0.01, "settling_s": settling}
+    return {
+        "payload_g": pay,
+        "speed_mps": speed,
+        "method": method,
+        "rmse_m": rmse,
+        "rmse_z_m": rmse / 2,
+        "shift_m": 0.01,
+        "settling_s": settling,
+    }
 
 
 def test_quadrotor_section_marks_the_best_method_per_cell(tmp_path):
-    cells = [_cell(75, 0.5, "nominal", 0.3, 1.3), _cell(75, 0.5, "l1", 0.02, 0.0),
-             _cell(75, 0.5, "ours", 0.03, float("inf")),
-             _cell(175, 2.5, "nominal", 0.7, 1.6), _cell(175, 2.5, "l1", 0.08, 0.3),
-             _cell(175, 2.5, "ours", 0.05, 2.3)]
+    cells = [
+        _cell(75, 0.5, "nominal", 0.3, 1.3),
+        _cell(75, 0.5, "l1", 0.02, 0.0),
+        _cell(75, 0.5, "ours", 0.03, float("inf")),
+        _cell(175, 2.5, "nominal", 0.7, 1.6),
+        _cell(175, 2.5, "l1", 0.08, 0.3),
+        _cell(175, 2.5, "ours", 0.05, 2.3),
+    ]
     path = tmp_path / "results.json"
-    path.write_text(json.dumps({
-        "cells": cells, "settings": {"trials": 10}, "generated": "2026-01-01 00:00",
-        "machine": "test machine",
-        "improvement_over_nominal": [{"payload_g": 75, "speed_mps": 0.5, "ours": 90.0}],
-        "tuning": {"chosen": {"ours_beta": 0.05, "ours_sigma2": 0.001}, "cell": [150.0, 2.0]},
-    }))
+    path.write_text(
+        json.dumps(
+            {
+                "cells": cells,
+                "settings": {"trials": 10},
+                "generated": "2026-01-01 00:00",
+                "machine": "test machine",
+                "improvement_over_nominal": [{"payload_g": 75, "speed_mps": 0.5, "ours": 90.0}],
+                "tuning": {
+                    "chosen": {"ours_beta": 0.05, "ours_sigma2": 0.001},
+                    "cell": [150.0, 2.0],
+                },
+            }
+        )
+    )
     text = "\n".join(report._quadrotor_section(path))
     assert "written 2026-01-01 00:00" in text and "test machine" in text
     assert "| 75 | 0.5 | 0.300 | **0.020** | 0.030 |" in text
@@ -35,12 +55,19 @@ def test_quadrotor_section_marks_the_best_method_per_cell(tmp_path):
 
 def test_quadrotor_section_gives_the_median_settling_and_the_trials_off_band(tmp_path):
     """One late excursion in ten trials sets the mean; the median and the count show it."""
-    def trial(method, i, settling):
-        return {"payload_g": 175, "speed_mps": 2.5, "method": method, "trial": i,
-                "settling_s": settling}
 
-    trials = ([trial("l1", i, 0.3) for i in range(10)]
-              + [trial("ours", i, 3.8 if i == 4 else 0.0) for i in range(10)])
+    def trial(method, i, settling):
+        return {
+            "payload_g": 175,
+            "speed_mps": 2.5,
+            "method": method,
+            "trial": i,
+            "settling_s": settling,
+        }
+
+    trials = [trial("l1", i, 0.3) for i in range(10)] + [
+        trial("ours", i, 3.8 if i == 4 else 0.0) for i in range(10)
+    ]
     cells = [_cell(175, 2.5, "l1", 0.08, 0.3), _cell(175, 2.5, "ours", 0.07, 0.38)]
     path = tmp_path / "results.json"
     path.write_text(json.dumps({"cells": cells, "trials": trials, "settings": {"trials": 10}}))
@@ -52,11 +79,18 @@ def test_quadrotor_section_gives_the_median_settling_and_the_trials_off_band(tmp
 
 def test_quadrotor_section_tables_the_diagnostics_when_the_results_have_them(tmp_path):
     def cell(method, dT, drate, cp):
-        return {**_cell(175, 2.5, method, 0.08, 0.3), "thrust_increment_rms_n": dT,
-                "rate_increment_rms_rad_s": drate, "changepoint_rate": cp}
+        return {
+            **_cell(175, 2.5, method, 0.08, 0.3),
+            "thrust_increment_rms_n": dT,
+            "rate_increment_rms_rad_s": drate,
+            "changepoint_rate": cp,
+        }
 
-    cells = [cell("l1", 0.13, 0.03, float("nan")), cell("ours_no_cp", 0.3, 0.2, 0.0),
-             cell("ours", 0.55, 0.41, 0.54)]
+    cells = [
+        cell("l1", 0.13, 0.03, float("nan")),
+        cell("ours_no_cp", 0.3, 0.2, 0.0),
+        cell("ours", 0.55, 0.41, 0.54),
+    ]
     path = tmp_path / "results.json"
     path.write_text(json.dumps({"cells": cells, "settings": {"trials": 10}}))
     text = "\n".join(report._quadrotor_section(path))
@@ -76,11 +110,21 @@ def test_quadrotor_section_says_how_to_produce_missing_results(tmp_path):
 def test_loop_section_states_the_realtime_conditions_of_its_numbers():
     """A service that ran without the realtime privileges shows in the report: its tails are
     not comparable with those taken under SCHED_FIFO and polling idle CPUs."""
-    r = {"hop_p50_ms": 0.2, "hop_p99_ms": 0.4, "sense_to_actuate_p99_ms": 9.5,
-         "mpc_p50_ms": 5.4, "mpc_p99_ms": 7.0, "rate_hz": 50.0, "missed_deadlines": 0,
-         "duration_s": 120.0, "stages_ms": {"hop_imu": [0.2, 0.4]},
-         "realtime": {"sim": {"policy": "fifo", "cpu_wakeup_latency_us": 0},
-                      "controller": {"policy": "normal", "cpu_wakeup_latency_us": None}}}
+    r = {
+        "hop_p50_ms": 0.2,
+        "hop_p99_ms": 0.4,
+        "sense_to_actuate_p99_ms": 9.5,
+        "mpc_p50_ms": 5.4,
+        "mpc_p99_ms": 7.0,
+        "rate_hz": 50.0,
+        "missed_deadlines": 0,
+        "duration_s": 120.0,
+        "stages_ms": {"hop_imu": [0.2, 0.4]},
+        "realtime": {
+            "sim": {"policy": "fifo", "cpu_wakeup_latency_us": 0},
+            "controller": {"policy": "normal", "cpu_wakeup_latency_us": None},
+        },
+    }
     text = "\n".join(report._loop_section(r))
     assert "sim fifo + CPU wake-up latency 0 µs" in text
     assert "controller normal (idle CPUs may sleep)" in text
@@ -96,16 +140,32 @@ def test_cartpole_section_renders_the_reference_rows_and_the_latent_ablation(tmp
         "online": {"ours": stat, "ours_known_changepoints": {"mean": 5.25, "std": 0.48}},
         "offline": {"ours": stat},
         "ratios": {"ours/ours_no_cp": 0.7},
-        "tuning": {"ours": choice(0.7), "ours_pi": choice(0.2), "ours_tau2": choice(3.0),
-                   "ours_passes": 2, "ours_no_cp": choice(100.0), "mlp_last_layer": choice(0.1),
-                   "ours_known_changepoints": {**choice(0.2), "tau2": choice(10.0)}},
-        "changepoints": cp, "changepoints_paper_config": cp,
-        "latent_ablation": [{"l": 4, "beta": 0.7, "pi": 0.1, "ours_tau2": 3.0, "tau2": 100.0,
-                             "ours": {"mean": 3.981, "std": 0.3}, "hit_rate": 0.9,
-                             "false_alarms_per_100_steps": 9.0,
-                             "ours_no_cp": {"mean": 5.871, "std": 0.8},
-                             "offline_only": {"mean": 7.141, "std": 0.1},
-                             "ratio_ours_no_cp": 0.678}],
+        "tuning": {
+            "ours": choice(0.7),
+            "ours_pi": choice(0.2),
+            "ours_tau2": choice(3.0),
+            "ours_passes": 2,
+            "ours_no_cp": choice(100.0),
+            "mlp_last_layer": choice(0.1),
+            "ours_known_changepoints": {**choice(0.2), "tau2": choice(10.0)},
+        },
+        "changepoints": cp,
+        "changepoints_paper_config": cp,
+        "latent_ablation": [
+            {
+                "l": 4,
+                "beta": 0.7,
+                "pi": 0.1,
+                "ours_tau2": 3.0,
+                "tau2": 100.0,
+                "ours": {"mean": 3.981, "std": 0.3},
+                "hit_rate": 0.9,
+                "false_alarms_per_100_steps": 9.0,
+                "ours_no_cp": {"mean": 5.871, "std": 0.8},
+                "offline_only": {"mean": 7.141, "std": 0.1},
+                "ratio_ours_no_cp": 0.678,
+            }
+        ],
     }
     text = "\n".join(report._cartpole_section(r, tmp_path))
     assert "| ours_known_changepoints | 5.250 ± 0.480 | — |" in text

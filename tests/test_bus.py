@@ -210,8 +210,11 @@ def test_every_sample_carries_its_put_time_and_transit_is_recorded():
         # A foreign sender's attachment (garbage, NaN) is no transit time and no reject.
         key = pub.key("state")
         pub.session.put(key, encode(state(10.0).replace(src="x/1", seq=1)), attachment=b"abc")
-        pub.session.put(key, encode(state(11.0).replace(src="x/1", seq=2)),
-                        attachment=struct.pack("<d", float("nan")))
+        pub.session.put(
+            key,
+            encode(state(11.0).replace(src="x/1", seq=2)),
+            attachment=struct.pack("<d", float("nan")),
+        )
         get(states, "state")
         get(states, "state")
         hops = list(subscription.transit_s)

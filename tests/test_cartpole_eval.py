@@ -22,8 +22,14 @@ def test_online_ordering_matches_table_1(result):
     o = {k: v["mean"] for k, v in result["online"].items()}
     assert o["ours"] < o["ours_no_cp"] < o["offline_only"], o
     # No learner may beat the oracle that knows the true dynamics (noise floor).
-    for name in ("ours", "ours_no_cp", "gp", "mlp_last_layer", "offline_only",
-                 "ours_known_changepoints"):
+    for name in (
+        "ours",
+        "ours_no_cp",
+        "gp",
+        "mlp_last_layer",
+        "offline_only",
+        "ours_known_changepoints",
+    ):
         assert o[name] > o["oracle_true_model"], name
 
 
@@ -65,16 +71,29 @@ def test_tuned_knobs_are_the_ones_evaluated(result):
     """beta, pi and tau^2 are each the lowest tuning CRMSE along their grid at the others'
     choice (coordinate descent), and the online row runs that configuration."""
     t = result["tuning"]
-    assert set(t) == {"ours", "ours_pi", "ours_tau2", "ours_passes", "ours_no_cp",
-                      "mlp_last_layer", "ours_known_changepoints"}
-    for key, grid in (("ours", ce.OURS_BETA_GRID), ("ours_pi", ce.OURS_PI_GRID),
-                      ("ours_tau2", ce.OURS_TAU2_GRID)):
+    assert set(t) == {
+        "ours",
+        "ours_pi",
+        "ours_tau2",
+        "ours_passes",
+        "ours_no_cp",
+        "mlp_last_layer",
+        "ours_known_changepoints",
+    }
+    for key, grid in (
+        ("ours", ce.OURS_BETA_GRID),
+        ("ours_pi", ce.OURS_PI_GRID),
+        ("ours_tau2", ce.OURS_TAU2_GRID),
+    ):
         scores = t[key]["tuning_crmse"]
         assert set(scores) == {str(v) for v in grid}
         assert str(t[key]["chosen"]) == min(scores, key=scores.get)
     cfg = result["ours_config"]
     assert (cfg["beta"], cfg["pi"], cfg["tau2"]) == (
-        t["ours"]["chosen"], t["ours_pi"]["chosen"], t["ours_tau2"]["chosen"])
+        t["ours"]["chosen"],
+        t["ours_pi"]["chosen"],
+        t["ours_tau2"]["chosen"],
+    )
 
 
 def test_coordinate_descent_stops_at_a_coordinatewise_minimum():
@@ -116,29 +135,37 @@ def test_tuning_grid_with_traced_knobs_matches_separately_compiled_runs():
 
     key = jax.random.PRNGKey(3)
     model = ce.encoder.VLD(key, ce.encoder.cartpole_config())
-    data = ce.cd.simulate(key, ce.cd.sample_initial_states(key, 3),
-                          ce.cd.intervention_schedule(60))
+    data = ce.cd.simulate(key, ce.cd.sample_initial_states(key, 3), ce.cd.intervention_schedule(60))
     cfg = ce.adaptation.cartpole_config()
     betas, pis, tau2s = (0.3, 0.9), (0.05, 0.3), (0.1, 3.0)
     grid = ce.beam_tuning_grid(model, cfg, data.X, data.U, data.X, betas, pis, tau2s)
     assert [(g["beta"], g["pi"], g["tau2"]) for g in grid] == [
-        (b, p, t) for b in betas for p in pis for t in tau2s]
+        (b, p, t) for b in betas for p in pis for t in tau2s
+    ]
     for g in grid:
         c = cfg._replace(beta=g["beta"], pi=g["pi"], tau2=g["tau2"])
         xhat, _, flags, _ = ce.beam_batch(model, c, data.X, data.U)
         assert g["tuning_crmse"] == pytest.approx(
-            float(ce._crmse_batch(xhat, data.X).mean()), rel=1e-4)
+            float(ce._crmse_batch(xhat, data.X).mean()), rel=1e-4
+        )
         assert g["tuning_hit_rate"] == ce.changepoint_quality(flags)["hit_rate"]
 
 
 def test_detection_summary_says_when_no_setting_detects_enough():
     text = ce.detection_summary({"min_hit_rate": 0.9, "grid": [], "chosen": None})
     assert "no (beta, pi, tau^2) setting" in text and "90%" in text
-    text = ce.detection_summary({
-        "min_hit_rate": 0.9, "chosen": {"beta": 0.5, "pi": 0.3, "tau2": 3.0},
-        "changepoints": {"hit_rate": 0.97, "false_alarms_per_100_steps": 19.7,
-                         "mean_delay_steps": 0.7},
-        "hit_rate_per_intervention": {"0": 0.9, "40": 1.0}})
+    text = ce.detection_summary(
+        {
+            "min_hit_rate": 0.9,
+            "chosen": {"beta": 0.5, "pi": 0.3, "tau2": 3.0},
+            "changepoints": {
+                "hit_rate": 0.97,
+                "false_alarms_per_100_steps": 19.7,
+                "mean_delay_steps": 0.7,
+            },
+            "hit_rate_per_intervention": {"0": 0.9, "40": 1.0},
+        }
+    )
     assert "beta = 0.5, pi = 0.3, tau^2 = 3;" in text
     assert "hit rate 97% (step 0 90%, step 40 100%)" in text
 
@@ -154,16 +181,16 @@ def test_known_changepoints_match_the_batch_posterior():
 
     key = jax.random.PRNGKey(5)
     model = ce.encoder.VLD(key, ce.encoder.cartpole_config(), dtype=jnp.float64)
-    data = ce.cd.simulate(key, ce.cd.sample_initial_states(key, 1),
-                          ce.cd.intervention_schedule(30))
+    data = ce.cd.simulate(key, ce.cd.sample_initial_states(key, 1), ce.cd.intervention_schedule(30))
     X, U = jnp.asarray(data.X[0], jnp.float64), jnp.asarray(data.U[0], jnp.float64)
     cfg = ce.adaptation.cartpole_config()._replace(beta=0.3)
     t_cp = 12
     xhat = np.asarray(ce.run_known_changepoints(model, cfg, X, U, steps=(t_cp,)))
 
     Z = np.asarray(jax.vmap(model.features)(X[:-1], U))
-    D = np.asarray(jax.vmap(lambda x, u, xn: model.normalise_residual(
-        xn - ce.f_nom(x, u)))(X[:-1], U, X[1:]))
+    D = np.asarray(
+        jax.vmap(lambda x, u, xn: model.normalise_residual(xn - ce.f_nom(x, u)))(X[:-1], U, X[1:])
+    )
     theta0 = np.asarray(model.theta0)
     l = Z.shape[1]
 
@@ -176,14 +203,17 @@ def test_known_changepoints_match_the_batch_posterior():
     P_cp = cfg.beta**2 * P_t
     for j in (t_cp + 1, t_cp + 5, len(U) - 1):
         _, mu = posterior(P_cp, mu_t, t_cp, j)
-        expected = np.asarray(ce.f_nom(X[j], U[j]) + model.denormalise_residual(
-            jnp.asarray(mu @ Z[j])))
+        expected = np.asarray(
+            ce.f_nom(X[j], U[j]) + model.denormalise_residual(jnp.asarray(mu @ Z[j]))
+        )
         np.testing.assert_allclose(xhat[j], expected, rtol=1e-9, atol=1e-12)
     # Without forced changepoints it is the one-hypothesis regression, beta unused.
     no_cp = cfg._replace(K=1, pi=0.0)
     np.testing.assert_allclose(
         np.asarray(ce.run_known_changepoints(model, cfg, X, U, steps=())),
-        np.asarray(ce.run_beam(model, no_cp, X, U)[0]), rtol=1e-12)
+        np.asarray(ce.run_beam(model, no_cp, X, U)[0]),
+        rtol=1e-12,
+    )
 
 
 def test_latent_ablation_reuses_the_main_model_and_trains_the_others():
@@ -194,13 +224,16 @@ def test_latent_ablation_reuses_the_main_model_and_trains_the_others():
 
     key = jax.random.PRNGKey(2)
     k_data, k_tune, k_online, k_vld = jax.random.split(key, 4)
-    data = ce.cd.simulate(k_data, ce.cd.sample_initial_states(k_data, 6),
-                          ce.cd.stationary_schedule(40))
+    data = ce.cd.simulate(
+        k_data, ce.cd.sample_initial_states(k_data, 6), ce.cd.stationary_schedule(40)
+    )
     x, u, xn = ce.cd.transitions(data, np.arange(6))
-    tune = ce.cd.simulate(k_tune, ce.cd.sample_initial_states(k_tune, 2),
-                          ce.cd.intervention_schedule(50))
-    online = ce.cd.simulate(k_online, ce.cd.sample_initial_states(k_online, 2),
-                            ce.cd.intervention_schedule(50))
+    tune = ce.cd.simulate(
+        k_tune, ce.cd.sample_initial_states(k_tune, 2), ce.cd.intervention_schedule(50)
+    )
+    online = ce.cd.simulate(
+        k_online, ce.cd.sample_initial_states(k_online, 2), ce.cd.intervention_schedule(50)
+    )
     s = ce.EvalSettings.quick()
     s = ce.EvalSettings(**{**s.__dict__, "epochs": 2})
     vld0 = ce.train_vld(k_vld, x, u, xn, variational=True, epochs=2)
@@ -213,7 +246,8 @@ def test_latent_ablation_reuses_the_main_model_and_trains_the_others():
     assert (rows[0]["beta"], rows[0]["pi"], rows[0]["ours_tau2"]) == (c.beta, c.pi, c.tau2)
     xhat = ce.beam_batch(vld0, c, online.X, online.U)[0]
     assert rows[0]["ours"]["mean"] == pytest.approx(
-        float(ce._crmse_batch(xhat, online.X).mean()), rel=1e-5)
+        float(ce._crmse_batch(xhat, online.X).mean()), rel=1e-5
+    )
     for r in rows:
         assert r["ratio_ours_no_cp"] == pytest.approx(r["ours"]["mean"] / r["ours_no_cp"]["mean"])
         assert 0.0 <= r["hit_rate"] <= 1.0 and math.isfinite(r["offline_only"]["mean"])

@@ -45,13 +45,32 @@ def test_mpc_options_belong_to_bench_mpc(capsys):
 def test_bench_mpc_takes_the_solver_options():
     """`arcade bench mpc --solver --max-steps --residual` reach the benchmark."""
     proc = subprocess.run(
-        [sys.executable, "-m", "arcade", "bench", "mpc", "--json", "--quick",
-         "--solver", "gauss_newton", "--max-steps", "5", "--residual", "held"],
-        capture_output=True, text=True, timeout=600, check=True,
+        [
+            sys.executable,
+            "-m",
+            "arcade",
+            "bench",
+            "mpc",
+            "--json",
+            "--quick",
+            "--solver",
+            "gauss_newton",
+            "--max-steps",
+            "5",
+            "--residual",
+            "held",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=True,
     )
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert (result["solver"], result["max_steps"], result["residual"]) == (
-        "gauss_newton", 5, "held")
+        "gauss_newton",
+        5,
+        "held",
+    )
     assert 0 < result["median_ms"] <= result["p99_ms"]
     assert result["mean_iterations"] <= 5
 

@@ -42,9 +42,7 @@ def _cartpole_by_hand(x, u, M, m, L, g, mu_c, mu_p, u_dist):
     s, c = math.sin(th), math.cos(th)
     den = M + m * s * s
     xdd = (u + u_dist - mu_c * xd + m * s * (L * thd**2 + g * c)) / den
-    thdd = (
-        -(u + u_dist) * c - mu_p * thd - m * L * thd**2 * s * c + (M + m) * g * s
-    ) / (L * den)
+    thdd = (-(u + u_dist) * c - mu_p * thd - m * L * thd**2 * s * c + (M + m) * g * s) / (L * den)
     return np.array([xd, xdd, thd, thdd])
 
 
@@ -168,13 +166,25 @@ def test_quaternion_helpers_roundtrip():
     q = quaternion.normalize(jax.random.normal(key, (64, 4)))
     q = jnp.where(q[:, :1] < 0, -q, q)
     # Include near-180° rotations so every Shepperd pivot is exercised.
-    q = jnp.concatenate([q, jnp.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0],
-                                       [0.0, 0.0, 0.0, 1.0], [1e-3, 0.6, 0.8, 0.0]])])
+    q = jnp.concatenate(
+        [
+            q,
+            jnp.array(
+                [
+                    [0.0, 1.0, 0.0, 0.0],
+                    [0.0, 0.0, 1.0, 0.0],
+                    [0.0, 0.0, 0.0, 1.0],
+                    [1e-3, 0.6, 0.8, 0.0],
+                ]
+            ),
+        ]
+    )
     q = quaternion.normalize(q)
     v = jax.random.normal(jax.random.PRNGKey(8), (q.shape[0], 3))
     R, q_back, rotated, sandwich = map(np.asarray, _quaternion_roundtrips(q, v))
-    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=1e-12
+    )
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
     np.testing.assert_allclose(q_back, q, atol=1e-9)
     # rotate(q, v) equals the sandwich product q ⊗ [0, v] ⊗ q*.
@@ -246,8 +256,9 @@ def test_flat_reference_satisfies_nominal_dynamics(path):
 def test_quadrotor_reference_shapes_and_hover():
     xr, ur = quadrotor_reference(0.0, 20, 0.05, Hover((0.0, 0.0, 1.0)), QUAD)
     assert xr.shape == (21, 13) and ur.shape == (20, 4)
-    np.testing.assert_allclose(xr, jnp.tile(hover_state(jnp.array([0.0, 0.0, 1.0])), (21, 1)),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        xr, jnp.tile(hover_state(jnp.array([0.0, 0.0, 1.0])), (21, 1)), atol=1e-12
+    )
     np.testing.assert_allclose(ur, jnp.tile(hover_input(QUAD), (20, 1)), atol=1e-12)
     xr2, _ = quadrotor_reference(1.0, 20, 0.05, FigureEight(), QUAD)
     x_at, _ = jax.jit(flat_state)(FigureEight(), 1.0 + 0.05 * 7, QUAD)

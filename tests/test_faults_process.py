@@ -80,6 +80,7 @@ class Monitor:
 
     def wait_event(self, what: str, pred: Callable[[Any], bool], after: int = 0) -> Any:
         """The first event (index ``>= after``) matching ``pred``; returns (index, t, e)."""
+
         def found() -> bool:
             return any(pred(e) for _, e in self.events[after:])
 
@@ -96,8 +97,12 @@ class Monitor:
 
 def is_event(kind: str, src: str | None = None, **data: Any) -> Callable[[Any], bool]:
     def pred(e: Any) -> bool:
-        return (e.kind == kind and (src is None or e.src.startswith(src + "/"))
-                and all(e.data.get(k) == v for k, v in data.items()))
+        return (
+            e.kind == kind
+            and (src is None or e.src.startswith(src + "/"))
+            and all(e.data.get(k) == v for k, v in data.items())
+        )
+
     return pred
 
 
@@ -124,8 +129,13 @@ def test_lockstep_controller_and_estimator_killed(tmp_path):
     # Lockstep time stands still while the simulator waits for a setpoint: with 0.2 s per
     # missing setpoint the bound (6 instants) passes after ~1.2 s of wall time, well before
     # a killed service can be back (2 s back-off, then its start-up).
-    cfg = config(tmp_path, lockstep=True, duration=12.0, restart_backoff_s=2.0,
-                 extra={"sim": ["--step-timeout", "0.2"]})
+    cfg = config(
+        tmp_path,
+        lockstep=True,
+        duration=12.0,
+        restart_backoff_s=2.0,
+        extra={"sim": ["--step-timeout", "0.2"]},
+    )
     with Stack(cfg) as stack:
         mon = Monitor(cfg.hub)
         try:
@@ -135,8 +145,9 @@ def test_lockstep_controller_and_estimator_killed(tmp_path):
                 n = len(mon.events)
                 stack.kill(victim)
                 _, _, fs = mon.wait_event("failsafe", is_event("failsafe", "sim"), n)
-                mon.wait_event(f"{victim} restart", is_event("restart", "launcher",
-                                                             service=victim), n)
+                mon.wait_event(
+                    f"{victim} restart", is_event("restart", "launcher", service=victim), n
+                )
                 mon.wait_event("failsafe cleared", cleared, n)
                 # Lockstep: the stale setpoint is held at most the bound (simulated time).
                 assert fs.data["since_last_setpoint_s"] <= FAILSAFE_S + 1.0 / RATE + 1e-9
@@ -146,16 +157,16 @@ def test_lockstep_controller_and_estimator_killed(tmp_path):
             mon.close()
     codes = {n: p.returncode for n, p in stack.procs.items()}
     sim = check_logs(tmp_path, codes)
-    assert stack.restarts == {**dict.fromkeys(stack.services, 0), "controller": 1,
-                              "estimator": 1}
+    assert stack.restarts == {**dict.fromkeys(stack.services, 0), "controller": 1, "estimator": 1}
     assert len(sim["failsafes"]) == 2 and all("cleared_t" in f for f in sim["failsafes"])
     # Ground truth: the failsafe engaged no later than the bound after the last
     # setpoint the simulator applied (flight log: one row per answered state).
     truth = read_truth(tmp_path / "truth.csv")
     fs_rows = np.flatnonzero(np.diff(truth["failsafe"]) > 0) + 1
     assert fs_rows.size == 2
-    answered = np.genfromtxt(tmp_path / "flight_log.csv", delimiter=",", names=True,
-                             dtype=None, encoding=None)["t"]
+    answered = np.genfromtxt(
+        tmp_path / "flight_log.csv", delimiter=",", names=True, dtype=None, encoding=None
+    )["t"]
     for row in fs_rows:
         t_fs = truth["t"][row]
         last = answered[answered < t_fs - 1e-9].max()
@@ -169,7 +180,9 @@ def test_lockstep_controller_and_estimator_killed(tmp_path):
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
     faults = [e for e in events if e["src"] == "launcher" and e["kind"] == "fault"]
     assert [(e["data"]["service"], e["data"]["code"]) for e in faults] == [
-        ("controller", -9), ("estimator", -9)]
+        ("controller", -9),
+        ("estimator", -9),
+    ]
 
 
 def test_realtime_adapter_and_controller_killed(tmp_path):
@@ -183,10 +196,12 @@ def test_realtime_adapter_and_controller_killed(tmp_path):
             # Adapter: the controller keeps the last model, flags it, then goes nominal.
             n = len(mon.events)
             stack.kill("adapter")
-            _, t_stale, _ = mon.wait_event("stale model", is_event(
-                "degraded", "controller", flag="stale_model"), n)
-            _, t_nom, _ = mon.wait_event("nominal model", is_event(
-                "degraded", "controller", mode="nominal_model"), n)
+            _, t_stale, _ = mon.wait_event(
+                "stale model", is_event("degraded", "controller", flag="stale_model"), n
+            )
+            _, t_nom, _ = mon.wait_event(
+                "nominal model", is_event("degraded", "controller", mode="nominal_model"), n
+            )
             assert t_nom > t_stale
             # Controller (while the adapter restarts): the vehicle fails safe within the
             # bound after the last setpoint, both measured here on the wall clock.
@@ -201,12 +216,13 @@ def test_realtime_adapter_and_controller_killed(tmp_path):
             # Both come back: the adapter with the posterior of before its crash, the
             # controller on the mission clock; the failsafe clears and the controller
             # tracks on fresh models again.
-            _, t_restored, restored = mon.wait_event(
-                "restored", is_event("restart", "adapter"), n)
+            _, t_restored, restored = mon.wait_event("restored", is_event("restart", "adapter"), n)
             assert restored.data["steps"] > 0
             mon.wait_event("failsafe cleared", cleared, n)
-            mon.wait("tracking on a fresh model", lambda: any(
-                t > t_restored and mode == "track" for t, mode in mon.modes))
+            mon.wait(
+                "tracking on a fresh model",
+                lambda: any(t > t_restored and mode == "track" for t, mode in mon.modes),
+            )
         finally:
             mon.close()
     codes = {n: p.returncode for n, p in stack.procs.items()}
@@ -241,8 +257,7 @@ def test_supervisor_restarts_with_backoff_then_gives_up(tmp_path):
         wait_for("give up", lambda: any(e["severity"] == "critical" for e in events))
     kinds = [(e["kind"], e["severity"]) for e in events if e["src"] == "launcher"]
     assert kinds == [("fault", "error"), ("restart", "warning"), ("fault", "critical")]
-    assert events[0]["data"] == {"service": "recorder", "code": -9, "restarts": 0,
-                                 "backoff_s": 0.3}
+    assert events[0]["data"] == {"service": "recorder", "code": -9, "restarts": 0, "backoff_s": 0.3}
     assert "recorder" in stack.failed and (tmp_path / "bus.1.mcap").is_file()
     logged = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
     assert [(e["kind"], e["severity"]) for e in logged] == kinds

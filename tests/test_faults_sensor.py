@@ -56,20 +56,30 @@ class FakeBus:
 @pytest.fixture(scope="module")
 def estimator_factory():
     def make() -> tuple[Estimator, FakeBus]:
-        args = argparse.Namespace(lockstep=True, out=None, max_frame_lag=0.25,
-                                  stamp_tolerance=0.005, vehicle="test")
+        args = argparse.Namespace(
+            lockstep=True, out=None, max_frame_lag=0.25, stamp_tolerance=0.005, vehicle="test"
+        )
         est = Estimator(args)
         bus = FakeBus()
         est.setup(bus)
         est.bus = bus
         return est, bus
+
     est, _ = make()
     est.warmup()  # compile once for the module
     return make
 
 
-def fly(make, duration=3.0, *, drop=lambda t: False, freeze=lambda t: False,
-        outlier=lambda t: False, clock=lambda t: 0.0, seed=0):
+def fly(
+    make,
+    duration=3.0,
+    *,
+    drop=lambda t: False,
+    freeze=lambda t: False,
+    outlier=lambda t: False,
+    clock=lambda t: 0.0,
+    seed=0,
+):
     """Feed the estimator; returns ``(t, x, state message)`` per control instant, events."""
     est, bus = make()
     rng = np.random.default_rng(seed)
@@ -90,8 +100,14 @@ def fly(make, duration=3.0, *, drop=lambda t: False, freeze=lambda t: False,
                 p = last
             last = p
             off = clock(tc)
-            est.on_mocap(Mocap(position=p, quaternion=[1.0, 0, 0, 0],
-                               capture_stamp=T0 + tc + off, stamp=T0 + tc + LATENCY + off))
+            est.on_mocap(
+                Mocap(
+                    position=p,
+                    quaternion=[1.0, 0, 0, 0],
+                    capture_stamp=T0 + tc + off,
+                    stamp=T0 + tc + LATENCY + off,
+                )
+            )
         n = len(bus.states)
         est.on_imu(Imu(gyro=np.zeros(3), stamp=T0 + t))
         if len(bus.states) > n:
@@ -108,8 +124,9 @@ def prediction_bound(horizon: float) -> float:
 
 
 def errors(rows, window):
-    return np.array([np.linalg.norm(x[:3] - truth(t)) for t, x, _ in rows
-                     if window[0] <= t < window[1]])
+    return np.array(
+        [np.linalg.norm(x[:3] - truth(t)) for t, x, _ in rows if window[0] <= t < window[1]]
+    )
 
 
 @pytest.mark.parametrize("gap", [0.05, 0.15, 0.3, 0.5])
@@ -145,8 +162,9 @@ def test_frozen_frames_are_dropped_and_flagged(estimator_factory):
 def test_outliers_are_rejected_and_flagged_at_most_once_per_second(estimator_factory):
     rng = np.random.default_rng(1)
     bad = set(np.flatnonzero(rng.random(400) < 0.1))  # 10 % of frames jump by 0.5 m
-    rows, events, est = fly(estimator_factory, outlier=lambda t: round(t / MOCAP_DT) in bad
-                            and t > 0.2)
+    rows, events, est = fly(
+        estimator_factory, outlier=lambda t: round(t / MOCAP_DT) in bad and t > 0.2
+    )
     assert int(est.filter.rejected) >= 0.9 * sum(1 for i in bad if 0.2 < i * MOCAP_DT < 3.0)
     assert errors(rows, (0.3, 3.0)).max() < 3e-3  # never pulled towards an outlier
     stamps = [e.stamp for e in events if e.data.get("fault") == "mocap_outliers"]
@@ -156,8 +174,9 @@ def test_outliers_are_rejected_and_flagged_at_most_once_per_second(estimator_fac
 @pytest.mark.parametrize("offset", [2.0, -1.5])
 def test_clock_jump_is_restamped_and_flagged(estimator_factory, offset):
     t0, length = 1.0, 0.5
-    rows, events, est = fly(estimator_factory,
-                            clock=lambda t: offset if t0 <= t < t0 + length else 0.0)
+    rows, events, est = fly(
+        estimator_factory, clock=lambda t: offset if t0 <= t < t0 + length else 0.0
+    )
     assert est.stats["restamped_frames"] == pytest.approx(length / MOCAP_DT, abs=1)
     # Frames keep being fused through the jump: no dropout, the error stays at noise level.
     assert not any(s.predicted_through_dropout for _, _, s in rows)
@@ -181,26 +200,36 @@ def test_lockstep_flight_through_mocap_faults(tmp_path):
     from arcade.demo_stack import free_hub, read_truth
     from deploy.launcher import StackConfig, run_flight
 
-    faults = ["dropout@3.0+0.15",  # predicted through: keeps tracking
-              "dropout@4.5+0.9",  # beyond the controller's 0.2 s: hover, then track
-              "freeze@6.5+0.15", "outliers@7.5+1.0,p=0.2,m=0.5",
-              "clockjump@9.0+0.5,offset=3.0"]
-    cfg = StackConfig(out=tmp_path, hub=free_hub(), lockstep=True, rate=20.0, duration=11.0,
-                      hover_s=1000.0, x64=True,
-                      extra={"sim": [a for f in faults for a in ("--mocap-fault", f)]})
+    faults = [
+        "dropout@3.0+0.15",  # predicted through: keeps tracking
+        "dropout@4.5+0.9",  # beyond the controller's 0.2 s: hover, then track
+        "freeze@6.5+0.15",
+        "outliers@7.5+1.0,p=0.2,m=0.5",
+        "clockjump@9.0+0.5,offset=3.0",
+    ]
+    cfg = StackConfig(
+        out=tmp_path,
+        hub=free_hub(),
+        lockstep=True,
+        rate=20.0,
+        duration=11.0,
+        hover_s=1000.0,
+        x64=True,
+        extra={"sim": [a for f in faults for a in ("--mocap-fault", f)]},
+    )
     result = run_flight(cfg)
     assert all(c == 0 for c in result["codes"].values()), result["codes"]
     sim = json.loads((tmp_path / "stats" / "sim.json").read_text())
     assert not sim["crashed"] and sim["timeouts"] == 0
-    assert all(sim["mocap_faults"][k] > 0 for k in ("dropout", "freeze", "outliers",
-                                                    "clockjump"))
+    assert all(sim["mocap_faults"][k] > 0 for k in ("dropout", "freeze", "outliers", "clockjump"))
     est = json.loads((tmp_path / "stats" / "estimator.json").read_text())
     assert est["rejects"] == {} and est["frozen_frames"] > 0 and est["restamped_frames"] > 0
     assert est["outliers_rejected"] > 0
     # The controller hovered only in the long dropout (after its 0.5 s bound) and tracked
     # again afterwards.
-    log = np.genfromtxt(tmp_path / "flight_log.csv", delimiter=",", names=True, dtype=None,
-                        encoding=None)
+    log = np.genfromtxt(
+        tmp_path / "flight_log.csv", delimiter=",", names=True, dtype=None, encoding=None
+    )
     hover_t = log["t"][log["mode"] == "hover"]
     assert hover_t.size > 0
     assert hover_t.min() >= 4.5 + 0.2 and hover_t.max() <= 4.5 + 0.9 + 0.1
@@ -211,5 +240,9 @@ def test_lockstep_flight_through_mocap_faults(tmp_path):
     calm = (truth["t"] < 4.5) | (truth["t"] > 4.5 + 0.9 + 0.5)
     assert err[calm].max() < 0.02, err[calm].max()
     kinds = {(e["kind"], e["data"].get("fault")) for e in result["events"]}
-    assert {("fault", "mocap_frozen"), ("fault", "mocap_outliers"),
-            ("fault", "mocap_clock_jump"), ("degraded", None)} <= kinds
+    assert {
+        ("fault", "mocap_frozen"),
+        ("fault", "mocap_outliers"),
+        ("fault", "mocap_clock_jump"),
+        ("degraded", None),
+    } <= kinds

@@ -97,4 +97,3 @@ def test_quaternion_sign_flips_are_removed():
         log = from_arrays("quadrotor", np.arange(n) * 0.01, X, U)
         np.testing.assert_allclose(log.X[:, 6:10], q, atol=1e-15)
         assert np.all(np.sum(log.X[1:, 6:10] * log.X[:-1, 6:10], axis=1) > 0)
-

@@ -116,8 +116,9 @@ class LoopbackSession:
         pass
 
 
-def build(module: Any, cls: type[runtime.Service], out: Path,
-          *argv: str) -> tuple[runtime.Service, LoopbackSession]:
+def build(
+    module: Any, cls: type[runtime.Service], out: Path, *argv: str
+) -> tuple[runtime.Service, LoopbackSession]:
     """A service wired exactly as ``Service.run`` wires it, on a loopback session."""
     parser = runtime.common_parser(cls.name, "fuzz")
     extra = getattr(module, "_extra", None)
@@ -141,10 +142,16 @@ class Fuzzer:
     valid one is either delivered or refused by the subscription's order check -- never
     fails in a callback (the order policy is the service's: it may differ per topic)."""
 
-    def __init__(self, service: runtime.Service, session: LoopbackSession,
-                 topics: dict[str, int], *, dims: dict[str, dict[str, int]] | None = None,
-                 valid_every: dict[str, int] | None = None,
-                 after_batch: Callable[[], None] | None = None):
+    def __init__(
+        self,
+        service: runtime.Service,
+        session: LoopbackSession,
+        topics: dict[str, int],
+        *,
+        dims: dict[str, dict[str, int]] | None = None,
+        valid_every: dict[str, int] | None = None,
+        after_batch: Callable[[], None] | None = None,
+    ):
         self.service, self.session = service, session
         self.topics = [t for t, w in topics.items() for _ in range(w)]
         self.decoded: Counter[str] = Counter()  # valid payloads by topic
@@ -156,8 +163,9 @@ class Fuzzer:
         self.batches = 0
 
     def _counts(self, topic: str) -> Counter[str]:
-        return Counter({r: n for (t, r), n in self.service.bus.rejects.by_topic.items()
-                        if t == topic})
+        return Counter(
+            {r: n for (t, r), n in self.service.bus.rejects.by_topic.items() if t == topic}
+        )
 
     def feed(self, recipe: tuple[int, int, int]) -> None:
         topic = self.topics[recipe[2] % len(self.topics)]
@@ -179,7 +187,10 @@ class Fuzzer:
                 assert delta == Counter({reason: subs}), (topic, reason, delta)
             else:
                 assert set(delta) <= {Reason.OUT_OF_ORDER.value, Reason.STALE.value}, (
-                    topic, delta, self.service.bus.rejects.by_topic)
+                    topic,
+                    delta,
+                    self.service.bus.rejects.by_topic,
+                )
                 assert sum(delta.values()) <= subs
                 self.decoded[topic] += 1
                 self.delivered[topic] += not delta
@@ -202,8 +213,9 @@ class Fuzzer:
             assert self.delivered[topic] > 0, topic  # the core was reached
 
 
-def assert_setpoints_safe(setpoints: list[wm.Setpoint], u_min: np.ndarray,
-                          u_max: np.ndarray) -> None:
+def assert_setpoints_safe(
+    setpoints: list[wm.Setpoint], u_min: np.ndarray, u_max: np.ndarray
+) -> None:
     for sp in setpoints:
         assert np.all(np.isfinite(sp.u)), sp
         assert np.all(sp.u >= u_min) and np.all(sp.u <= u_max), sp.u
@@ -226,9 +238,14 @@ def test_controller_handlers(tmp_path):
             svc.handle(s)  # main would turn an exception into a hover setpoint: none here
             answered.append(s)
 
-    fuzz = Fuzzer(svc, session, {"state": 2, "model": 1, "command": 3},
-                  dims={"model": {"d": d, "l": l}}, valid_every={"state": 8},
-                  after_batch=loop_body)
+    fuzz = Fuzzer(
+        svc,
+        session,
+        {"state": 2, "model": 1, "command": 3},
+        dims={"model": {"d": d, "l": l}},
+        valid_every={"state": 8},
+        after_batch=loop_body,
+    )
     fuzz.run()
     setpoints = session.outputs("setpoint")
     assert len(setpoints) == len(answered) == fuzz.delivered["state"] > 0
@@ -243,8 +260,7 @@ def test_adapter_handlers(tmp_path):
 
     svc, session = build(mod, mod.Adapter, tmp_path)
     assert svc.learner is not None
-    fuzz = Fuzzer(svc, session, {"state": 2, "setpoint": 1, "command": 1},
-                  valid_every={"state": 8})
+    fuzz = Fuzzer(svc, session, {"state": 2, "setpoint": 1, "command": 1}, valid_every={"state": 8})
     fuzz.run()
     models = session.outputs("model")
     assert 0 < len(models) <= fuzz.delivered["state"]
@@ -293,10 +309,10 @@ def test_recorder_handlers(tmp_path):
     from mcap.reader import make_reader
 
     with (tmp_path / "bus.mcap").open("rb") as f:
-        in_file = Counter(ch.topic.rsplit("/", 1)[-1]
-                          for _, ch, _ in make_reader(f).iter_messages())
+        in_file = Counter(
+            ch.topic.rsplit("/", 1)[-1] for _, ch, _ in make_reader(f).iter_messages()
+        )
     assert in_file == +Counter(recorded)
-
 
 
 def test_controller_extreme_but_valid_inputs(tmp_path):
@@ -310,20 +326,34 @@ def test_controller_extreme_but_valid_inputs(tmp_path):
     q_flip = [0.0, 1.0, 0.0, 0.0]  # upside down
     states = [
         np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0],
-        np.r_[wm.MAX_POSITION_M, -wm.MAX_POSITION_M, 0.0, [wm.MAX_SPEED_MPS] * 3, q_flip,
-              [wm.MAX_RATE_RADPS] * 3],
+        np.r_[
+            wm.MAX_POSITION_M,
+            -wm.MAX_POSITION_M,
+            0.0,
+            [wm.MAX_SPEED_MPS] * 3,
+            q_flip,
+            [wm.MAX_RATE_RADPS] * 3,
+        ],
         np.r_[[0.0] * 6, 0.5, 0.5, 0.5, 0.5, [-wm.MAX_RATE_RADPS] * 3],
     ]
     seq = 0
     for t0 in (1e308, -1e308, 0.0, wm.MAX_STAMP_S, 2**64 - 1):
         seq += 1
-        session.deliver("command", wm.encode(wm.Command(
-            name="start", args={"t0": t0}, stamp=float(seq), seq=seq, src="operator/1")))
+        session.deliver(
+            "command",
+            wm.encode(
+                wm.Command(
+                    name="start", args={"t0": t0}, stamp=float(seq), seq=seq, src="operator/1"
+                )
+            ),
+        )
         for x in states:
             seq += 1
             now = time.monotonic()
-            session.deliver("state", wm.encode(wm.State(x=x, stamp=now, meas_stamp=now,
-                                                        seq=seq, src="estimator/1")))
+            session.deliver(
+                "state",
+                wm.encode(wm.State(x=x, stamp=now, meas_stamp=now, seq=seq, src="estimator/1")),
+            )
             svc.handle(svc._queue.get_nowait()[0])  # must not raise
     setpoints = session.outputs("setpoint")
     assert len(setpoints) == 5 * len(states)
@@ -339,18 +369,40 @@ def test_adapter_extreme_but_valid_states(tmp_path):
 
     svc, session = build(mod, mod.Adapter, tmp_path)
     hover = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
-    far = np.r_[wm.MAX_POSITION_M, 0.0, 0.0, [wm.MAX_SPEED_MPS] * 3, 0.0, 1.0, 0.0, 0.0,
-                [wm.MAX_RATE_RADPS] * 3]
+    far = np.r_[
+        wm.MAX_POSITION_M,
+        0.0,
+        0.0,
+        [wm.MAX_SPEED_MPS] * 3,
+        0.0,
+        1.0,
+        0.0,
+        0.0,
+        [wm.MAX_RATE_RADPS] * 3,
+    ]
     seq = 0
-    for x, var in ((hover, None), (hover, 1e10), (hover, wm.MAX_VARIANCE), (far, None),
-                   (far, wm.MAX_VARIANCE), (hover, None)):
+    for x, var in (
+        (hover, None),
+        (hover, 1e10),
+        (hover, wm.MAX_VARIANCE),
+        (far, None),
+        (far, wm.MAX_VARIANCE),
+        (hover, None),
+    ):
         seq += 1
         stamp = 0.05 * seq
         cov = None if var is None else np.full(13, var)
-        session.deliver("state", wm.encode(wm.State(x=x, cov_diag=cov, stamp=stamp, seq=seq,
-                                                    src="estimator/1")))
-        session.deliver("setpoint", wm.encode(wm.Setpoint(
-            u=[5.6, 0.0, 0.0, 0.0], state_seq=seq, stamp=stamp, seq=seq, src="controller/1")))
+        session.deliver(
+            "state", wm.encode(wm.State(x=x, cov_diag=cov, stamp=stamp, seq=seq, src="estimator/1"))
+        )
+        session.deliver(
+            "setpoint",
+            wm.encode(
+                wm.Setpoint(
+                    u=[5.6, 0.0, 0.0, 0.0], state_seq=seq, stamp=stamp, seq=seq, src="controller/1"
+                )
+            ),
+        )
     assert svc.bus.rejects.counts == {}
     models = session.outputs("model")
     assert len(models) == seq
@@ -364,13 +416,23 @@ def test_estimator_long_dropout_and_clock_jumps(tmp_path):
     from services import estimator as mod
 
     svc, session = build(mod, mod.Estimator, tmp_path)
-    session.deliver("mocap", wm.encode(wm.Mocap(position=[0.0, 0.0, 1.0],
-                                                quaternion=[1.0, 0.0, 0.0, 0.0],
-                                                capture_stamp=0.0, stamp=0.0, seq=1,
-                                                src="sim/1")))
+    session.deliver(
+        "mocap",
+        wm.encode(
+            wm.Mocap(
+                position=[0.0, 0.0, 1.0],
+                quaternion=[1.0, 0.0, 0.0, 0.0],
+                capture_stamp=0.0,
+                stamp=0.0,
+                seq=1,
+                src="sim/1",
+            )
+        ),
+    )
     for seq, stamp in enumerate((0.0, 1.0, 10.0, 100.0, 1e3, 1e4, 1e6, wm.MAX_STAMP_S), 1):
-        session.deliver("imu", wm.encode(wm.Imu(gyro=[0.0, 0.0, 0.0], stamp=stamp, seq=seq,
-                                                src="sim/1")))
+        session.deliver(
+            "imu", wm.encode(wm.Imu(gyro=[0.0, 0.0, 0.0], stamp=stamp, seq=seq, src="sim/1"))
+        )
     assert svc.bus.rejects.counts == {}
     states = session.outputs("state")  # decoding re-validates every published state
     assert len(states) >= 1 and states[0].stamp == 0.0

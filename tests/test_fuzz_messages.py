@@ -111,8 +111,14 @@ def _scalars(rng: np.random.Generator) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for i in range(int(rng.integers(0, 5))):
         key = _pick(rng, [f"k{i}", f"k{i}_{int(rng.integers(100))}", *_KEYS])
-        ordinary = [None, True, int(rng.integers(-(2**62), 2**62)), float(rng.normal() * 1e6),
-                    _text(rng), float(rng.random())]
+        ordinary = [
+            None,
+            True,
+            int(rng.integers(-(2**62), 2**62)),
+            float(rng.normal() * 1e6),
+            _text(rng),
+            float(rng.random()),
+        ]
         extreme = [2**64 - 1, -(2**63), 1e308, -1e308, 5e-324]
         out[key] = _pick(rng, ordinary if rng.random() < 0.5 else extreme)
     return out
@@ -144,18 +150,21 @@ def _defaults(cls: type[wm.Message]) -> dict[str, Any]:
     return {f.name: f.default for f in dataclasses.fields(cls)}
 
 
-def valid_fields(cls: type[wm.Message], rng: np.random.Generator,
-                 dims: dict[str, int] | None = None) -> dict[str, Any]:
+def valid_fields(
+    cls: type[wm.Message], rng: np.random.Generator, dims: dict[str, int] | None = None
+) -> dict[str, Any]:
     """Constructor arguments of ``cls`` drawn from its field specs (valid per field);
     ``dims`` fixes symbolic dimensions (random small sizes otherwise)."""
     dims = {"d": int(rng.integers(1, 7)), "l": int(rng.integers(1, 5)), **(dims or {})}
     defaults = _defaults(cls)
-    return {name: _value(rng, spec, dims, defaults[name])
-            for name, spec in wm.field_specs(cls).items()}
+    return {
+        name: _value(rng, spec, dims, defaults[name]) for name, spec in wm.field_specs(cls).items()
+    }
 
 
-def valid_record(cls: type[wm.Message], rng: np.random.Generator,
-                 dims: dict[str, int] | None = None) -> wm.Message | None:
+def valid_record(
+    cls: type[wm.Message], rng: np.random.Generator, dims: dict[str, int] | None = None
+) -> wm.Message | None:
     """A valid record of ``cls``; a field that breaks a cross-field check is dropped if it
     is optional (``None`` where the specs alone cannot make a valid record)."""
     fields = valid_fields(cls, rng, dims)
@@ -241,8 +250,9 @@ def _pick(rng: np.random.Generator, seq: Any) -> Any:
     return seq[int(rng.integers(len(seq)))]
 
 
-def mutate(rng: np.random.Generator, wire: dict[str, Any], cls: type[wm.Message],
-           how: int | None = None) -> dict[str, Any]:
+def mutate(
+    rng: np.random.Generator, wire: dict[str, Any], cls: type[wm.Message], how: int | None = None
+) -> dict[str, Any]:
     """One to three mutations of a valid wire map (the first one of kind ``how``)."""
     w = {k: (np.asarray(v).tolist() if isinstance(v, list) else v) for k, v in wire.items()}
     names = [*wm.field_specs(cls), "schema", "version"]
@@ -256,13 +266,26 @@ def mutate(rng: np.random.Generator, wire: dict[str, Any], cls: type[wm.Message]
         elif h == 2:  # extra field
             w[_pick(rng, ["Schema", "x ", "seq2", "", _text(rng, 6)])] = junk(rng)
         elif h == 3:  # wrong schema
-            w["schema"] = _pick(rng, [*(t.SCHEMA for t in ALL), "", "arcade.state",
-                                      "arcade.", _text(rng, 20), junk(rng)])
+            w["schema"] = _pick(
+                rng,
+                [
+                    *(t.SCHEMA for t in ALL),
+                    "",
+                    "arcade.state",
+                    "arcade.",
+                    _text(rng, 20),
+                    junk(rng),
+                ],
+            )
         elif h == 4:  # wrong version
             w["version"] = _pick(rng, [0, 2, -1, 1.0, True, "1", 2**64 - 1, junk(rng)])
         elif h == 5:  # NaN/Inf/huge in a number or an array element
-            bad = _pick(rng, (math.nan, math.inf, -math.inf) if rng.random() < 0.5
-                        else _NASTY_FLOATS + _HUGE_INTS)
+            bad = _pick(
+                rng,
+                (math.nan, math.inf, -math.inf)
+                if rng.random() < 0.5
+                else _NASTY_FLOATS + _HUGE_INTS,
+            )
             leaves = _leaves(w.get(name))
             if leaves:
                 row = _pick(rng, leaves)
@@ -336,16 +359,21 @@ def lying_headers(cls: type[wm.Message]) -> list[bytes]:
     ]
 
 
-def make_payloads(cls: type[wm.Message], recipe: tuple[int, int, int],
-                  dims: dict[str, int] | None = None, with_valid: bool = True) -> list[bytes]:
+def make_payloads(
+    cls: type[wm.Message],
+    recipe: tuple[int, int, int],
+    dims: dict[str, int] | None = None,
+    with_valid: bool = True,
+) -> list[bytes]:
     """:data:`BATCH` payloads for topic ``cls`` from one recipe ``(kind, mutation, seed)``:
     a valid one (another mutation unless ``with_valid``), a structural and a byte-level
     mutation of it, and random bytes or one of the special payloads."""
     kind, how, seed = recipe
     rng = np.random.default_rng(seed)
     record = valid_record(cls, rng, dims)
-    wire = (record.to_wire() if record is not None
-            else {"schema": cls.SCHEMA, "version": cls.VERSION})
+    wire = (
+        record.to_wire() if record is not None else {"schema": cls.SCHEMA, "version": cls.VERSION}
+    )
     valid = _pack(wire)
     # Valid (the stream order is random: some are out of order or stale).
     out = [valid if with_valid else _byte_mutation(rng, valid)]
@@ -357,21 +385,37 @@ def make_payloads(cls: type[wm.Message], recipe: tuple[int, int, int],
     if kind < 6:
         out.append(rng.bytes(int(rng.integers(0, 300))))
     elif kind < 9:
-        out.append(_pick(rng, [
-            b"", b"\xc1", deep(3000), deep(int(rng.integers(1, 600))),
-            *lying_headers(cls), struct.pack(">Bd", 0xCB, math.nan),
-            b"\x00" * (cls.MAX_BYTES + 1), _pack(list(range(10))), valid + valid,
-        ]))
+        out.append(
+            _pick(
+                rng,
+                [
+                    b"",
+                    b"\xc1",
+                    deep(3000),
+                    deep(int(rng.integers(1, 600))),
+                    *lying_headers(cls),
+                    struct.pack(">Bd", 0xCB, math.nan),
+                    b"\x00" * (cls.MAX_BYTES + 1),
+                    _pack(list(range(10))),
+                    valid + valid,
+                ],
+            )
+        )
     elif kind < 11:
         out.append(non_utf8(wire, cls) or valid)
     elif kind < 13:  # bytes keys, a list instead of a map, a non-string key
-        out.append(_pick(rng, [
-            _pack({k.encode(): v for k, v in wire.items()}),
-            _pack(list(wire.values())),
-            _pack({**wire, b"extra": 1}),
-            b"\x81\x01\x02" + valid,
-            b"\x8f" + valid[1:] if valid[:1] != b"\x8f" else valid[:-1],
-        ]))
+        out.append(
+            _pick(
+                rng,
+                [
+                    _pack({k.encode(): v for k, v in wire.items()}),
+                    _pack(list(wire.values())),
+                    _pack({**wire, b"extra": 1}),
+                    b"\x81\x01\x02" + valid,
+                    b"\x8f" + valid[1:] if valid[:1] != b"\x8f" else valid[:-1],
+                ],
+            )
+        )
     else:
         out.append(valid)  # a replay of the same message
     return out
@@ -419,8 +463,7 @@ class Harness:
             check(record)
 
         receiver.checker.check = checked
-        self.handler = safe_handler(receiver, self.delivered.append, self.counter,
-                                    topic=cls.TOPIC)
+        self.handler = safe_handler(receiver, self.delivered.append, self.counter, topic=cls.TOPIC)
         self.cases = 0
         self.valid = 0
         self.decoded: wm.Message | None = None
@@ -484,10 +527,19 @@ def test_decoders_accept_valid_or_raise_message_error(cls):
     counts = h.counter.counts
     assert Reason.INTERNAL.value not in counts and Reason.CALLBACK_ERROR.value not in counts
     if FUZZ_CASES >= 10_000:  # the generator reaches every class (guards the fuzzer itself)
-        expected = {Reason.NOT_MSGPACK, Reason.NOT_MAP, Reason.OVERSIZE, Reason.BAD_SCHEMA,
-                    Reason.BAD_VERSION, Reason.MISSING_FIELD, Reason.EXTRA_FIELD,
-                    Reason.BAD_TYPE, Reason.NON_FINITE, Reason.OUT_OF_RANGE,
-                    Reason.OUT_OF_ORDER}
+        expected = {
+            Reason.NOT_MSGPACK,
+            Reason.NOT_MAP,
+            Reason.OVERSIZE,
+            Reason.BAD_SCHEMA,
+            Reason.BAD_VERSION,
+            Reason.MISSING_FIELD,
+            Reason.EXTRA_FIELD,
+            Reason.BAD_TYPE,
+            Reason.NON_FINITE,
+            Reason.OUT_OF_RANGE,
+            Reason.OUT_OF_ORDER,
+        }
         kinds = {type(s).__name__ for s in wm.field_specs(cls).values()}
         if "_Array" in kinds:
             expected.add(Reason.BAD_SHAPE)
@@ -506,8 +558,10 @@ def test_spec_generator_makes_valid_records(cls):
     assert len(made) >= 0.9 * len(records)
     for r in made[:50]:
         assert_valid(r, cls)
-    if any(type(s).__name__ == "_Array" and s.shape and isinstance(s.shape[0], str)
-           for s in wm.field_specs(cls).values()):
+    if any(
+        type(s).__name__ == "_Array" and s.shape and isinstance(s.shape[0], str)
+        for s in wm.field_specs(cls).values()
+    ):
         assert len({_dims(r) for r in made}) > 1  # symbolic dimensions vary
 
 
@@ -526,8 +580,16 @@ def test_deep_nesting_and_lying_headers_are_not_msgpack():
 
 
 def test_non_utf8_and_binary_strings_are_rejected():
-    w = {"schema": "arcade.Command", "version": 1, "seq": 1, "stamp": 1.0, "src": "op/1",
-         "name": "arm", "target": "", "args": {}}
+    w = {
+        "schema": "arcade.Command",
+        "version": 1,
+        "seq": 1,
+        "stamp": 1.0,
+        "src": "op/1",
+        "name": "arm",
+        "target": "",
+        "args": {},
+    }
     assert decode(wm.Command, _pack(w)).name == "arm"
     bad = non_utf8(w, wm.Command)
     assert bad is not None and b"\xff\xfe" in bad

@@ -299,8 +299,9 @@ def test_a_staged_rollout_gives_each_stage_its_model_and_the_right_jvp():
     X = staged(x0, U, D)
     # Stage i's residual lands on x_{i+1} and nowhere else.
     np.testing.assert_allclose(X[1:] - jax.vmap(_nominal_quad)(X[:-1], U), D, atol=1e-12)
-    tangents = tuple(jax.random.normal(jax.random.PRNGKey(k), a.shape)
-                     for k, a in zip((2, 3, 4), (x0, U, D)))
+    tangents = tuple(
+        jax.random.normal(jax.random.PRNGKey(k), a.shape) for k, a in zip((2, 3, 4), (x0, U, D))
+    )
     got = jax.jvp(staged, (x0, U, D), tangents)
     want = jax.jvp(plain, (x0, U, D), tangents)
     for g, w in zip(got, want):
@@ -345,10 +346,12 @@ def test_line_search_converges_where_full_gauss_newton_steps_diverge():
 
     z0 = jnp.array([3.0])
     lin = lx.Normal(lx.Cholesky())
-    full = optx.least_squares(fn, optx.GaussNewton(1e-8, 1e-8, linear_solver=lin), z0,
-                              max_steps=20, throw=False)
+    full = optx.least_squares(
+        fn, optx.GaussNewton(1e-8, 1e-8, linear_solver=lin), z0, max_steps=20, throw=False
+    )
     assert not abs(float(full.value[0])) < 1.0  # diverged (or non-finite)
-    damped = optx.least_squares(fn, ArmijoGaussNewton(1e-8, 1e-8, lin), z0, max_steps=40,
-                                throw=False)
+    damped = optx.least_squares(
+        fn, ArmijoGaussNewton(1e-8, 1e-8, lin), z0, max_steps=40, throw=False
+    )
     assert damped.result == optx.RESULTS.successful
     assert abs(float(damped.value[0])) < 1e-6

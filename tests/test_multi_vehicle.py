@@ -24,8 +24,7 @@ from services.bus import Bus, peer_config
 
 pytestmark = pytest.mark.integration
 
-ORIGINS = {"quad1": (-0.5, -0.5), "quad2": (0.5, -0.5), "quad3": (-0.5, 0.5),
-           "quad4": (0.5, 0.5)}
+ORIGINS = {"quad1": (-0.5, -0.5), "quad2": (0.5, -0.5), "quad3": (-0.5, 0.5), "quad4": (0.5, 0.5)}
 
 
 def test_four_vehicles_share_one_bus_without_cross_talk(tmp_path):
@@ -33,8 +32,16 @@ def test_four_vehicles_share_one_bus_without_cross_talk(tmp_path):
     stacks: dict[str, Stack] = {}
     with contextlib.ExitStack() as running:
         for name, origin in ORIGINS.items():
-            cfg = StackConfig(out=tmp_path / name, vehicle=name, hub=hub, lockstep=True,
-                              duration=3.0, hover_s=1000.0, origin=origin, max_restarts=0)
+            cfg = StackConfig(
+                out=tmp_path / name,
+                vehicle=name,
+                hub=hub,
+                lockstep=True,
+                duration=3.0,
+                hover_s=1000.0,
+                origin=origin,
+                max_restarts=0,
+            )
             stacks[name] = running.enter_context(Stack(cfg))
         for stack in stacks.values():
             stack.wait_ready()  # each launcher saw its own services' tokens
@@ -71,7 +78,6 @@ def test_four_vehicles_share_one_bus_without_cross_talk(tmp_path):
         # Its own reference, flown: hovering over its own origin at the end.
         truth = read_truth(out / "truth.csv")
         ox, oy = ORIGINS[name]
-        np.testing.assert_allclose([truth["ref_px"][-1], truth["ref_py"][-1]], [ox, oy],
-                                   atol=1e-9)
+        np.testing.assert_allclose([truth["ref_px"][-1], truth["ref_py"][-1]], [ox, oy], atol=1e-9)
         assert abs(truth["px"][-1] - ox) < 0.1 and abs(truth["py"][-1] - oy) < 0.1, name
         assert truth["t"].size == 61  # 3 s at 20 Hz, both ends included

@@ -127,8 +127,9 @@ def test_lemma2_first_term_fails_after_tempering_in_unexcited_directions():
     state = A.init(jnp.zeros((1, 2)), cfg)
     z1, z2 = jnp.array([1.0, 0.0]), jnp.array([0.0, R])
     for gamma, expect in ((1.0, tau2 * R**2), (beta**2, tau2 * R**2 / beta**2)):
-        _, w = A.posterior_update(state.means[0], state.sqrt_covariances[0], z1,
-                                  jnp.array([0.3]), sigma2, gamma)
+        _, w = A.posterior_update(
+            state.means[0], state.sqrt_covariances[0], z1, jnp.array([0.3]), sigma2, gamma
+        )
         q = float(jnp.sum(jnp.square(w[0].T @ z2)))
         assert q == pytest.approx(expect, rel=1e-12)
     assert tau2 * R**2 / beta**2 > tau2 * R**2

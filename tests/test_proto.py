@@ -29,8 +29,7 @@ def model():
     offsets = (-1.0, 1.0)
     x, u, d, task, seg = _tasks(jax.random.PRNGKey(0), offsets)
     m = proto.init_model(jax.random.PRNGKey(1), x, u, d, tasks=offsets, hidden=32)
-    return proto.train(m, x, u, d, task, seg, key=jax.random.PRNGKey(2), steps=1500,
-                       batch_size=64)
+    return proto.train(m, x, u, d, task, seg, key=jax.random.PRNGKey(2), steps=1500, batch_size=64)
 
 
 def _online(model, offset, key, steps=30):
@@ -52,7 +51,7 @@ def test_the_context_selects_the_task_and_fits_it(model):
         errs, att = _online(model, off, jax.random.PRNGKey(10 + i))
         assert att[i] > 0.9, att
         # With a full context the task's offset is recovered.
-        assert np.mean(errs[proto.CONTEXT:]) < 0.15, errs
+        assert np.mean(errs[proto.CONTEXT :]) < 0.15, errs
 
 
 def test_an_empty_context_attends_uniformly(model):
@@ -65,4 +64,4 @@ def test_an_unseen_task_is_between_the_prototypes(model):
     # Halfway between the two tasks: both prototypes share the weight, and the
     # interpolated prediction is closer than either task's own offset (error 1).
     assert 0.1 < att[0] < 0.9, att
-    assert np.mean(errs[proto.CONTEXT:]) < 0.6, errs
+    assert np.mean(errs[proto.CONTEXT :]) < 0.6, errs

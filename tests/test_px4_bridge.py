@@ -32,8 +32,11 @@ from services.messages import Command, Setpoint
 from services.px4_bridge import Geofence, Limits, attitude_rate_command
 
 REPO = Path(__file__).resolve().parents[1]
-VEHICLE = {"rotors": {"max_thrust_n": 4.0}, "thrust_curve": {"thr_mdl_fac": 0.3},
-           "rate_loop": {"max_rate_rad_s": [3.5, 3.5, 3.0]}}
+VEHICLE = {
+    "rotors": {"max_thrust_n": 4.0},
+    "thrust_curve": {"thr_mdl_fac": 0.3},
+    "rate_loop": {"max_rate_rad_s": [3.5, 3.5, 3.0]},
+}
 
 # ---------------------------------------------------------------------------- pure
 
@@ -90,8 +93,10 @@ class FakePx4:
         self.odometry: list = []
         self.modes: list[tuple[float, int, int]] = []
         self.stop = threading.Event()
-        self.threads = [threading.Thread(target=self._rx, daemon=True),
-                        threading.Thread(target=self._tx, daemon=True)]
+        self.threads = [
+            threading.Thread(target=self._rx, daemon=True),
+            threading.Thread(target=self._tx, daemon=True),
+        ]
         for t in self.threads:
             t.start()
 
@@ -108,14 +113,24 @@ class FakePx4:
 
     def _heartbeat(self) -> None:
         base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
-            mav.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
-        self.mav.heartbeat_send(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base,
-                                (self.main << 16) | (self.sub << 24), mav.MAV_STATE_STANDBY)
+            mav.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
+        )
+        self.mav.heartbeat_send(
+            mav.MAV_TYPE_QUADROTOR,
+            mav.MAV_AUTOPILOT_PX4,
+            base,
+            (self.main << 16) | (self.sub << 24),
+            mav.MAV_STATE_STANDBY,
+        )
 
     def _tx(self) -> None:
-        bits = (mav.MAV_SYS_STATUS_SENSOR_3D_GYRO | mav.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-                | mav.MAV_SYS_STATUS_SENSOR_3D_MAG | mav.MAV_SYS_STATUS_PREARM_CHECK
-                | mav.MAV_SYS_STATUS_SENSOR_VISION_POSITION)
+        bits = (
+            mav.MAV_SYS_STATUS_SENSOR_3D_GYRO
+            | mav.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+            | mav.MAV_SYS_STATUS_SENSOR_3D_MAG
+            | mav.MAV_SYS_STATUS_PREARM_CHECK
+            | mav.MAV_SYS_STATUS_SENSOR_VISION_POSITION
+        )
         k = 0
         while not self.stop.is_set():
             if k % 50 == 0:
@@ -145,8 +160,13 @@ class FakePx4:
         t = msg.get_type()
         if t == "SET_ATTITUDE_TARGET":
             with self.lock:
-                self.sat.append((now, msg.thrust, np.array(
-                    [msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate])))
+                self.sat.append(
+                    (
+                        now,
+                        msg.thrust,
+                        np.array([msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate]),
+                    )
+                )
                 self.lock.notify_all()
         elif t == "ODOMETRY":
             with self.lock:
@@ -169,8 +189,9 @@ class FakePx4:
             elif msg.command == mav.MAV_CMD_NAV_LAND:
                 self.set_mode(MAIN_AUTO, AUTO_LAND)
             result = mav.MAV_RESULT_ACCEPTED if ok else mav.MAV_RESULT_DENIED
-            self.mav.command_ack_send(msg.command, result, 255, 0, msg.get_srcSystem(),
-                                      msg.get_srcComponent())
+            self.mav.command_ack_send(
+                msg.command, result, 255, 0, msg.get_srcSystem(), msg.get_srcComponent()
+            )
 
     def wait(self, predicate, timeout: float) -> bool:
         with self.lock:
@@ -202,12 +223,17 @@ class Events:
             self.items.append((time.monotonic(), e))
             self.cond.notify_all()
 
-    def wait(self, kind: str, timeout: float, after: int = 0, text: str = "",
-             pred=lambda e: True, **data):
+    def wait(
+        self, kind: str, timeout: float, after: int = 0, text: str = "", pred=lambda e: True, **data
+    ):
         def find():
             for _, e in self.items[after:]:
-                if (e.kind == kind and text in e.text and pred(e)
-                        and all(e.data.get(k) == v for k, v in data.items())):
+                if (
+                    e.kind == kind
+                    and text in e.text
+                    and pred(e)
+                    and all(e.data.get(k) == v for k, v in data.items())
+                ):
                     return e
             return None
 
@@ -251,10 +277,27 @@ def rig(tmp_path):
     port, hub = _free_port(), f"tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"
     px4 = FakePx4(port)
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    cmd = [sys.executable, "-m", "services", "bridge", "--hub", hub, "--out", str(tmp_path),
-           "--connect", f"udpin://127.0.0.1:{port}", "--connect-timeout", "20",
-           "--geofence=-3,3,-3,3,-0.5,3", "--geofence-action", "land",
-           "--max-throttle", "0.8", "--status-rate", "5"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "services",
+        "bridge",
+        "--hub",
+        hub,
+        "--out",
+        str(tmp_path),
+        "--connect",
+        f"udpin://127.0.0.1:{port}",
+        "--connect-timeout",
+        "20",
+        "--geofence=-3,3,-3,3,-0.5,3",
+        "--geofence-action",
+        "land",
+        "--max-throttle",
+        "0.8",
+        "--status-rate",
+        "5",
+    ]
     log = (tmp_path / "bridge.out").open("w")
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
     bus = Bus("default", "tester", peer_config(hub)).open()
@@ -282,8 +325,13 @@ def rig(tmp_path):
 def _arm(bus: Bus, events: Events) -> None:
     """Arm once the bridge reports a steady setpoint stream; wait until offboard is engaged."""
     n = len(events.items)
-    steady = events.wait("vehicle_status", 5.0, after=n, setpoints_fresh=True,
-                         pred=lambda e: e.data["stream_s"] >= 1.0)
+    steady = events.wait(
+        "vehicle_status",
+        5.0,
+        after=n,
+        setpoints_fresh=True,
+        pred=lambda e: e.data["stream_s"] >= 1.0,
+    )
     assert steady is not None
     n = len(events.items)
     bus.put(Command(name="arm", target="bridge", stamp=time.monotonic()))
@@ -307,8 +355,14 @@ def test_bridge_against_fake_px4(rig):
     from services.messages import Mocap
 
     q_enu = np.array([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)])  # facing north
-    bus.put(Mocap(position=[1.0, 2.0, 1.5], quaternion=q_enu, capture_stamp=time.monotonic(),
-                  stamp=time.monotonic()))
+    bus.put(
+        Mocap(
+            position=[1.0, 2.0, 1.5],
+            quaternion=q_enu,
+            capture_stamp=time.monotonic(),
+            stamp=time.monotonic(),
+        )
+    )
     assert px4.wait(lambda: px4.odometry, 5.0)
     o = px4.odometry[-1]
     np.testing.assert_allclose([o.x, o.y, o.z], [2.0, 1.0, -1.5], atol=1e-6)
@@ -385,6 +439,9 @@ def test_bridge_against_fake_px4(rig):
     assert proc.wait(20) == 0
     stream.halt()
     assert (MAIN_AUTO, AUTO_LOITER) in [m[1:] for m in px4.modes[n_modes:]]
-    assert not [p for _, c, p in px4.commands[n_cmd:]
-                if c == mav.MAV_CMD_COMPONENT_ARM_DISARM and p[0] < 0.5]
+    assert not [
+        p
+        for _, c, p in px4.commands[n_cmd:]
+        if c == mav.MAV_CMD_COMPONENT_ARM_DISARM and p[0] < 0.5
+    ]
     assert px4.armed

@@ -16,9 +16,13 @@ S = math.sqrt(0.5)
 def _rot(q):
     """Rotation matrix of a w-first unit quaternion (body -> world)."""
     w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _random_quats(n):
@@ -48,8 +52,9 @@ def test_body_vectors_and_rates():
         fr.flu_to_frd([1.0, 2.0])
 
 
-@pytest.mark.parametrize("yaw_enu_deg, yaw_ned_deg", [(90, 0), (0, 90), (180, -90), (45, 45),
-                                                      (-90, 180)])
+@pytest.mark.parametrize(
+    "yaw_enu_deg, yaw_ned_deg", [(90, 0), (0, 90), (180, -90), (45, 45), (-90, 180)]
+)
 def test_heading(yaw_enu_deg, yaw_ned_deg):
     """ENU yaw is from east counter-clockwise, NED yaw from north clockwise."""
     a = math.radians(yaw_enu_deg) / 2
@@ -90,18 +95,22 @@ def test_attitude_maps_vectors_consistently():
 
 def test_attitude_round_trips_exactly():
     q = _random_quats(200)
-    np.testing.assert_allclose(fr.quat_ned_frd_to_enu_flu(fr.quat_enu_flu_to_ned_frd(q)), q,
-                               atol=1e-15)
-    np.testing.assert_allclose(fr.quat_enu_flu_to_ned_frd(fr.quat_ned_frd_to_enu_flu(q)), q,
-                               atol=1e-15)
-    e = np.column_stack([RNG.uniform(-3, 3, 200), RNG.uniform(-1.5, 1.5, 200),
-                         RNG.uniform(-3, 3, 200)])
+    np.testing.assert_allclose(
+        fr.quat_ned_frd_to_enu_flu(fr.quat_enu_flu_to_ned_frd(q)), q, atol=1e-15
+    )
+    np.testing.assert_allclose(
+        fr.quat_enu_flu_to_ned_frd(fr.quat_ned_frd_to_enu_flu(q)), q, atol=1e-15
+    )
+    e = np.column_stack(
+        [RNG.uniform(-3, 3, 200), RNG.uniform(-1.5, 1.5, 200), RNG.uniform(-3, 3, 200)]
+    )
     np.testing.assert_allclose(fr.quat_to_euler_zyx(fr.euler_zyx_to_quat(e)), e, atol=1e-12)
 
 
 def test_thrust_curve_hand_cases():
-    curve = fr.ThrustCurve.from_vehicle({"rotors": {"max_thrust_n": 4.0},
-                                         "thrust_curve": {"thr_mdl_fac": 0.3}})
+    curve = fr.ThrustCurve.from_vehicle(
+        {"rotors": {"max_thrust_n": 4.0}, "thrust_curve": {"thr_mdl_fac": 0.3}}
+    )
     assert curve.max_thrust_n == 16.0
     assert curve.throttle(0.0) == 0.0 and curve.thrust(0.0) == 0.0
     assert curve.throttle(16.0) == pytest.approx(1.0) and curve.thrust(1.0) == 16.0

@@ -105,13 +105,19 @@ def stream_mocap(sim: Px4Sim, mocap: Mocap, stop: threading.Event) -> None:
     while not stop.is_set():
         x = truth(sim)
         q = quat_enu_flu_to_ned_frd(x[6:10])
-        mocap.set_odometry(Odometry(
-            time_usec=0, frame_id=Odometry.MavFrame.MOCAP_NED,
-            position_body=PositionBody(*enu_to_ned(x[0:3])), q=Quaternion(*q),
-            speed_body=SpeedBody(math.nan, math.nan, math.nan),
-            angular_velocity_body=AngularVelocityBody(math.nan, math.nan, math.nan),
-            pose_covariance=Covariance(NAN21), velocity_covariance=Covariance(NAN21),
-            estimator_type=Odometry.MavEstimatorType.MOCAP))
+        mocap.set_odometry(
+            Odometry(
+                time_usec=0,
+                frame_id=Odometry.MavFrame.MOCAP_NED,
+                position_body=PositionBody(*enu_to_ned(x[0:3])),
+                q=Quaternion(*q),
+                speed_body=SpeedBody(math.nan, math.nan, math.nan),
+                angular_velocity_body=AngularVelocityBody(math.nan, math.nan, math.nan),
+                pose_covariance=Covariance(NAN21),
+                velocity_covariance=Covariance(NAN21),
+                estimator_type=Odometry.MavEstimatorType.MOCAP,
+            )
+        )
         stop.wait(0.02)  # stream rate
 
 
@@ -135,21 +141,32 @@ def test_mavsdk_sees_a_healthy_px4_once_mocap_arrives_in_ned(vehicle_link):
     streamer = threading.Thread(target=stream_mocap, args=(sim, mocap, stop), daemon=True)
     streamer.start()
     try:
-        h = wait_for(lambda: (h := tel.health()).is_local_position_ok and h.is_armable
-                     and h.is_home_position_ok and h, 5.0, "local position and home ok")
+        h = wait_for(
+            lambda: (
+                (h := tel.health()).is_local_position_ok
+                and h.is_armable
+                and h.is_home_position_ok
+                and h
+            ),
+            5.0,
+            "local position and home ok",
+        )
         assert not h.is_global_position_ok  # vision only: no GPS, no global origin
         # The ODOMETRY MAVSDK sent arrived, in NED/FRD, as the ground truth.
         vision = wait_for(lambda: sim.vehicle.vision, 2.0, "vision at the vehicle")
         assert vision.source == "odometry" and vision.frame_id == 14  # MAV_FRAME_MOCAP_NED
         x = truth(sim)  # resting on the floor: the truth does not move
         np.testing.assert_allclose(vision.position_ned, enu_to_ned(x[0:3]), atol=1e-4)
-        np.testing.assert_allclose(vision.quaternion_ned_frd, quat_enu_flu_to_ned_frd(x[6:10]),
-                                   atol=1e-4)
+        np.testing.assert_allclose(
+            vision.quaternion_ned_frd, quat_enu_flu_to_ned_frd(x[6:10]), atol=1e-4
+        )
         # Telemetry is the NED of the ENU truth.
         pv = tel.position_velocity_ned()
         np.testing.assert_allclose(
             [pv.position.north_m, pv.position.east_m, pv.position.down_m],
-            enu_to_ned(x[0:3]), atol=1e-4)
+            enu_to_ned(x[0:3]),
+            atol=1e-4,
+        )
         assert pv.position.down_m == pytest.approx(-sim.vehicle.ground_z, abs=1e-4)
 
         action.arm()
@@ -161,8 +178,11 @@ def test_mavsdk_sees_a_healthy_px4_once_mocap_arrives_in_ned(vehicle_link):
         stop.set()
         streamer.join()
     # Mocap gone: the position goes invalid (LOCAL_POSITION_NED stops, as on PX4).
-    wait_for(lambda: not (h := tel.health()).is_local_position_ok and not h.is_armable, 5.0,
-             "local position lost")
+    wait_for(
+        lambda: not (h := tel.health()).is_local_position_ok and not h.is_armable,
+        5.0,
+        "local position lost",
+    )
 
 
 def set_mode_offboard(system) -> int:
@@ -170,12 +190,30 @@ def set_mode_offboard(system) -> int:
     locally without a setpoint, so this asks the vehicle itself. Returns MAV_RESULT."""
     import json
 
-    ack = MavlinkDirect(system).send_command(MavlinkMessage(
-        message_name="COMMAND_LONG", system_id=245, component_id=190, target_system_id=1,
-        target_component_id=1,
-        fields_json=json.dumps({"target_system": 1, "target_component": 1, "command": 176,
-                                "confirmation": 0, "param1": 1, "param2": 6, "param3": 0,
-                                "param4": 0, "param5": 0, "param6": 0, "param7": 0})))
+    ack = MavlinkDirect(system).send_command(
+        MavlinkMessage(
+            message_name="COMMAND_LONG",
+            system_id=245,
+            component_id=190,
+            target_system_id=1,
+            target_component_id=1,
+            fields_json=json.dumps(
+                {
+                    "target_system": 1,
+                    "target_component": 1,
+                    "command": 176,
+                    "confirmation": 0,
+                    "param1": 1,
+                    "param2": 6,
+                    "param3": 0,
+                    "param4": 0,
+                    "param5": 0,
+                    "param6": 0,
+                    "param7": 0,
+                }
+            ),
+        )
+    )
     return int(json.loads(ack.fields_json)["result"])
 
 
@@ -243,8 +281,11 @@ def test_offboard_rates_fly_the_vehicle_and_loss_triggers_hold(vehicle_link):
     # The client stops streaming (its offboard plugin goes away): PX4's offboard loss.
     offboard.destroy()
     t_stop = time.monotonic()
-    wait_for(lambda: tel.flight_mode() == FlightMode.HOLD, OF_LOSS_S + 1.0 + 0.5,
-             "HOLD after offboard loss")
+    wait_for(
+        lambda: tel.flight_mode() == FlightMode.HOLD,
+        OF_LOSS_S + 1.0 + 0.5,
+        "HOLD after offboard loss",
+    )
     assert time.monotonic() - t_stop >= OF_LOSS_S - 0.05
     assert v.failsafe and v.armed
     wait_for(lambda: any("offboard signal lost" in t for t in texts), 2.0, "STATUSTEXT")
@@ -264,9 +305,24 @@ def test_offboard_rates_fly_the_vehicle_and_loss_triggers_hold(vehicle_link):
 def test_cli_vehicle_takes_off_lands_and_stops_cleanly_on_ctrl_c():
     port = free_udp_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "arcade", "sim", "--px4", f"udpout://127.0.0.1:{port}",
-         "--no-vision-required", "--status-every", "0.5", "--takeoff-alt", "0.5"],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        [
+            sys.executable,
+            "-m",
+            "arcade",
+            "sim",
+            "--px4",
+            f"udpout://127.0.0.1:{port}",
+            "--no-vision-required",
+            "--status-every",
+            "0.5",
+            "--takeoff-alt",
+            "0.5",
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         mav, system = connect(port)
         try:
@@ -276,8 +332,14 @@ def test_cli_vehicle_takes_off_lands_and_stops_cleanly_on_ctrl_c():
             action.arm()
             wait_for(tel.armed, 3.0, "armed")
             action.takeoff()
-            wait_for(lambda: tel.landed_state() == LandedState.IN_AIR
-                     and tel.flight_mode() == FlightMode.HOLD, 10.0, "hovering after take-off")
+            wait_for(
+                lambda: (
+                    tel.landed_state() == LandedState.IN_AIR
+                    and tel.flight_mode() == FlightMode.HOLD
+                ),
+                10.0,
+                "hovering after take-off",
+            )
             assert tel.position_velocity_ned().position.down_m < -0.4
             action.land()
             # Landed, then PX4's auto-disarm (COM_DISARM_LAND, 2 s).
@@ -315,9 +377,30 @@ def get(q: queue.Queue, what: str, pred=lambda m: True, timeout: float = 30.0):
 def test_px4sim_service_flies_from_mavlink_only_and_serves_mocap_on_the_bus(tmp_path):
     hub, port = free_hub(), free_udp_port()
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    cmd = [sys.executable, "-m", "services", "px4sim", "--hub", hub, "--out", str(tmp_path),
-           "--px4", f"udpout://127.0.0.1:{port}", "--duration", "3.0", "--preroll", "0.5",
-           "--release", "-1", "--payload-g", "100", "--rate", "20", "--of-loss-s", "0.5"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "services",
+        "px4sim",
+        "--hub",
+        hub,
+        "--out",
+        str(tmp_path),
+        "--px4",
+        f"udpout://127.0.0.1:{port}",
+        "--duration",
+        "3.0",
+        "--preroll",
+        "0.5",
+        "--release",
+        "-1",
+        "--payload-g",
+        "100",
+        "--rate",
+        "20",
+        "--of-loss-s",
+        "0.5",
+    ]
     with (tmp_path / "px4sim.out").open("w") as log:
         proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
     mocap_q: queue.Queue = queue.Queue()
@@ -354,27 +437,27 @@ def test_px4sim_service_flies_from_mavlink_only_and_serves_mocap_on_the_bus(tmp_
                         f = mocap_q.get(timeout=0.1)
                     except queue.Empty:
                         continue
-                    mocap.set_odometry(Odometry(
-                        frame_id=Odometry.MavFrame.MOCAP_NED,
-                        position_body=PositionBody(*enu_to_ned(f.position)),
-                        q=Quaternion(*quat_enu_flu_to_ned_frd(f.quaternion)),
-                        speed_body=SpeedBody(math.nan, math.nan, math.nan),
-                        angular_velocity_body=AngularVelocityBody(math.nan, math.nan,
-                                                                  math.nan),
-                        pose_covariance=Covariance(NAN21),
-                        velocity_covariance=Covariance(NAN21)))
+                    mocap.set_odometry(
+                        Odometry(
+                            frame_id=Odometry.MavFrame.MOCAP_NED,
+                            position_body=PositionBody(*enu_to_ned(f.position)),
+                            q=Quaternion(*quat_enu_flu_to_ned_frd(f.quaternion)),
+                            speed_body=SpeedBody(math.nan, math.nan, math.nan),
+                            angular_velocity_body=AngularVelocityBody(math.nan, math.nan, math.nan),
+                            pose_covariance=Covariance(NAN21),
+                            velocity_covariance=Covariance(NAN21),
+                        )
+                    )
 
             forwarder = threading.Thread(target=bridge_mocap, daemon=True)
             forwarder.start()
             wait_for(lambda: tel.health().is_local_position_ok, 5.0, "vision-aided position")
 
             # A setpoint on the bus is not an input of this simulator.
-            bus.put(Setpoint(u=np.array([0.0, 0.0, 0.0, 0.0]), state_seq=0,
-                             stamp=time.monotonic()))
+            bus.put(Setpoint(u=np.array([0.0, 0.0, 0.0, 0.0]), state_seq=0, stamp=time.monotonic()))
             # Offboard over MAVLink starts the mission: a start command on the bus.
             curve = ThrustCurve(fac=0.3, max_thrust_n=16.0)  # the default vehicle's
-            hover = float(curve.throttle(0.57 * 9.81 + 0.1 * 9.81 + 0.002
-                                                         * 9.81))
+            hover = float(curve.throttle(0.57 * 9.81 + 0.1 * 9.81 + 0.002 * 9.81))
             thrust.append(hover)
             offboard.set_attitude_rate(AttitudeRate(0.0, 0.0, 0.0, hover))
             offboard.start()

@@ -97,8 +97,11 @@ def test_arming_needs_fresh_vision_and_disarmed_motors_are_off(airframe):
 
 
 def test_offboard_needs_a_stream_and_loss_lands_with_land_action(airframe):
-    v = Px4Vehicle(airframe, vision_required=False,
-                   params={"COM_OF_LOSS_T": 0.4, "COM_OBL_RC_ACT": 4, "COM_DISARM_LAND": 1.0})
+    v = Px4Vehicle(
+        airframe,
+        vision_required=False,
+        params={"COM_OF_LOSS_T": 0.4, "COM_OBL_RC_ACT": 4, "COM_DISARM_LAND": 1.0},
+    )
     assert v.arm()[0]
     assert not v.set_mode(FlightMode.OFFBOARD)[0] and v.mode is FlightMode.HOLD
     hover = float(v.curve.throttle(airframe.hover_thrust()))

@@ -19,8 +19,7 @@ PAYLOADS = (10.0, 200.0)
 
 @pytest.fixture(scope="module")
 def data():
-    return qd.make_dataset(seed=3, minutes_per_payload=MINUTES, payloads_g=PAYLOADS,
-                           cache=False)
+    return qd.make_dataset(seed=3, minutes_per_payload=MINUTES, payloads_g=PAYLOADS, cache=False)
 
 
 def test_dataset_shapes_finite_and_deterministic(data):
@@ -28,8 +27,12 @@ def test_dataset_shapes_finite_and_deterministic(data):
     n_log = steps * qd.LOG_PER_CONTROL + 1
     assert data["X"].shape == (len(PAYLOADS) * n_log, 13)
     assert data["U"].shape == (len(PAYLOADS) * n_log, 4)
-    assert data["x"].shape == data["x_next"].shape == data["delta"].shape == (
-        len(PAYLOADS) * steps, 13)
+    assert (
+        data["x"].shape
+        == data["x_next"].shape
+        == data["delta"].shape
+        == (len(PAYLOADS) * steps, 13)
+    )
     assert data["u"].shape == (len(PAYLOADS) * steps, 4)
     for key in ("X", "U", "x", "u", "delta"):
         assert np.isfinite(data[key]).all(), key
@@ -43,8 +46,9 @@ def test_dataset_shapes_finite_and_deterministic(data):
     # Inputs are held over a transition: the logged setpoint only changes every 5 samples.
     U0 = data["U"][data["flight"] == 0][:-1].reshape(steps, qd.LOG_PER_CONTROL, 4)
     assert np.all(U0[:, :1] == U0)
-    again = qd.make_dataset(seed=3, minutes_per_payload=MINUTES, payloads_g=PAYLOADS[:1],
-                            cache=False)
+    again = qd.make_dataset(
+        seed=3, minutes_per_payload=MINUTES, payloads_g=PAYLOADS[:1], cache=False
+    )
     np.testing.assert_array_equal(again["X"], data["X"][data["flight"] == 0])
 
 
@@ -67,8 +71,9 @@ def test_shipped_weights_load_and_predict():
     assert QUADROTOR_WEIGHTS.stat().st_size < 300_000
     model, config, extra = load_model(QUADROTOR_WEIGHTS)
     assert config == encoder.quadrotor_config()
-    assert extra["command"] == QUADROTOR_COMMAND == read_header(QUADROTOR_WEIGHTS)["extra"][
-        "command"]
+    assert (
+        extra["command"] == QUADROTOR_COMMAND == read_header(QUADROTOR_WEIGHTS)["extra"]["command"]
+    )
     assert extra["control_dt"] == qd.CONTROL_DT
     rng = np.random.default_rng(0)
     x = np.tile([0.0, 0.0, 2.0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0], (64, 1))
@@ -95,11 +100,15 @@ def test_short_closed_loop_flight_of_ours(data, method):
     """
     vld, _, _ = load_model(QUADROTOR_WEIGHTS)
     z = jax.vmap(vld.features)(jnp.asarray(data["x"]), jnp.asarray(data["u"]))
-    guard = cl.Guard(jnp.max(jnp.abs(jnp.asarray(data["delta"])), axis=0) * 2.0,
-                     jnp.min(z, axis=0) - 2.0, jnp.max(z, axis=0) + 2.0)
+    guard = cl.Guard(
+        jnp.max(jnp.abs(jnp.asarray(data["delta"])), axis=0) * 2.0,
+        jnp.min(z, axis=0) - 2.0,
+        jnp.max(z, axis=0) + 2.0,
+    )
     models = SimpleNamespace(vld=vld, closedloop={}, guard=guard)
-    scenario = cl.Scenario(payload_g=75.0, speed_mps=1.0, takeoff_s=1.0, hover_s=0.5,
-                           laps=0.3, release_fraction=0.2)
+    scenario = cl.Scenario(
+        payload_g=75.0, speed_mps=1.0, takeoff_s=1.0, hover_s=0.5, laps=0.3, release_fraction=0.2
+    )
     flight = cl.Runner(models).fly(method, scenario, seed=0)
     assert not flight.crashed
     assert flight.t[-1] > 5.0
@@ -115,8 +124,9 @@ def test_tuned_knobs_reach_the_learners():
 
     vld, _, _ = load_model(QUADROTOR_WEIGHTS)
     guard = cl.Guard(jnp.ones(13), -jnp.ones(8), jnp.ones(8))
-    models = SimpleNamespace(vld=vld, guard=guard,
-                             closedloop={"ours_beta": 0.2, "ours_sigma2": 0.003})
+    models = SimpleNamespace(
+        vld=vld, guard=guard, closedloop={"ours_beta": 0.2, "ours_sigma2": 0.003}
+    )
     for name in ("ours", "ours_no_cp"):
         learner = cl.initial_learner(name, models, jnp.float64)
         assert float(learner.config.sigma2) == pytest.approx(0.003)
@@ -141,8 +151,9 @@ def test_tuning_passes_until_no_knob_changes():
     class FakeRunner:
         def fly(self, method, scenario, seed):
             k = dict(models.closedloop)
-            flights.append((method, seed, *(v for n, v in sorted(k.items())
-                                            if cl.TUNING_METHOD[n] == method)))
+            flights.append(
+                (method, seed, *(v for n, v in sorted(k.items()) if cl.TUNING_METHOD[n] == method))
+            )
             if method == "ours":  # best beta 0.05 at sigma^2 0.1, 0.2 at sigma^2 <= 0.01
                 want = 0.05 if k["ours_sigma2"] > 0.05 else 0.2
                 rmse = abs(np.log(k["ours_beta"] / want)) + abs(np.log(k["ours_sigma2"] / 1e-3))
@@ -183,9 +194,13 @@ def test_controller_step_does_not_depend_on_the_quaternion_sign():
     x_ref_all, u_ref_all = cl.reference(cl.Scenario(), 40, runner.cfg.N)
     x = np.asarray(x_ref_all[0]) + np.r_[0.05, -0.03, -0.1, 0.1, 0.0, 0.0, np.zeros(7)]
     u0 = jnp.asarray([5.6, 0.0, 0.0, 0.0])
-    carry = cl.Carry(cl.initial_learner("nominal", runner.models, jnp.float64),
-                     jnp.broadcast_to(u0, (runner.cfg.N, 4)), u0, jnp.asarray(x),
-                     jnp.zeros((), bool))
+    carry = cl.Carry(
+        cl.initial_learner("nominal", runner.models, jnp.float64),
+        jnp.broadcast_to(u0, (runner.cfg.N, 4)),
+        u0,
+        jnp.asarray(x),
+        jnp.zeros((), bool),
+    )
     flipped = x.copy()
     flipped[6:10] *= -1.0
     _, u_pos, _ = step(carry, jnp.asarray(x), u0, 0, x_ref_all, u_ref_all)

@@ -157,8 +157,9 @@ def test_first_frame_starts_in_the_identity_hemisphere_at_any_clock():
     signs = set()
     for stamp in (0.0, 20.0, 2_000.0, 20_071.3, 86_400.0):
         for sign in (1.0, -1.0):
-            state, ok = est.update(est.init(), stamp, jnp.array([0.0, 0.0, 1.5]), sign * q,
-                                   omega, CFG)
+            state, ok = est.update(
+                est.init(), stamp, jnp.array([0.0, 0.0, 1.5]), sign * q, omega, CFG
+            )
             assert bool(ok)
             signs.add(float(np.sign(state.q[0])))
     assert signs == {1.0}
@@ -167,4 +168,3 @@ def test_first_frame_starts_in_the_identity_hemisphere_at_any_clock():
     state, _ = est.update(est.init(), 100.0, jnp.array([0.0, 0.0, 1.5]), q, omega, CFG)
     state, ok = est.update(state, 100.01, jnp.array([0.0, 0.0, 1.5]), -q, omega, CFG)
     assert bool(ok) and float(state.q[0]) > 0.99
-

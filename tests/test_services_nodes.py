@@ -35,8 +35,7 @@ def free_hub() -> str:
 
 def start(name: str, hub: str, out: Path, *args: str) -> subprocess.Popen:
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    cmd = [sys.executable, "-m", "services", name, "--hub", hub, "--out", str(out), "--x64",
-           *args]
+    cmd = [sys.executable, "-m", "services", name, "--hub", hub, "--out", str(out), "--x64", *args]
     log = (out / f"{name}.out").open("a")
     return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
 
@@ -61,8 +60,9 @@ def get(q: queue.Queue, what: str, pred=lambda m: True):
 
 
 def hover_state(stamp: float, z: float = 1.5) -> State:
-    return State(x=np.r_[0.0, 0.0, z, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0], stamp=stamp,
-                 meas_stamp=stamp)
+    return State(
+        x=np.r_[0.0, 0.0, z, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0], stamp=stamp, meas_stamp=stamp
+    )
 
 
 def test_controller_degrades_on_stale_state_and_rejects_garbage(tmp_path):
@@ -71,8 +71,10 @@ def test_controller_degrades_on_stale_state_and_rejects_garbage(tmp_path):
     setpoints: queue.Queue = queue.Queue()
     events: queue.Queue = queue.Queue()
     try:
-        with Bus("default", "estimator", peer_config(hub)) as est, \
-                Bus("default", "late", peer_config(hub)) as late:
+        with (
+            Bus("default", "estimator", peer_config(hub)) as est,
+            Bus("default", "late", peer_config(hub)) as late,
+        ):
             est.subscribe("setpoint", setpoints.put)
             est.subscribe("event", events.put)
             est.wait_alive(["controller"], timeout=TIMEOUT)
@@ -107,8 +109,11 @@ def test_controller_degrades_on_stale_state_and_rejects_garbage(tmp_path):
             seq = est.put(hover_state(time.monotonic()))
             sp = get(setpoints, "setpoint", lambda m: m.state_seq == seq)
             assert sp.mode == "nominal_model"
-            get(events, "mode event", lambda e: e.kind == "degraded" and e.data.get("mode")
-                == "nominal_model")
+            get(
+                events,
+                "mode event",
+                lambda e: e.kind == "degraded" and e.data.get("mode") == "nominal_model",
+            )
     finally:
         code = stop(proc)
     assert code == 0
@@ -174,8 +179,13 @@ def test_adapter_checkpoint_round_trip(tmp_path):
         proc = start("adapter", hub, tmp_path, *args)
         try:
             bus.wait_alive(["adapter"], timeout=TIMEOUT)
-            seq = bus.put(State(x=np.r_[0, 0, 1.5, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0],
-                                stamp=time.monotonic(), meas_stamp=time.monotonic()))
+            seq = bus.put(
+                State(
+                    x=np.r_[0, 0, 1.5, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0],
+                    stamp=time.monotonic(),
+                    meas_stamp=time.monotonic(),
+                )
+            )
             restored = get(models, "model", lambda m: m.state_seq == seq)
         finally:
             assert stop(proc) == 0

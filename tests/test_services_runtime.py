@@ -44,8 +44,10 @@ def test_realtime_scheduling_covers_every_thread_or_says_it_did_not(caplog):
             assert worker.native_id in after and after[worker.native_id] == os.SCHED_FIFO
         else:  # unprivileged: the normal policy stays and a warning says so
             assert result["policy"] in ("normal", "partial")
-            assert any(r.levelno == logging.WARNING and "SCHED_FIFO" in r.getMessage()
-                       for r in caplog.records)
+            assert any(
+                r.levelno == logging.WARNING and "SCHED_FIFO" in r.getMessage()
+                for r in caplog.records
+            )
     finally:
         for tid, (policy, priority) in before.items():
             with contextlib.suppress(OSError):  # ended meanwhile: checked below

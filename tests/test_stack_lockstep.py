@@ -90,8 +90,9 @@ def in_process_rmse(monkeypatch) -> float:
     monkeypatch.setattr(cl, "beam_method", lambda name="ours": moment_matched(beam_method(name)))
     vld, _, extra = load_model(DEFAULT_WEIGHTS)
     # The same trust region as the services: the one the weights file carries.
-    models = types.SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra),
-                                   closedloop=stack_knobs())
+    models = types.SimpleNamespace(
+        vld=vld, guard=cl.guard_from_metadata(extra), closedloop=stack_knobs()
+    )
     assert models.guard is not None
     flight = cl.Runner(models).fly("ours", cl.Scenario(), seed=SEED)
     assert not flight.crashed
@@ -110,8 +111,9 @@ def test_lockstep_flight_with_estimator(tmp_path):
     summary = run_demo(tmp_path, seed=SEED, x64=True, progress=False)
     check_clean_run(tmp_path, summary)
     truth = read_truth(tmp_path / "truth.csv")
-    est = np.genfromtxt(tmp_path / "flight_log.csv", delimiter=",", names=True, dtype=None,
-                        encoding=None)
+    est = np.genfromtxt(
+        tmp_path / "flight_log.csv", delimiter=",", names=True, dtype=None, encoding=None
+    )
     np.testing.assert_allclose(est["t"], truth["t"], atol=1e-9)
     err_p = np.stack([est[c] - truth[c] for c in ("px", "py", "pz")], axis=1)
     err_v = np.stack([est[c] - truth[c] for c in ("vx", "vy", "vz")], axis=1)

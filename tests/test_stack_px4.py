@@ -71,8 +71,9 @@ def _fly_through_px4(out: Path) -> float:
     cfg = Px4StackConfig(out=out, hub=free_hub(), simulate=True, connect=_udp_url(), **PLAN)
     events = EventWaiter()
     armed: list[bool] = []
-    result = run_flight(cfg, on_event=events, timeout=120.0,
-                        on_ready=lambda stack: armed.append(arm(events, cfg)))
+    result = run_flight(
+        cfg, on_event=events, timeout=120.0, on_ready=lambda stack: armed.append(arm(events, cfg))
+    )
     assert armed == [True]
     assert all(c == 0 for c in result["codes"].values()), result["codes"]
     px4 = json.loads((out / "stats" / "px4sim.json").read_text())
@@ -94,9 +95,11 @@ def test_figure_eight_through_px4_tracks_like_the_sim_profile(tmp_path):
         sim.append(_fly_sim_profile(tmp_path / f"sim{i}"))
         px4.append(_fly_through_px4(tmp_path / f"px4{i}"))
     rmse_sim, rmse_px4 = float(np.median(sim)), float(np.median(px4))
-    print(f"tracking RMSE (median of {FLIGHTS}): sim profile {rmse_sim:.3f} m "
-          f"{np.round(sim, 3).tolist()}, through PX4 {rmse_px4:.3f} m "
-          f"{np.round(px4, 3).tolist()} ({100 * (rmse_px4 / rmse_sim - 1):+.1f} %)")
+    print(
+        f"tracking RMSE (median of {FLIGHTS}): sim profile {rmse_sim:.3f} m "
+        f"{np.round(sim, 3).tolist()}, through PX4 {rmse_px4:.3f} m "
+        f"{np.round(px4, 3).tolist()} ({100 * (rmse_px4 / rmse_sim - 1):+.1f} %)"
+    )
     assert rmse_px4 <= 1.15 * rmse_sim
 
 
@@ -108,16 +111,30 @@ def _wait(events: EventWaiter, pred, timeout: float, after: int, what: str) -> d
 
 def test_failsafes_bridge_killed_then_controller_killed(tmp_path):
     # Hover plan (the reference stays put), long enough for both faults.
-    cfg = Px4StackConfig(out=tmp_path, hub=free_hub(), weights=tmp_path / "none.eqx",
-                         simulate=True, connect=_udp_url(), duration=60.0, hover_s=120.0,
-                         release=-1.0, of_loss_s=COM_OF_LOSS_T, of_loss_action="hold")
+    cfg = Px4StackConfig(
+        out=tmp_path,
+        hub=free_hub(),
+        weights=tmp_path / "none.eqx",
+        simulate=True,
+        connect=_udp_url(),
+        duration=60.0,
+        hover_s=120.0,
+        release=-1.0,
+        of_loss_s=COM_OF_LOSS_T,
+        of_loss_action="hold",
+    )
     events = EventWaiter()
 
     def engage() -> None:
         n = events.mark()
         assert arm(events, cfg)
-        _wait(events, lambda r: r["kind"] == "mode_change" and r["data"]["mode"] == "OFFBOARD",
-              5.0, n, "PX4 in Offboard")
+        _wait(
+            events,
+            lambda r: r["kind"] == "mode_change" and r["data"]["mode"] == "OFFBOARD",
+            5.0,
+            n,
+            "PX4 in Offboard",
+        )
 
     with Stack(cfg, on_event=events) as stack:
         stack.wait_ready()
@@ -127,16 +144,31 @@ def test_failsafes_bridge_killed_then_controller_killed(tmp_path):
         n = events.mark()
         t_kill = time.monotonic()
         stack.kill("bridge")
-        fs = _wait(events, lambda r: r["kind"] == "failsafe" and r["src"].startswith("px4sim"),
-                   COM_OF_LOSS_T + 5.0, n, "PX4 offboard-loss failsafe")
+        fs = _wait(
+            events,
+            lambda r: r["kind"] == "failsafe" and r["src"].startswith("px4sim"),
+            COM_OF_LOSS_T + 5.0,
+            n,
+            "PX4 offboard-loss failsafe",
+        )
         assert "offboard" in fs["text"].lower() and fs["data"]["mode"] == "HOLD"
         assert COM_OF_LOSS_T - 0.1 <= fs["stamp"] - t_kill <= COM_OF_LOSS_T + 0.5
 
         # The supervisor restarts the bridge; offboard is engaged again (explicitly).
-        _wait(events, lambda r: r["kind"] == "restart" and r["data"].get("service") == "bridge",
-              10.0, n, "bridge restart")
-        _wait(events, lambda r: r["kind"] == "ready" and r["src"].startswith("bridge"), 60.0,
-              n, "restarted bridge ready")
+        _wait(
+            events,
+            lambda r: r["kind"] == "restart" and r["data"].get("service") == "bridge",
+            10.0,
+            n,
+            "bridge restart",
+        )
+        _wait(
+            events,
+            lambda r: r["kind"] == "ready" and r["src"].startswith("bridge"),
+            60.0,
+            n,
+            "restarted bridge ready",
+        )
         engage()
 
         # The controller dies: the bridge leaves offboard -> Hold within 0.3 s + one
@@ -144,18 +176,37 @@ def test_failsafes_bridge_killed_then_controller_killed(tmp_path):
         n = events.mark()
         t_kill = time.monotonic()
         stack.kill("controller")
-        fs = _wait(events, lambda r: r["kind"] == "failsafe" and r["src"].startswith("bridge"),
-                   5.0, n, "bridge failsafe")
+        fs = _wait(
+            events,
+            lambda r: r["kind"] == "failsafe" and r["src"].startswith("bridge"),
+            5.0,
+            n,
+            "bridge failsafe",
+        )
         assert fs["data"]["reason"] in ("controller_lost", "setpoint_timeout")
-        hold = _wait(events, lambda r: r["kind"] == "mode_change" and r["src"].startswith(
-            "bridge") and r["data"]["mode"] == "HOLD", 5.0, n, "PX4 in Hold")
+        hold = _wait(
+            events,
+            lambda r: (
+                r["kind"] == "mode_change"
+                and r["src"].startswith("bridge")
+                and r["data"]["mode"] == "HOLD"
+            ),
+            5.0,
+            n,
+            "PX4 in Hold",
+        )
         assert hold["stamp"] - t_kill <= 0.3 + HEARTBEAT_S
-        print(f"controller killed -> bridge failsafe after {fs['stamp'] - t_kill:.3f} s, "
-              f"PX4 reports Hold after {hold['stamp'] - t_kill:.3f} s")
+        print(
+            f"controller killed -> bridge failsafe after {fs['stamp'] - t_kill:.3f} s, "
+            f"PX4 reports Hold after {hold['stamp'] - t_kill:.3f} s"
+        )
         # PX4 did not need its own failsafe: the bridge acted first; the vehicle holds.
         time_px4_would_fire = t_kill + COM_OF_LOSS_T + 0.5
-        late = events.wait(lambda r: r["kind"] == "failsafe" and r["src"].startswith("px4sim"),
-                           max(0.0, time_px4_would_fire - time.monotonic()), after=n)
+        late = events.wait(
+            lambda r: r["kind"] == "failsafe" and r["src"].startswith("px4sim"),
+            max(0.0, time_px4_would_fire - time.monotonic()),
+            after=n,
+        )
         assert late is None, late
         stack.stop()
     px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())

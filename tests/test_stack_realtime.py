@@ -48,8 +48,11 @@ def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
     # moments once): physics instants, whole 5 ms substeps apart, the first at or after
     # each period's instant; and the estimate starts level, w > 0 (the sign of the first
     # quaternion once depended on the host's uptime).
-    states = [json.loads(m.data) for _, ch, m in make_reader(
-        (tmp_path / "bus.mcap").open("rb")).iter_messages() if ch.topic.endswith("/state")]
+    states = [
+        json.loads(m.data)
+        for _, ch, m in make_reader((tmp_path / "bus.mcap").open("rb")).iter_messages()
+        if ch.topic.endswith("/state")
+    ]
     steps = np.diff([s["stamp"] for s in states])
     substep = 0.005
     np.testing.assert_allclose(steps / substep, np.round(steps / substep), atol=1e-6)

@@ -35,8 +35,15 @@ PAYLOAD_KG = 0.175
 
 
 def test_release_payload_command_in_hover(tmp_path):
-    cfg = StackConfig(out=tmp_path, hub=free_hub(), lockstep=True, duration=6.0,
-                      hover_s=1000.0, release=-1.0, x64=True)
+    cfg = StackConfig(
+        out=tmp_path,
+        hub=free_hub(),
+        lockstep=True,
+        duration=6.0,
+        hover_s=1000.0,
+        release=-1.0,
+        x64=True,
+    )
     sent = threading.Event()
     buses: list[Bus] = []
 

@@ -29,23 +29,39 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke run)")
     p.add_argument("--out", default="BENCHMARKS.md", help="report: file to write")
     g = p.add_argument_group("discrepancy")
-    g.add_argument("--sweep", action="store_true",
-                   help="sweep every quadrotor effect over its plausible range (a markdown "
-                        "table, or JSON with --json) instead of timing the workflow")
-    g.add_argument("--limits", action="store_true",
-                   help="measure the minimum detectable magnitude of every quadrotor effect")
-    g.add_argument("--effect", action="append", default=None,
-                   help="only this effect (repeatable)")
+    g.add_argument(
+        "--sweep",
+        action="store_true",
+        help="sweep every quadrotor effect over its plausible range (a markdown "
+        "table, or JSON with --json) instead of timing the workflow",
+    )
+    g.add_argument(
+        "--limits",
+        action="store_true",
+        help="measure the minimum detectable magnitude of every quadrotor effect",
+    )
+    g.add_argument("--effect", action="append", default=None, help="only this effect (repeatable)")
     g.add_argument("--seed", type=int, default=0, help="flight seed of --sweep / --limits")
     m = p.add_argument_group("mpc")
-    m.add_argument("--residual", choices=("rollout", "held"), default=None,
-                   help="learned residual inside the rollout (the controllers' scheme, "
-                        "default) or held along the warm start")
-    m.add_argument("--solver", default=None,
-                   help="MPC solver: gauss_newton_armijo (the quadrotor configuration's, "
-                        "default), gauss_newton, dogleg or levenberg_marquardt")
-    m.add_argument("--max-steps", type=int, default=None,
-                   help="solver iteration cap (default: the configuration's, 8)")
+    m.add_argument(
+        "--residual",
+        choices=("rollout", "held"),
+        default=None,
+        help="learned residual inside the rollout (the controllers' scheme, "
+        "default) or held along the warm start",
+    )
+    m.add_argument(
+        "--solver",
+        default=None,
+        help="MPC solver: gauss_newton_armijo (the quadrotor configuration's, "
+        "default), gauss_newton, dogleg or levenberg_marquardt",
+    )
+    m.add_argument(
+        "--max-steps",
+        type=int,
+        default=None,
+        help="solver iteration cap (default: the configuration's, 8)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -61,14 +77,21 @@ def run(args: argparse.Namespace) -> int:
     if args.which == "discrepancy" and (args.sweep or args.limits):
         return _discrepancy_sweep(args)
     if args.sweep or args.limits or args.effect:
-        print("--sweep, --limits and --effect belong to `arcade bench discrepancy`",
-              file=sys.stderr)
+        print(
+            "--sweep, --limits and --effect belong to `arcade bench discrepancy`", file=sys.stderr
+        )
         return 2
-    mpc_options = {k: v for k, v in (("residual", args.residual), ("solver", args.solver),
-                                      ("max_steps", args.max_steps)) if v is not None}
+    mpc_options = {
+        k: v
+        for k, v in (
+            ("residual", args.residual),
+            ("solver", args.solver),
+            ("max_steps", args.max_steps),
+        )
+        if v is not None
+    }
     if mpc_options and args.which != "mpc":
-        print("--residual, --solver and --max-steps belong to `arcade bench mpc`",
-              file=sys.stderr)
+        print("--residual, --solver and --max-steps belong to `arcade bench mpc`", file=sys.stderr)
         return 2
     if args.max_steps is not None and args.max_steps < 1:
         print("--max-steps must be at least 1", file=sys.stderr)
@@ -93,8 +116,12 @@ def _discrepancy_sweep(args: argparse.Namespace) -> int:
     from benchmarks import discrepancy
 
     if args.limits:
-        print(json.dumps(discrepancy.detection_limits(seed=args.seed, effects=args.effect),
-                         indent=None if args.json else 2))
+        print(
+            json.dumps(
+                discrepancy.detection_limits(seed=args.seed, effects=args.effect),
+                indent=None if args.json else 2,
+            )
+        )
         return 0
 
     def progress(row: dict) -> None:  # one line per flight on stderr: long job

@@ -16,12 +16,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--payload-g", type=float, default=175.0, help="swinging payload [g]")
     p.add_argument("--speed", type=float, default=2.5, help="figure-eight mean speed [m/s]")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--weights", type=Path, default=None,
-                   help="VLD weights (quadrotor; default the shipped file; cartpole with "
-                        "--cartpole)")
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        help="VLD weights (quadrotor; default the shipped file; cartpole with --cartpole)",
+    )
     p.add_argument("--x64", action="store_true", help="compute in float64")
-    p.add_argument("--cartpole", action="store_true",
-                   help="run the in-process cartpole adaptation demo instead")
+    p.add_argument(
+        "--cartpole",
+        action="store_true",
+        help="run the in-process cartpole adaptation demo instead",
+    )
 
 
 def run_cartpole(args: argparse.Namespace) -> int:
@@ -61,10 +67,19 @@ def run(args: argparse.Namespace) -> int:
     from arcade.demo_stack import format_summary, run_demo
 
     out = args.out or new_run_dir("demo")
-    print(f"ARCADE stack demo: {args.payload_g:g} g payload, {args.speed:g} m/s figure-eight, "
-          "released before the second lap (lockstep)", flush=True)
-    summary = run_demo(out, payload_g=args.payload_g, speed=args.speed, seed=args.seed,
-                       x64=args.x64, weights=args.weights)
+    print(
+        f"ARCADE stack demo: {args.payload_g:g} g payload, {args.speed:g} m/s figure-eight, "
+        "released before the second lap (lockstep)",
+        flush=True,
+    )
+    summary = run_demo(
+        out,
+        payload_g=args.payload_g,
+        speed=args.speed,
+        seed=args.seed,
+        x64=args.x64,
+        weights=args.weights,
+    )
     print()
     print(format_summary(summary))
     print(f"\nrun folder: {out} (flight.png, metrics.json, logs/, flight_log.csv, bus.mcap)")

@@ -35,39 +35,90 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--no-vision-required. Offboard needs a SET_ATTITUDE_TARGET stream first; when the\n"
         "stream stops for --of-loss-s the vehicle switches to --of-loss-action."
     )
-    p.add_argument("--px4", required=True, metavar="URL",
-                   help="MAVLink link: udpout://HOST:PORT (send to a listening client, like "
-                        "PX4 SITL on 14540) or udpin://HOST:PORT (listen)")
-    p.add_argument("--vehicle", type=Path, default=None,
-                   help="vehicle file (TOML; default: the shipped arcade-152)")
-    p.add_argument("--payload-g", type=float, default=0.0,
-                   help="swinging payload under the vehicle [g] (0: none)")
-    p.add_argument("--cable-length", type=float, default=None,
-                   help="payload cable length [m] (default: the vehicle file's)")
-    p.add_argument("--release-at", type=float, default=None, metavar="S",
-                   help="release the payload at this simulated time [s]")
-    p.add_argument("--duration", type=float, default=None,
-                   help="stop after this many seconds (default: until Ctrl-C)")
-    p.add_argument("--of-loss-s", type=float, default=1.0,
-                   help="offboard loss timeout COM_OF_LOSS_T [s] (PX4 default 1.0)")
-    p.add_argument("--of-loss-action", choices=sorted(LOSS_ACTIONS), default="hold",
-                   help="mode after an offboard loss (COM_OBL_RC_ACT)")
-    p.add_argument("--takeoff-alt", type=float, default=2.5,
-                   help="take-off height MIS_TAKEOFF_ALT [m]")
-    p.add_argument("--no-vision-required", action="store_true",
-                   help="the estimator counts as valid without mocap (stand-alone use)")
-    p.add_argument("--vision-timeout", type=float, default=0.5,
-                   help="mocap older than this no longer gives a valid position [s]")
-    p.add_argument("--airborne", action="store_true",
-                   help="start hovering at --start, armed, in Hold (default: disarmed on "
-                        "the floor)")
-    p.add_argument("--start", type=float, nargs=3, default=(0.0, 0.0, 1.5),
-                   metavar=("X", "Y", "Z"), help="start position ENU [m] (Z: with --airborne)")
-    p.add_argument("--yaw-deg", type=float, default=0.0,
-                   help="start heading, ENU (0 = facing east) [deg]")
+    p.add_argument(
+        "--px4",
+        required=True,
+        metavar="URL",
+        help="MAVLink link: udpout://HOST:PORT (send to a listening client, like "
+        "PX4 SITL on 14540) or udpin://HOST:PORT (listen)",
+    )
+    p.add_argument(
+        "--vehicle",
+        type=Path,
+        default=None,
+        help="vehicle file (TOML; default: the shipped arcade-152)",
+    )
+    p.add_argument(
+        "--payload-g",
+        type=float,
+        default=0.0,
+        help="swinging payload under the vehicle [g] (0: none)",
+    )
+    p.add_argument(
+        "--cable-length",
+        type=float,
+        default=None,
+        help="payload cable length [m] (default: the vehicle file's)",
+    )
+    p.add_argument(
+        "--release-at",
+        type=float,
+        default=None,
+        metavar="S",
+        help="release the payload at this simulated time [s]",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="stop after this many seconds (default: until Ctrl-C)",
+    )
+    p.add_argument(
+        "--of-loss-s",
+        type=float,
+        default=1.0,
+        help="offboard loss timeout COM_OF_LOSS_T [s] (PX4 default 1.0)",
+    )
+    p.add_argument(
+        "--of-loss-action",
+        choices=sorted(LOSS_ACTIONS),
+        default="hold",
+        help="mode after an offboard loss (COM_OBL_RC_ACT)",
+    )
+    p.add_argument(
+        "--takeoff-alt", type=float, default=2.5, help="take-off height MIS_TAKEOFF_ALT [m]"
+    )
+    p.add_argument(
+        "--no-vision-required",
+        action="store_true",
+        help="the estimator counts as valid without mocap (stand-alone use)",
+    )
+    p.add_argument(
+        "--vision-timeout",
+        type=float,
+        default=0.5,
+        help="mocap older than this no longer gives a valid position [s]",
+    )
+    p.add_argument(
+        "--airborne",
+        action="store_true",
+        help="start hovering at --start, armed, in Hold (default: disarmed on the floor)",
+    )
+    p.add_argument(
+        "--start",
+        type=float,
+        nargs=3,
+        default=(0.0, 0.0, 1.5),
+        metavar=("X", "Y", "Z"),
+        help="start position ENU [m] (Z: with --airborne)",
+    )
+    p.add_argument(
+        "--yaw-deg", type=float, default=0.0, help="start heading, ENU (0 = facing east) [deg]"
+    )
     p.add_argument("--seed", type=int, default=0, help="sensor-noise seed")
-    p.add_argument("--status-every", type=float, default=1.0,
-                   help="status line period [s] (0: none)")
+    p.add_argument(
+        "--status-every", type=float, default=1.0, help="status line period [s] (0: none)"
+    )
 
 
 def status_line(v) -> str:
@@ -75,8 +126,10 @@ def status_line(v) -> str:
     x = v.state()
     flags = ("ARMED" if v.armed else "disarmed") + (" failsafe" if v.failsafe else "")
     where = "on ground" if v.landed else "in air"
-    return (f"t={v.time:8.2f}s  mode={v.mode.name:8s} {flags:17s} {where:9s} "
-            f"pos ENU=({x[0]:+6.2f}, {x[1]:+6.2f}, {x[2]:+6.2f}) m")
+    return (
+        f"t={v.time:8.2f}s  mode={v.mode.name:8s} {flags:17s} {where:9s} "
+        f"pos ENU=({x[0]:+6.2f}, {x[1]:+6.2f}, {x[2]:+6.2f}) m"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -92,17 +145,27 @@ def run(args: argparse.Namespace) -> int:
     def on_text(severity: int, text: str) -> None:
         print(f"[px4] {text}", flush=True)
 
-    params = {"COM_OF_LOSS_T": args.of_loss_s, "COM_OBL_RC_ACT": LOSS_ACTIONS[args.of_loss_action],
-              "MIS_TAKEOFF_ALT": args.takeoff_alt}
-    sim = Px4Sim(args.px4, vehicle=args.vehicle, payload_g=args.payload_g,
-                 cable_length=args.cable_length, start=args.start,
-                 yaw=math.radians(args.yaw_deg), airborne=args.airborne,
-                 vision_required=not args.no_vision_required,
-                 vision_timeout_s=args.vision_timeout, params=params, seed=args.seed,
-                 on_text=on_text)
+    params = {
+        "COM_OF_LOSS_T": args.of_loss_s,
+        "COM_OBL_RC_ACT": LOSS_ACTIONS[args.of_loss_action],
+        "MIS_TAKEOFF_ALT": args.takeoff_alt,
+    }
+    sim = Px4Sim(
+        args.px4,
+        vehicle=args.vehicle,
+        payload_g=args.payload_g,
+        cable_length=args.cable_length,
+        start=args.start,
+        yaw=math.radians(args.yaw_deg),
+        airborne=args.airborne,
+        vision_required=not args.no_vision_required,
+        vision_timeout_s=args.vision_timeout,
+        params=params,
+        seed=args.seed,
+        on_text=on_text,
+    )
     v = sim.vehicle
-    print(f"simulated PX4 vehicle on {args.px4} (system 1, component 1); Ctrl-C stops",
-          flush=True)
+    print(f"simulated PX4 vehicle on {args.px4} (system 1, component 1); Ctrl-C stops", flush=True)
 
     state = {"next_status": 0.0, "released": False}
 
@@ -119,8 +182,10 @@ def run(args: argparse.Namespace) -> int:
             print(line, flush=True)
         return False
 
-    previous = {sig: signal.signal(sig, lambda *_: sim.stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {
+        sig: signal.signal(sig, lambda *_: sim.stop.set())
+        for sig in (signal.SIGINT, signal.SIGTERM)
+    }
     try:
         sim.run(duration=args.duration, on_chunk=on_chunk)
     finally:
@@ -130,6 +195,9 @@ def run(args: argparse.Namespace) -> int:
     with sim.lock:
         print(status_line(v), flush=True)
     rx = ", ".join(f"{k} {n}" for k, n in sorted(sim.mavlink.rx.items())) or "nothing"
-    print(f"stopped; received {rx}; rejected {dict(sim.mavlink.rejects) or 'none'}; "
-          f"wall-clock overruns {sim.overruns}", flush=True)
+    print(
+        f"stopped; received {rx}; rejected {dict(sim.mavlink.rejects) or 'none'}; "
+        f"wall-clock overruns {sim.overruns}",
+        flush=True,
+    )
     return 0

@@ -21,29 +21,47 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "The run folder gets logs/<service>.log, stats/, events.jsonl, truth.csv,\n"
         "flight_log.csv and bus.mcap (open it in Foxglove Studio)."
     )
-    p.add_argument("--profile", choices=("sim", "px4"), default="sim",
-                   help="sim: MuJoCo simulator as the vehicle; px4: a PX4 vehicle link")
-    p.add_argument("--lockstep", action="store_true",
-                   help="simulated clock: the simulator waits for every setpoint")
+    p.add_argument(
+        "--profile",
+        choices=("sim", "px4"),
+        default="sim",
+        help="sim: MuJoCo simulator as the vehicle; px4: a PX4 vehicle link",
+    )
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="simulated clock: the simulator waits for every setpoint",
+    )
     p.add_argument("--vehicle", default="default", help="vehicle name on the bus")
-    p.add_argument("--duration", type=float, default=None,
-                   help="flight duration [s] (default: take-off, hover, two figure-eight laps)")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="flight duration [s] (default: take-off, hover, two figure-eight laps)",
+    )
     p.add_argument("--payload-g", type=float, default=175.0, help="swinging payload [g]")
     p.add_argument("--speed", type=float, default=2.5, help="figure-eight mean speed [m/s]")
     p.add_argument("--rate", type=float, default=20.0, help="control rate [Hz]")
     p.add_argument("--seed", type=int, default=0, help="trial seed")
     p.add_argument("--out", type=Path, default=None, help="run folder (default runs/<time>-up)")
-    p.add_argument("--hub", default=None,
-                   help="Zenoh hub endpoint (default: a free loopback port)")
+    p.add_argument("--hub", default=None, help="Zenoh hub endpoint (default: a free loopback port)")
     p.add_argument("--weights", type=Path, default=None, help="VLD weights file")
-    p.add_argument("--checkpoint", type=Path, default=None,
-                   help="adapter posterior checkpoint (restored if present)")
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        help="adapter posterior checkpoint (restored if present)",
+    )
     p.add_argument("--x64", action="store_true", help="compute in float64")
-    p.add_argument("--no-realtime-priority", dest="realtime_priority", action="store_false",
-                   help="realtime clock: keep the normal scheduling policy and let idle CPUs "
-                        "sleep (default: the vehicle link, estimator and controller run under "
-                        "SCHED_FIFO after warm-up and request a CPU wake-up latency of 0 us, "
-                        "which needs root or an rtprio limit; without, they warn)")
+    p.add_argument(
+        "--no-realtime-priority",
+        dest="realtime_priority",
+        action="store_false",
+        help="realtime clock: keep the normal scheduling policy and let idle CPUs "
+        "sleep (default: the vehicle link, estimator and controller run under "
+        "SCHED_FIFO after warm-up and request a CPU wake-up latency of 0 us, "
+        "which needs root or an rtprio limit; without, they warn)",
+    )
     from deploy import px4_profile
 
     px4_profile.add_arguments(p)
@@ -59,10 +77,19 @@ def run(args: argparse.Namespace) -> int:
 
     out = args.out or new_run_dir("up")
     cfg = StackConfig(
-        out=Path(out), profile=args.profile, lockstep=args.lockstep, vehicle=args.vehicle,
-        hub=args.hub or free_hub(), rate=args.rate, duration=args.duration,
-        payload_g=args.payload_g, speed=args.speed, seed=args.seed, x64=args.x64,
-        weights=args.weights, checkpoint=args.checkpoint,
+        out=Path(out),
+        profile=args.profile,
+        lockstep=args.lockstep,
+        vehicle=args.vehicle,
+        hub=args.hub or free_hub(),
+        rate=args.rate,
+        duration=args.duration,
+        payload_g=args.payload_g,
+        speed=args.speed,
+        seed=args.seed,
+        x64=args.x64,
+        weights=args.weights,
+        checkpoint=args.checkpoint,
         realtime_priority=args.realtime_priority,
     )
 
@@ -89,8 +116,7 @@ def run(args: argparse.Namespace) -> int:
             cfg = px4_profile.config_from_args(args, cfg)
             hooks = px4_profile.flight_hooks(args, cfg, say)
         hooks["on_event"] = _show_faults(say, hooks.get("on_event"))
-        result = run_flight(cfg, progress=say, on_time=on_time if args.lockstep else None,
-                            **hooks)
+        result = run_flight(cfg, progress=say, on_time=on_time if args.lockstep else None, **hooks)
     except (StackError, ValueError) as err:
         say(f"\nerror: {err}")
         return 1

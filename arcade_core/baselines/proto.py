@@ -97,10 +97,17 @@ def init_model(
     n_in, d = x.shape[1] + u.shape[1], delta.shape[1]
     k_enc, k_trunk, k_head, k_proto = jax.random.split(key, 4)
     dtype = x.dtype
-    enc = eqx.nn.MLP(n_in + d, embedding, hidden, 2, activation=jax.nn.elu, key=k_enc,
-                     dtype=dtype)
-    trunk = eqx.nn.MLP(n_in, hidden, hidden, 2, activation=jax.nn.elu,
-                       final_activation=jax.nn.elu, key=k_trunk, dtype=dtype)
+    enc = eqx.nn.MLP(n_in + d, embedding, hidden, 2, activation=jax.nn.elu, key=k_enc, dtype=dtype)
+    trunk = eqx.nn.MLP(
+        n_in,
+        hidden,
+        hidden,
+        2,
+        activation=jax.nn.elu,
+        final_activation=jax.nn.elu,
+        key=k_trunk,
+        dtype=dtype,
+    )
     heads = eqx.nn.Linear(hidden, len(tasks) * d, key=k_head, dtype=dtype)
     protos = jax.random.normal(k_proto, (len(tasks), embedding), dtype)
     std = fit_standardizer(jnp.concatenate([x, u], axis=1), delta)
@@ -155,7 +162,8 @@ def train(
         m = eqx.combine(p, static)
         rows = idx[:, None] + offsets[None, :]
         losses = jax.vmap(_window_loss, in_axes=(None, 0, 0, 0, 0, None))(
-            m, x[rows], u[rows], delta[rows], task[rows[:, -1]], task_weight)
+            m, x[rows], u[rows], delta[rows], task[rows[:, -1]], task_weight
+        )
         return jnp.mean(losses)
 
     @jax.jit
@@ -192,8 +200,9 @@ def attention(model: ProtoResidual, state: ProtoState) -> Array:
     w = fifo_mask(buf).astype(emb.dtype)
     e = jnp.sum(emb * w[:, None], axis=0) / jnp.maximum(jnp.sum(w), 1.0)
     m = model.prototypes.shape[0]
-    return jnp.where(buf.count > 0, jax.nn.softmax(model.logits(e)),
-                     jnp.full(m, 1.0 / m, emb.dtype))
+    return jnp.where(
+        buf.count > 0, jax.nn.softmax(model.logits(e)), jnp.full(m, 1.0 / m, emb.dtype)
+    )
 
 
 def predict_mean(model: ProtoResidual, state: ProtoState, x: Array, u: Array) -> Array:

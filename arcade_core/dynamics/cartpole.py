@@ -49,9 +49,7 @@ def cartpole_accel(
     s, c = jnp.sin(th), jnp.cos(th)
     den = M + m * s**2
     xddot = (f - params.mu_c * xdot + m * s * (L * thdot**2 + g * c)) / den
-    thddot = (
-        -f * c - params.mu_p * thdot - m * L * thdot**2 * s * c + (M + m) * g * s
-    ) / (L * den)
+    thddot = (-f * c - params.mu_p * thdot - m * L * thdot**2 * s * c + (M + m) * g * s) / (L * den)
     return xddot, thddot
 
 

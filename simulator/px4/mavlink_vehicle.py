@@ -68,22 +68,36 @@ FLIGHT_SW_VERSION = (1 << 24) | (15 << 16) | (0 << 8) | 255
 FORCE_MAGIC = 21196  # param2 of ARM_DISARM that skips the checks
 
 # External-vision frames PX4 takes as NED-aligned / FRD (deprecated ids kept numerically).
-NED_FRAMES = {mavlink.MAV_FRAME_LOCAL_NED: "LOCAL_NED", 14: "MOCAP_NED", 16: "VISION_NED",
-              18: "ESTIM_NED", mavlink.MAV_FRAME_LOCAL_FRD: "LOCAL_FRD"}
+NED_FRAMES = {
+    mavlink.MAV_FRAME_LOCAL_NED: "LOCAL_NED",
+    14: "MOCAP_NED",
+    16: "VISION_NED",
+    18: "ESTIM_NED",
+    mavlink.MAV_FRAME_LOCAL_FRD: "LOCAL_FRD",
+}
 
 _S = mavlink  # short alias for the many enum names below
 SENSORS_PRESENT = (
-    _S.MAV_SYS_STATUS_SENSOR_3D_GYRO | _S.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-    | _S.MAV_SYS_STATUS_SENSOR_3D_MAG | _S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
-    | _S.MAV_SYS_STATUS_SENSOR_VISION_POSITION | _S.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
-    | _S.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION | _S.MAV_SYS_STATUS_SENSOR_YAW_POSITION
-    | _S.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL | _S.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
-    | _S.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS | _S.MAV_SYS_STATUS_AHRS
-    | _S.MAV_SYS_STATUS_SENSOR_BATTERY | _S.MAV_SYS_STATUS_PREARM_CHECK
+    _S.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    | _S.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | _S.MAV_SYS_STATUS_SENSOR_3D_MAG
+    | _S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | _S.MAV_SYS_STATUS_SENSOR_VISION_POSITION
+    | _S.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
+    | _S.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
+    | _S.MAV_SYS_STATUS_SENSOR_YAW_POSITION
+    | _S.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
+    | _S.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
+    | _S.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+    | _S.MAV_SYS_STATUS_AHRS
+    | _S.MAV_SYS_STATUS_SENSOR_BATTERY
+    | _S.MAV_SYS_STATUS_PREARM_CHECK
 )
 CAPABILITIES = (
-    _S.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT | _S.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
-    | _S.MAV_PROTOCOL_CAPABILITY_MISSION_INT | _S.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    _S.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
+    | _S.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+    | _S.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+    | _S.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
     | _S.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
     | _S.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
     | _S.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
@@ -99,9 +113,14 @@ def _param_wire(value: float | int) -> tuple[float, int]:
 
 
 def _param_from_wire(value: float, param_type: int) -> float | int:
-    if param_type in (mavlink.MAV_PARAM_TYPE_INT32, mavlink.MAV_PARAM_TYPE_UINT32,
-                      mavlink.MAV_PARAM_TYPE_INT8, mavlink.MAV_PARAM_TYPE_UINT8,
-                      mavlink.MAV_PARAM_TYPE_INT16, mavlink.MAV_PARAM_TYPE_UINT16):
+    if param_type in (
+        mavlink.MAV_PARAM_TYPE_INT32,
+        mavlink.MAV_PARAM_TYPE_UINT32,
+        mavlink.MAV_PARAM_TYPE_INT8,
+        mavlink.MAV_PARAM_TYPE_UINT8,
+        mavlink.MAV_PARAM_TYPE_INT16,
+        mavlink.MAV_PARAM_TYPE_UINT16,
+    ):
         return struct.unpack("<i", struct.pack("<f", value))[0]
     return float(value)
 
@@ -115,8 +134,14 @@ def _euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
     cr, sr = math.cos(roll / 2), math.sin(roll / 2)
     cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
     cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+    return np.array(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
 
 
 class MavlinkVehicle:
@@ -130,8 +155,15 @@ class MavlinkVehicle:
             bus events).
     """
 
-    def __init__(self, vehicle: Px4Vehicle, url: str, *, system_id: int = 1,
-                 component_id: int = 1, on_text: Callable[[int, str], None] | None = None):
+    def __init__(
+        self,
+        vehicle: Px4Vehicle,
+        url: str,
+        *,
+        system_id: int = 1,
+        component_id: int = 1,
+        on_text: Callable[[int, str], None] | None = None,
+    ):
         self.vehicle = vehicle
         self.link = UdpLink(url)
         self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
@@ -168,8 +200,7 @@ class MavlinkVehicle:
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> MavlinkVehicle:
-        self._thread = threading.Thread(target=self._rx_loop, name="px4-mavlink-rx",
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._rx_loop, name="px4-mavlink-rx", daemon=True)
         self._thread.start()
         return self
 
@@ -229,23 +260,39 @@ class MavlinkVehicle:
         status = mavlink.MAV_STATE_ACTIVE if v.armed else mavlink.MAV_STATE_STANDBY
         if v.failsafe and v.armed:
             status = mavlink.MAV_STATE_CRITICAL
-        return self.mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4,
-                                         base, v.mode.custom_mode, status)
+        return self.mav.heartbeat_encode(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, v.mode.custom_mode, status
+        )
 
     def _sys_status(self):
         v = self.vehicle
         health = SENSORS_PRESENT
         if not v.position_ok():
-            health &= ~(mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION
-                        | mavlink.MAV_SYS_STATUS_PREARM_CHECK)
+            health &= ~(
+                mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION | mavlink.MAV_SYS_STATUS_PREARM_CHECK
+            )
         if not v.landed and not v.armed:
             health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
-        return self.mav.sys_status_encode(SENSORS_PRESENT, SENSORS_PRESENT, health, 250,
-                                          16000, 500 if v.armed else 10, 90, 0, 0, 0, 0, 0, 0)
+        return self.mav.sys_status_encode(
+            SENSORS_PRESENT,
+            SENSORS_PRESENT,
+            health,
+            250,
+            16000,
+            500 if v.armed else 10,
+            90,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
 
     def _extended_sys_state(self):
-        return self.mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED,
-                                                  self.vehicle.landed_state)
+        return self.mav.extended_sys_state_encode(
+            mavlink.MAV_VTOL_STATE_UNDEFINED, self.vehicle.landed_state
+        )
 
     def _attitude_quaternion(self):
         x = self.vehicle.state()
@@ -262,15 +309,17 @@ class MavlinkVehicle:
         if not self.vehicle.position_ok():
             return None  # PX4 streams the local position only while it is valid
         x = self.vehicle.state()
-        return self.mav.local_position_ned_encode(self._boot_ms(), *enu_to_ned(x[0:3]),
-                                                  *enu_to_ned(x[3:6]))
+        return self.mav.local_position_ned_encode(
+            self._boot_ms(), *enu_to_ned(x[0:3]), *enu_to_ned(x[3:6])
+        )
 
     def _home_position(self):
         if self.vehicle.home is None:
             return None  # no home before the estimator had a position
         home = enu_to_ned(self.vehicle.home)
-        return self.mav.home_position_encode(0, 0, 0, *home, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0,
-                                             0.0, int(self.vehicle.time * 1e6))
+        return self.mav.home_position_encode(
+            0, 0, 0, *home, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(self.vehicle.time * 1e6)
+        )
 
     def _odometry(self):
         if not self.vehicle.position_ok():
@@ -280,14 +329,34 @@ class MavlinkVehicle:
         v_body = _rotation_t(x[6:10]) @ x[3:6]
         nan21 = [math.nan] * 21
         return self.mav.odometry_encode(
-            int(self.vehicle.time * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,
-            *enu_to_ned(x[0:3]), q, *flu_to_frd(v_body), *flu_to_frd(x[10:13]), nan21, nan21,
-            0, mavlink.MAV_ESTIMATOR_TYPE_VISION, 100)
+            int(self.vehicle.time * 1e6),
+            mavlink.MAV_FRAME_LOCAL_NED,
+            mavlink.MAV_FRAME_BODY_FRD,
+            *enu_to_ned(x[0:3]),
+            q,
+            *flu_to_frd(v_body),
+            *flu_to_frd(x[10:13]),
+            nan21,
+            nan21,
+            0,
+            mavlink.MAV_ESTIMATOR_TYPE_VISION,
+            100,
+        )
 
     def _autopilot_version(self):
         return self.mav.autopilot_version_encode(
-            CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(b"arcadesi"), [0] * 8, [0] * 8,
-            0, 0, 0x415243414445)
+            CAPABILITIES,
+            FLIGHT_SW_VERSION,
+            0,
+            0,
+            0,
+            list(b"arcadesi"),
+            [0] * 8,
+            [0] * 8,
+            0,
+            0,
+            0x415243414445,
+        )
 
     # ------------------------------------------------------------------ receiving
 
@@ -328,26 +397,39 @@ class MavlinkVehicle:
                 self._command(msg, kind == "COMMAND_INT")
         elif kind == "SET_ATTITUDE_TARGET":
             if self._for_us(msg) and not self.vehicle.set_attitude_target(
-                    msg.type_mask, msg.q,
-                    (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate), msg.thrust):
+                msg.type_mask,
+                msg.q,
+                (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate),
+                msg.thrust,
+            ):
                 self.rejects["set_attitude_target"] += 1
         elif kind == "ODOMETRY":
             self._odometry_in(msg)
         elif kind == "VISION_POSITION_ESTIMATE":
             q = _euler_to_quat(msg.roll, msg.pitch, msg.yaw)
-            if not self.vehicle.set_vision((msg.x, msg.y, msg.z), q,
-                                           source="vision_position_estimate",
-                                           frame_id=mavlink.MAV_FRAME_LOCAL_NED):
+            if not self.vehicle.set_vision(
+                (msg.x, msg.y, msg.z),
+                q,
+                source="vision_position_estimate",
+                frame_id=mavlink.MAV_FRAME_LOCAL_NED,
+            ):
                 self.rejects["vision_position_estimate"] += 1
         elif kind == "ATT_POS_MOCAP":
-            if not self.vehicle.set_vision((msg.x, msg.y, msg.z), msg.q, source="att_pos_mocap",
-                                           frame_id=mavlink.MAV_FRAME_LOCAL_NED):
+            if not self.vehicle.set_vision(
+                (msg.x, msg.y, msg.z),
+                msg.q,
+                source="att_pos_mocap",
+                frame_id=mavlink.MAV_FRAME_LOCAL_NED,
+            ):
                 self.rejects["att_pos_mocap"] += 1
         elif kind.startswith("PARAM_"):
             self._param(msg, kind)
         elif kind == "PING" and msg.target_system == 0:  # a ping request: answer it
-            self._send(self.mav.ping_encode(msg.time_usec, msg.seq, msg.get_srcSystem(),
-                                            msg.get_srcComponent()))
+            self._send(
+                self.mav.ping_encode(
+                    msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
+                )
+            )
         elif kind == "TIMESYNC" and msg.tc1 == 0:
             self._send(self.mav.timesync_encode(time.monotonic_ns(), msg.ts1))
 
@@ -356,23 +438,33 @@ class MavlinkVehicle:
             self.rejects["odometry_frame"] += 1
             return
         q = np.asarray(msg.q, dtype=float)
-        if not self.vehicle.set_vision((msg.x, msg.y, msg.z), q if np.isfinite(q[0]) else None,
-                                       source="odometry", frame_id=msg.frame_id):
+        if not self.vehicle.set_vision(
+            (msg.x, msg.y, msg.z),
+            q if np.isfinite(q[0]) else None,
+            source="odometry",
+            frame_id=msg.frame_id,
+        ):
             self.rejects["odometry"] += 1
 
     # ------------------------------------------------------------------ commands
 
     def _ack(self, msg, command: int, result: int) -> None:
-        self._send(self.mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(),
-                                               msg.get_srcComponent()))
+        self._send(
+            self.mav.command_ack_encode(
+                command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+            )
+        )
 
     def _command(self, msg, is_int: bool) -> None:
         cmd = msg.command
         p = [msg.param1, msg.param2, msg.param3, msg.param4]
         p += [msg.x, msg.y, msg.z] if is_int else [msg.param5, msg.param6, msg.param7]
         v = self.vehicle
-        A, D, U = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED,
-                   mavlink.MAV_RESULT_UNSUPPORTED)
+        A, D, U = (
+            mavlink.MAV_RESULT_ACCEPTED,
+            mavlink.MAV_RESULT_DENIED,
+            mavlink.MAV_RESULT_UNSUPPORTED,
+        )
         follow = None
         if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             force = _int(p[1]) == FORCE_MAGIC
@@ -423,8 +515,9 @@ class MavlinkVehicle:
     def _param_value(self, name: str) -> None:
         names = list(PARAM_DEFAULTS)
         value, ptype = _param_wire(self.vehicle.params[name])
-        self._send(self.mav.param_value_encode(name.encode(), value, ptype, len(names),
-                                               names.index(name)))
+        self._send(
+            self.mav.param_value_encode(name.encode(), value, ptype, len(names), names.index(name))
+        )
 
     def _param(self, msg, kind: str) -> None:
         if not self._for_us(msg):
@@ -434,8 +527,11 @@ class MavlinkVehicle:
             for name in names:
                 self._param_value(name)
         elif kind == "PARAM_REQUEST_READ":
-            name = msg.param_id if msg.param_index < 0 else (
-                names[msg.param_index] if msg.param_index < len(names) else "")
+            name = (
+                msg.param_id
+                if msg.param_index < 0
+                else (names[msg.param_index] if msg.param_index < len(names) else "")
+            )
             if name in names:
                 self._param_value(name)
             else:
@@ -443,7 +539,8 @@ class MavlinkVehicle:
         elif kind == "PARAM_SET":
             name = msg.param_id
             if name in names and self.vehicle.set_param(
-                    name, _param_from_wire(msg.param_value, msg.param_type)):
+                name, _param_from_wire(msg.param_value, msg.param_type)
+            ):
                 self._param_value(name)
             else:
                 self.rejects["param_set"] += 1
@@ -452,8 +549,10 @@ class MavlinkVehicle:
 def _rotation_t(q: np.ndarray) -> np.ndarray:
     """Transpose of the rotation matrix of ``q`` (world -> body)."""
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]).T
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    ).T

@@ -19,16 +19,16 @@ from services.px4_frames import quat_mul
 class PositionGains:
     """Gains and limits (names after the PX4 parameters they mimic)."""
 
-    pos_p_xy: float = 0.95          # MPC_XY_P [1/s]
-    pos_p_z: float = 1.0            # MPC_Z_P
-    vel_p_xy: float = 3.0           # velocity error -> acceleration [1/s]
+    pos_p_xy: float = 0.95  # MPC_XY_P [1/s]
+    pos_p_z: float = 1.0  # MPC_Z_P
+    vel_p_xy: float = 3.0  # velocity error -> acceleration [1/s]
     vel_p_z: float = 4.0
-    vel_max_xy: float = 2.0         # MPC_XY_VEL_MAX [m/s]
-    vel_max_up: float = 1.0         # MPC_Z_VEL_MAX_UP
-    vel_max_down: float = 1.0       # MPC_Z_VEL_MAX_DN
-    tilt_max_rad: float = np.deg2rad(35.0)   # MPC_TILTMAX_AIR
+    vel_max_xy: float = 2.0  # MPC_XY_VEL_MAX [m/s]
+    vel_max_up: float = 1.0  # MPC_Z_VEL_MAX_UP
+    vel_max_down: float = 1.0  # MPC_Z_VEL_MAX_DN
+    tilt_max_rad: float = np.deg2rad(35.0)  # MPC_TILTMAX_AIR
     att_p: tuple[float, float, float] = (6.5, 6.5, 2.8)  # MC_ROLL_P, MC_PITCH_P, MC_YAW_P
-    thrust_min_frac: float = 0.12   # MPC_THR_MIN, of the hover thrust
+    thrust_min_frac: float = 0.12  # MPC_THR_MIN, of the hover thrust
 
 
 def _rotation_to_quat(r: np.ndarray) -> np.ndarray:
@@ -36,8 +36,9 @@ def _rotation_to_quat(r: np.ndarray) -> np.ndarray:
     t = np.trace(r)
     if t > 0.0:
         s = 2.0 * np.sqrt(1.0 + t)
-        return np.array([0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s,
-                         (r[1, 0] - r[0, 1]) / s])
+        return np.array(
+            [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+        )
     i = int(np.argmax(np.diag(r)))
     j, k = (i + 1) % 3, (i + 2) % 3
     s = 2.0 * np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k])
@@ -63,11 +64,13 @@ def attitude_to_rates(q: np.ndarray, q_sp: np.ndarray, gains=(6.5, 6.5, 2.8)) ->
 
 def _rotation(q: np.ndarray) -> np.ndarray:
     w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 class PositionController:
@@ -86,8 +89,9 @@ class PositionController:
         v[2] = np.clip(v[2], -g.vel_max_down, g.vel_max_up)
         return v
 
-    def control(self, x: np.ndarray, p_sp, yaw_sp: float, hover_thrust: float,
-                v_sp=None) -> np.ndarray:
+    def control(
+        self, x: np.ndarray, p_sp, yaw_sp: float, hover_thrust: float, v_sp=None
+    ) -> np.ndarray:
         """Thrust and body rates for position ``p_sp`` (or velocity ``v_sp`` if given;
         ``NaN`` entries of ``v_sp`` take the position loop's value)."""
         g = self.g

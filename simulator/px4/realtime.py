@@ -33,17 +33,35 @@ class Px4Sim:
         on_text: called with ``(severity, text)`` for each STATUSTEXT.
     """
 
-    def __init__(self, url: str, *, vehicle: str | Path | dict[str, Any] | None = None,
-                 payload_g: float = 0.0, cable_length: float | None = None,
-                 start=(0.0, 0.0, 0.0), yaw: float = 0.0, airborne: bool = False,
-                 vision_required: bool = True, vision_timeout_s: float = 0.5,
-                 params: dict[str, Any] | None = None, seed: int = 0, substep: float = 0.005,
-                 on_text: Callable[[int, str], None] | None = None):
-        sim = Px4Airframe(vehicle, payload_mass=payload_g / 1000.0, cable_length=cable_length,
-                          seed=seed)
-        self.vehicle = Px4Vehicle(sim, start=start, yaw=yaw, airborne=airborne,
-                                  vision_required=vision_required,
-                                  vision_timeout_s=vision_timeout_s, params=params)
+    def __init__(
+        self,
+        url: str,
+        *,
+        vehicle: str | Path | dict[str, Any] | None = None,
+        payload_g: float = 0.0,
+        cable_length: float | None = None,
+        start=(0.0, 0.0, 0.0),
+        yaw: float = 0.0,
+        airborne: bool = False,
+        vision_required: bool = True,
+        vision_timeout_s: float = 0.5,
+        params: dict[str, Any] | None = None,
+        seed: int = 0,
+        substep: float = 0.005,
+        on_text: Callable[[int, str], None] | None = None,
+    ):
+        sim = Px4Airframe(
+            vehicle, payload_mass=payload_g / 1000.0, cable_length=cable_length, seed=seed
+        )
+        self.vehicle = Px4Vehicle(
+            sim,
+            start=start,
+            yaw=yaw,
+            airborne=airborne,
+            vision_required=vision_required,
+            vision_timeout_s=vision_timeout_s,
+            params=params,
+        )
         self.mavlink = MavlinkVehicle(self.vehicle, url, on_text=on_text)
         self.substep = float(substep)
         self.stop = threading.Event()
@@ -62,8 +80,9 @@ class Px4Sim:
         with self.lock:
             return self.vehicle.release_payload()
 
-    def run(self, duration: float | None = None,
-            on_chunk: Callable[[Px4Sim], bool | None] | None = None) -> None:
+    def run(
+        self, duration: float | None = None, on_chunk: Callable[[Px4Sim], bool | None] | None = None
+    ) -> None:
         """Fly on the wall clock until :attr:`stop` is set, ``duration`` [s] of simulated
         time passed or ``on_chunk`` (called after each chunk, lock released) returns True."""
         if self.mavlink._thread is None:
@@ -90,8 +109,7 @@ class Px4Sim:
 
     def start(self, **kwargs) -> Px4Sim:
         """Run in a background thread (tests, embedding)."""
-        self._thread = threading.Thread(target=self.run, kwargs=kwargs, name="px4-sim",
-                                        daemon=True)
+        self._thread = threading.Thread(target=self.run, kwargs=kwargs, name="px4-sim", daemon=True)
         self._thread.start()
         return self
 

@@ -49,12 +49,12 @@ from simulator.px4.position_control import PositionController, attitude_to_rates
 
 #: PX4 parameters the vehicle honours: name -> default (int params are INT32 on MAVLink).
 PARAM_DEFAULTS: dict[str, float | int] = {
-    "COM_OF_LOSS_T": 1.0,       # offboard loss timeout [s]
-    "COM_OBL_RC_ACT": 5,        # offboard loss action: 0 Position, 4 Land, 5 Hold
-    "COM_DISARM_LAND": 2.0,     # disarm this long after landing [s] (<= 0: never)
-    "COM_DISARM_PRFLT": 10.0,   # disarm when armed on the ground without take-off [s]
-    "MIS_TAKEOFF_ALT": 2.5,     # take-off height above the ground [m]
-    "MPC_LAND_SPEED": 0.7,      # descent speed of Land [m/s]
+    "COM_OF_LOSS_T": 1.0,  # offboard loss timeout [s]
+    "COM_OBL_RC_ACT": 5,  # offboard loss action: 0 Position, 4 Land, 5 Hold
+    "COM_DISARM_LAND": 2.0,  # disarm this long after landing [s] (<= 0: never)
+    "COM_DISARM_PRFLT": 10.0,  # disarm when armed on the ground without take-off [s]
+    "MIS_TAKEOFF_ALT": 2.5,  # take-off height above the ground [m]
+    "MPC_LAND_SPEED": 0.7,  # descent speed of Land [m/s]
 }
 OFFBOARD_LOSS_ACTIONS = {0: FlightMode.POSITION, 4: FlightMode.LAND, 5: FlightMode.HOLD}
 
@@ -115,9 +115,17 @@ class Px4Vehicle:
         params: overrides of :data:`PARAM_DEFAULTS`.
     """
 
-    def __init__(self, sim: Px4Airframe, *, start=(0.0, 0.0, 0.0), yaw: float = 0.0,
-                 airborne: bool = False, vision_required: bool = True,
-                 vision_timeout_s: float = 0.5, params: dict[str, Any] | None = None):
+    def __init__(
+        self,
+        sim: Px4Airframe,
+        *,
+        start=(0.0, 0.0, 0.0),
+        yaw: float = 0.0,
+        airborne: bool = False,
+        vision_required: bool = True,
+        vision_timeout_s: float = 0.5,
+        params: dict[str, Any] | None = None,
+    ):
         self.sim = sim
         self.curve = ThrustCurve.from_vehicle(sim.vehicle)
         self.pos_ctl = PositionController(gravity=sim.gravity)
@@ -212,8 +220,11 @@ class Px4Vehicle:
     def set_attitude_target(self, type_mask: int, q_ned_frd, rates_frd, thrust: float) -> bool:
         """A SET_ATTITUDE_TARGET: rates FRD [rad/s], normalised thrust [0, 1]."""
         rates = np.asarray(rates_frd, dtype=float)
-        rates = np.where([bool(type_mask & b) for b in
-                          (IGNORE_ROLL_RATE, IGNORE_PITCH_RATE, IGNORE_YAW_RATE)], 0.0, rates)
+        rates = np.where(
+            [bool(type_mask & b) for b in (IGNORE_ROLL_RATE, IGNORE_PITCH_RATE, IGNORE_YAW_RATE)],
+            0.0,
+            rates,
+        )
         attitude = None
         if not type_mask & IGNORE_ATTITUDE:
             q = np.asarray(q_ned_frd, dtype=float)
@@ -231,8 +242,9 @@ class Px4Vehicle:
         self.offboard_sp = OffboardSetpoint(thrust_n, frd_to_flu(rates), attitude, self.time)
         return True
 
-    def set_vision(self, position_ned, quaternion_ned_frd=None, *, source: str = "odometry",
-                   frame_id: int = 0) -> bool:
+    def set_vision(
+        self, position_ned, quaternion_ned_frd=None, *, source: str = "odometry", frame_id: int = 0
+    ) -> bool:
         """External vision (mocap) in PX4's frames; non-finite positions are rejected."""
         p = np.asarray(position_ned, dtype=float)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
@@ -327,8 +339,9 @@ class Px4Vehicle:
             action = OFFBOARD_LOSS_ACTIONS[int(self.params["COM_OBL_RC_ACT"])]
             self._enter(action)
             self.failsafe = True
-            self.text(SEV_CRITICAL, f"Failsafe: offboard signal lost, switching to "
-                                    f"{action.name.title()}")
+            self.text(
+                SEV_CRITICAL, f"Failsafe: offboard signal lost, switching to {action.name.title()}"
+            )
         self._detect_land(t)
         if self.mode is FlightMode.TAKEOFF and abs(self.sim.state()[2] - self._target_p[2]) < 0.1:
             self._enter(FlightMode.HOLD)
@@ -340,15 +353,19 @@ class Px4Vehicle:
             since = max(self._landed_since, self._armed_since)
             if limit > 0.0 and t - since > limit:
                 self.armed = False
-                self.text(SEV_INFO, "Landing detected: disarmed" if flew
-                          else "Disarmed: no take-off after arming")
+                self.text(
+                    SEV_INFO,
+                    "Landing detected: disarmed" if flew else "Disarmed: no take-off after arming",
+                )
 
     def _detect_land(self, t: float) -> None:
         x = self.sim.state()
         hover = self.sim.hover_thrust()
         near = x[2] < self.ground_z + LAND_HEIGHT_M
-        quiet = (np.linalg.norm(x[3:6]) < LAND_SPEED_MPS
-                 and self.sim.setpoint[0] < LAND_THRUST_FRAC * hover)
+        quiet = (
+            np.linalg.norm(x[3:6]) < LAND_SPEED_MPS
+            and self.sim.setpoint[0] < LAND_THRUST_FRAC * hover
+        )
         if near and (quiet or not self.armed):
             if self._landed_since == math.inf:
                 self._landed_since = t
