@@ -22,6 +22,7 @@ demo: $(STAMP)
 # timing assertions are not measured on a starved CPU.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -q -m "not integration" -n 2 --dist loadfile
 	$(PY) -m pytest -q -m integration
 
