@@ -108,8 +108,9 @@ class StackConfig:
             return tuple(s for s in SERVICES if s != "estimator")
         return SERVICES
 
-    def args(self, service: str) -> list[str]:
-        common = [
+    def base_args(self) -> list[str]:
+        """The arguments every process of the stack takes (vehicle, bus, run folder, rate)."""
+        return [
             "--vehicle",
             self.vehicle,
             "--hub",
@@ -121,6 +122,9 @@ class StackConfig:
             "--log-level",
             self.log_level,
         ]
+
+    def args(self, service: str) -> list[str]:
+        common = self.base_args()
         if self.lockstep:
             common.append("--lockstep")
         if self.x64:

@@ -85,20 +85,7 @@ class Px4StackConfig(StackConfig):
             return [*own, *self.extra.get("px4sim", [])]
         if service != "bridge":
             return super().args(service)
-        common = [
-            "--vehicle",
-            self.vehicle,
-            "--hub",
-            self.hub,
-            "--out",
-            str(self.out),
-            "--rate",
-            f"{self.rate:g}",
-            "--log-level",
-            self.log_level,
-            "--connect",
-            self.connect,
-        ]
+        common = [*self.base_args(), "--connect", self.connect]
         if self.simulate:  # the simulator clocks the estimator and the mission itself
             common += ["--imu", "off", "--no-start-mission"]
         if not self.lockstep and self.realtime_priority:

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from arcade import flightlog
 from services import runtime
 from services.messages import MESSAGE_TYPES, Message, Setpoint, State
 
@@ -74,29 +75,7 @@ class Recorder(runtime.Service):
             )
         self._csv_file = (out / f"flight_log{suffix}.csv").open("w", newline="")
         self.csv = csv.writer(self._csv_file)
-        self.csv.writerow(
-            [
-                "t",
-                "px",
-                "py",
-                "pz",
-                "vx",
-                "vy",
-                "vz",
-                "qw",
-                "qx",
-                "qy",
-                "qz",
-                "wx",
-                "wy",
-                "wz",
-                "u0",
-                "u1",
-                "u2",
-                "u3",
-                "mode",
-            ]
-        )
+        self.csv.writerow([*flightlog.columns("quadrotor"), "mode"])
         self._states: dict[int, State] = {}
         self._unpaired: dict[int, Setpoint] = {}
         self._rows: list[list[Any]] = []

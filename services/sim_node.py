@@ -68,30 +68,12 @@ from pathlib import Path
 
 import numpy as np
 
+from arcade import flightlog
 from services import runtime
 from services.messages import Command, Event, Imu, Mocap, Setpoint, State
 
 MAX_GYRO = 99.0
-FLIGHT_COLUMNS = (
-    "t",
-    "px",
-    "py",
-    "pz",
-    "vx",
-    "vy",
-    "vz",
-    "qw",
-    "qx",
-    "qy",
-    "qz",
-    "wx",
-    "wy",
-    "wz",
-    "u0",
-    "u1",
-    "u2",
-    "u3",
-)
+FLIGHT_COLUMNS = flightlog.columns("quadrotor")
 #: Position error [m] or height [m] at which a flight counts as crashed and stops.
 CRASH_ERROR_M = 2.0
 CRASH_HEIGHT_M = 0.02
