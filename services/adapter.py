@@ -437,12 +437,7 @@ def _same_hemisphere(xp: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def _extra(p) -> None:
-    p.add_argument(
-        "--weights",
-        type=Path,
-        default=None,
-        help="VLD weights (default deploy/weights/quadrotor_vld.eqx)",
-    )
+    runtime.add_weights_argument(p)
     p.add_argument(
         "--checkpoint",
         type=Path,

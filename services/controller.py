@@ -402,12 +402,7 @@ class Controller(runtime.Service):
 
 def _extra(p) -> None:
     runtime.add_plan_arguments(p)
-    p.add_argument(
-        "--weights",
-        type=Path,
-        default=None,
-        help="VLD weights (default deploy/weights/quadrotor_vld.eqx)",
-    )
+    runtime.add_weights_argument(p)
     p.add_argument(
         "--model-timeout",
         type=float,

@@ -457,6 +457,17 @@ def main_for(
 # ----------------------------------------------------------------------- flight plan
 
 
+def add_weights_argument(p: argparse.ArgumentParser) -> None:
+    """The learned model's weights, shared by the adapter and the controller (same file on
+    both: the controller rebuilds the features the adapter's posterior is over)."""
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        help="VLD weights (default deploy/weights/quadrotor_vld.eqx)",
+    )
+
+
 def add_plan_arguments(p: argparse.ArgumentParser) -> None:
     """The flight plan shared by the simulator and the controller (same values on both)."""
     p.add_argument("--payload-g", type=float, default=175.0, help="swinging payload [g]")
