@@ -454,7 +454,7 @@ def main_for(
     return cls(args).run()
 
 
-# ----------------------------------------------------------------------- flight plan
+# ----------------------------------------------------------------------- learned model
 
 
 def add_weights_argument(p: argparse.ArgumentParser) -> None:
@@ -466,6 +466,9 @@ def add_weights_argument(p: argparse.ArgumentParser) -> None:
         default=None,
         help="VLD weights (default deploy/weights/quadrotor_vld.eqx)",
     )
+
+
+# ----------------------------------------------------------------------- flight plan
 
 
 def add_plan_arguments(p: argparse.ArgumentParser) -> None:
