@@ -35,13 +35,13 @@ import argparse
 import math
 import time
 
+from arcade.px4_failsafe import add_failsafe_arguments, failsafe_settings
 from services import runtime
 from services.messages import Command, Setpoint
 from services.sim_node import SimNode
 from services.sim_node import _extra as _sim_options
 from simulator.px4.modes import FlightMode
 
-LOSS_ACTIONS = {"position": 0, "land": 4, "hold": 5}
 #: STATUSTEXT severity (MAV_SEVERITY) -> event severity.
 _SEVERITY = {
     0: "critical",
@@ -75,9 +75,7 @@ class Px4SimNode(SimNode):
             cable_length=self.scen.cable_length_m,
             start=start,
             airborne=not a.on_ground,
-            vision_required=not a.no_vision_required,
-            vision_timeout_s=a.vision_timeout,
-            params={"COM_OF_LOSS_T": a.of_loss_s, "COM_OBL_RC_ACT": LOSS_ACTIONS[a.of_loss_action]},
+            **failsafe_settings(a),
             seed=self.trial.sim_seed,
             substep=a.substep,
             on_text=self._on_text,
@@ -219,26 +217,7 @@ def _extra(p) -> None:
         action="store_true",
         help="start disarmed on the floor instead of hovering armed in Hold",
     )
-    p.add_argument(
-        "--no-vision-required",
-        action="store_true",
-        help="PX4's estimator counts as valid without mocap over MAVLink",
-    )
-    p.add_argument(
-        "--vision-timeout",
-        type=float,
-        default=0.5,
-        help="mocap older than this gives no valid position [s]",
-    )
-    p.add_argument(
-        "--of-loss-s", type=float, default=1.0, help="offboard loss timeout COM_OF_LOSS_T [s]"
-    )
-    p.add_argument(
-        "--of-loss-action",
-        choices=sorted(LOSS_ACTIONS),
-        default="hold",
-        help="mode after an offboard loss (COM_OBL_RC_ACT)",
-    )
+    add_failsafe_arguments(p)
     p.add_argument(
         "--no-imu",
         action="store_true",

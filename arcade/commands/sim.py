@@ -15,9 +15,9 @@ import sys
 import time
 from pathlib import Path
 
-HELP = "run the simulator alone as a PX4 vehicle on MAVLink (MAVSDK/QGC can fly it)"
+from arcade.px4_failsafe import add_failsafe_arguments, failsafe_settings
 
-LOSS_ACTIONS = {"position": 0, "land": 4, "hold": 5}
+HELP = "run the simulator alone as a PX4 vehicle on MAVLink (MAVSDK/QGC can fly it)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -73,31 +73,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="stop after this many seconds (default: until Ctrl-C)",
     )
-    p.add_argument(
-        "--of-loss-s",
-        type=float,
-        default=1.0,
-        help="offboard loss timeout COM_OF_LOSS_T [s] (PX4 default 1.0)",
-    )
-    p.add_argument(
-        "--of-loss-action",
-        choices=sorted(LOSS_ACTIONS),
-        default="hold",
-        help="mode after an offboard loss (COM_OBL_RC_ACT)",
-    )
+    add_failsafe_arguments(p)
     p.add_argument(
         "--takeoff-alt", type=float, default=2.5, help="take-off height MIS_TAKEOFF_ALT [m]"
-    )
-    p.add_argument(
-        "--no-vision-required",
-        action="store_true",
-        help="the estimator counts as valid without mocap (stand-alone use)",
-    )
-    p.add_argument(
-        "--vision-timeout",
-        type=float,
-        default=0.5,
-        help="mocap older than this no longer gives a valid position [s]",
     )
     p.add_argument(
         "--airborne",
@@ -145,11 +123,8 @@ def run(args: argparse.Namespace) -> int:
     def on_text(severity: int, text: str) -> None:
         print(f"[px4] {text}", flush=True)
 
-    params = {
-        "COM_OF_LOSS_T": args.of_loss_s,
-        "COM_OBL_RC_ACT": LOSS_ACTIONS[args.of_loss_action],
-        "MIS_TAKEOFF_ALT": args.takeoff_alt,
-    }
+    failsafe = failsafe_settings(args)
+    failsafe["params"]["MIS_TAKEOFF_ALT"] = args.takeoff_alt
     sim = Px4Sim(
         args.px4,
         vehicle=args.vehicle,
@@ -158,9 +133,7 @@ def run(args: argparse.Namespace) -> int:
         start=args.start,
         yaw=math.radians(args.yaw_deg),
         airborne=args.airborne,
-        vision_required=not args.no_vision_required,
-        vision_timeout_s=args.vision_timeout,
-        params=params,
+        **failsafe,
         seed=args.seed,
         on_text=on_text,
     )

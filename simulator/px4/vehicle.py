@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from arcade.px4_failsafe import LOSS_ACTIONS
 from services.px4_frames import (
     ThrustCurve,
     flu_to_frd,
@@ -56,7 +57,8 @@ PARAM_DEFAULTS: dict[str, float | int] = {
     "MIS_TAKEOFF_ALT": 2.5,  # take-off height above the ground [m]
     "MPC_LAND_SPEED": 0.7,  # descent speed of Land [m/s]
 }
-OFFBOARD_LOSS_ACTIONS = {0: FlightMode.POSITION, 4: FlightMode.LAND, 5: FlightMode.HOLD}
+#: COM_OBL_RC_ACT value -> the mode an offboard loss switches to.
+OFFBOARD_LOSS_ACTIONS = {code: FlightMode[name.upper()] for name, code in LOSS_ACTIONS.items()}
 
 # SET_ATTITUDE_TARGET type_mask bits.
 IGNORE_ROLL_RATE, IGNORE_PITCH_RATE, IGNORE_YAW_RATE = 1, 2, 4
