@@ -111,7 +111,6 @@ def run_demo(
     from benchmarks.quadrotor_closedloop import Scenario
     from deploy.launcher import StackConfig, run_flight
 
-    out = Path(out)
     scen = Scenario(payload_g=payload_g, speed_mps=speed)
     t_end = duration if duration is not None else scen.t_end
     cfg = StackConfig(
@@ -128,6 +127,7 @@ def run_demo(
         extra=dict(extra or {}),
         truth_state=truth_state,
     )
+    out = cfg.out  # absolute: where the services write, whatever the working directory
 
     bar = tqdm(
         total=round(t_end, 2),

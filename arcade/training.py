@@ -71,17 +71,38 @@ def train_cartpole(
     return path
 
 
-def load_or_train(path: Path, command: str, train) -> object:
-    """The VLD in ``path``; if the file is missing, says so and runs ``train(out=path)``."""
+def load_or_train(
+    path: Path,
+    command: str,
+    train,
+    *,
+    system: str | None = None,
+    train_if_missing: bool = True,
+) -> object:
+    """The VLD in ``path`` (``system``'s, when given: see ``arcade.weights.load_model``).
+
+    A missing file is trained and written by ``train(out=path)`` (saying so) when
+    ``train_if_missing``, else ``FileNotFoundError``. A corrupt or foreign file raises
+    ``WeightFileError``.
+    """
     from arcade.weights import load_model
 
     if not path.is_file():
+        if not train_if_missing:
+            raise FileNotFoundError(f"{path}: no such file")
         print(f"{path} not found: training it now ({command})", file=sys.stderr)
         train(out=path)
-    model, _, _ = load_model(path)
+    model, _, _ = load_model(path, system=system)
     return model
 
 
 def load_cartpole(path: Path | None = None):
-    """The cartpole VLD; trains and writes it first if the file is missing."""
-    return load_or_train(Path(path or CARTPOLE_WEIGHTS), CARTPOLE_COMMAND, train_cartpole)
+    """The cartpole VLD in ``path``. Only the shipped file (``path`` None) is trained and
+    written first when it is missing; a given ``path`` must exist."""
+    return load_or_train(
+        CARTPOLE_WEIGHTS if path is None else Path(path),
+        CARTPOLE_COMMAND,
+        train_cartpole,
+        system="cartpole",
+        train_if_missing=path is None,
+    )

@@ -86,5 +86,12 @@ def train_quadrotor(
 
 
 def load_quadrotor(path: Path | None = None):
-    """The quadrotor VLD; trains and writes it first if the file is missing."""
-    return load_or_train(Path(path or QUADROTOR_WEIGHTS), QUADROTOR_COMMAND, train_quadrotor)
+    """The quadrotor VLD in ``path``. Only the shipped file (``path`` None) is trained and
+    written first when it is missing; a given ``path`` must exist."""
+    return load_or_train(
+        QUADROTOR_WEIGHTS if path is None else Path(path),
+        QUADROTOR_COMMAND,
+        train_quadrotor,
+        system="quadrotor",
+        train_if_missing=path is None,
+    )

@@ -13,7 +13,10 @@ floating dtype, the SHA-256 and length of the payload, and a caller-supplied ``e
 dict (system name, description of the training data, metrics, ...). Loading rebuilds the
 skeleton from the stored config and reads the leaves into it, so a round trip is exact
 (bit for bit, at the same JAX precision setting). Any inconsistency raises
-:class:`WeightFileError` with the reason.
+:class:`WeightFileError` with the reason. ``extra["system"]`` names the system the VLD was
+trained for; a loader that needs one system (``load_model(..., system=...)``) refuses the
+others' files, and those whose state/input dimensions are not the system's
+(:data:`SYSTEM_DIMS`). :func:`weight_file_problem` is the one-line check of the command line.
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ MAGIC = b"ARCADE-VLD\n"
 FORMAT_VERSION = 1
 _LEN = struct.Struct("<Q")
 _MAX_HEADER = 1 << 24  # a header is a few kB; anything larger is a corrupt length field
+#: State and input dimensions of each system's VLD.
+SYSTEM_DIMS = {"cartpole": (4, 1), "quadrotor": (13, 4)}
 
 
 class WeightFileError(ValueError):
@@ -96,11 +101,14 @@ def load_model(
     path: str | os.PathLike[str],
     *,
     expected_config: EncoderConfig | None = None,
+    system: str | None = None,
 ) -> tuple[VLD, EncoderConfig, dict[str, Any]]:
     """Read a weight file written by :func:`save_model`: ``(model, config, extra)``.
 
     ``expected_config``, when given, must equal the stored config (e.g. a caller that
     needs the Appendix D architecture); otherwise :class:`WeightFileError` is raised.
+    ``system`` (e.g. ``"quadrotor"``), when given, must be the system the file records
+    and match its dimensions (:data:`SYSTEM_DIMS`); otherwise :class:`WeightFileError`.
     A missing file raises ``FileNotFoundError``. Loading is exact when the JAX precision
     setting matches the one the file was written with; a float64 file read with
     ``jax_enable_x64`` off is rounded to float32.
@@ -118,6 +126,8 @@ def load_model(
             if getattr(config, k) != v
         }
         raise WeightFileError(f"{path}: config mismatch (field: (expected, stored)): {diff}")
+    if system is not None:
+        _check_system(path, config, header["extra"], system)
 
     # A float64 file read with x64 disabled is loaded as float32 (the only loss-y case).
     dtype = jax.dtypes.canonicalize_dtype(jnp.dtype(header["dtype"]))
@@ -130,6 +140,35 @@ def load_model(
     if stream.tell() != len(payload):
         raise WeightFileError(f"{path}: payload has {len(payload) - stream.tell()} extra bytes")
     return model, config, header["extra"]
+
+
+def weight_file_problem(path: str | os.PathLike[str], system: str | None = None) -> str | None:
+    """Why ``path`` cannot be loaded (as ``system``'s VLD when given), in one line that
+    starts with the path; None when it loads."""
+    path = Path(path)
+    if not path.exists():
+        return f"{path}: no such file"
+    if not path.is_file():
+        return f"{path}: not a file"
+    try:
+        load_model(path, system=system)
+    except WeightFileError as err:
+        return str(err).splitlines()[0]
+    except OSError as err:
+        return f"{path}: {err.strerror or err}"
+    return None
+
+
+def _check_system(path: Path, config: EncoderConfig, extra: Any, system: str) -> None:
+    stored = extra.get("system") if isinstance(extra, dict) else None
+    if stored is not None and stored != system:
+        raise WeightFileError(f"{path}: weights of the {stored}, not of the {system}")
+    want = SYSTEM_DIMS.get(system)
+    if want is not None and (config.x_dim, config.u_dim) != want:
+        raise WeightFileError(
+            f"{path}: a VLD for {config.x_dim} states and {config.u_dim} inputs; the "
+            f"{system} has {want[0]} and {want[1]}"
+        )
 
 
 def _read(path: Path) -> tuple[dict[str, Any], bytes]:

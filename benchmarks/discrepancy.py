@@ -319,17 +319,38 @@ def run(quick: bool = False) -> dict:
     }
 
 
+def check_effects(effects: list[str] | None, which: str = "sweep") -> str | None:
+    """Why ``effects`` (``--effect`` names) cannot be run by :func:`sweep` (``which``
+    ``"sweep"``) or :func:`detection_limits` (``"limits"``); ``None`` when they can."""
+    known = SWEEP_CASES if which == "sweep" else LIMIT_DIRECTIONS
+    unknown = [e for e in effects or [] if e not in known]
+    if unknown:
+        return (
+            f"unknown effect(s) {', '.join(unknown)}; known quadrotor effects: {', '.join(known)}"
+        )
+    return None
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="2 minutes of data instead of 10")
     p.add_argument("--sweep", action="store_true", help="sweep every effect over its range")
     p.add_argument("--effect", action="append", default=None, help="sweep only this effect")
-    p.add_argument("--seed", type=int, default=0, help="sweep: flight seed")
+    p.add_argument("--seed", type=int, default=0, help="sweep and limits: flight seed")
     p.add_argument("--json", action="store_true", help="sweep: JSON instead of a table")
     p.add_argument(
         "--limits", action="store_true", help="minimum detectable magnitude of every effect"
     )
     args = p.parse_args()
+    if args.sweep and args.limits:
+        p.error("--sweep and --limits are separate runs: give one of them")
+    if args.effect and not (args.sweep or args.limits):
+        p.error("--effect needs --sweep or --limits")
+    if args.seed < 0:
+        p.error(f"argument --seed: must be at least 0, got {args.seed}")
+    error = check_effects(args.effect, "limits" if args.limits else "sweep")
+    if error:
+        p.error(f"argument --effect: {error}")
     if args.limits:
         print(json.dumps(detection_limits(seed=args.seed, effects=args.effect), indent=2))
         return

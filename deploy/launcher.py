@@ -25,7 +25,10 @@ records the end), then SIGTERM and SIGKILL for those that do not exit in time.
 Run folder (``--out``): ``logs/<service>.log`` (each service's log), ``logs/<service>.out``
 (its stdout/stderr), ``stats/<service>.json``, ``events.jsonl`` (every event seen by the
 launcher), ``truth.csv`` (simulator ground truth), ``flight_log.csv`` and ``bus.mcap``
-(recorder).
+(recorder). :class:`StackConfig` makes the run folder, the weights file and the checkpoint
+absolute (relative to the caller's working directory) when it is built: the services run
+in the repository root. A :class:`StackError` names the run's ``logs/`` folder and quotes
+the last output of the process that failed.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -91,6 +95,14 @@ class StackConfig:
     max_restarts: int = 3
     restart_backoff_s: float = 0.5
     restart_backoff_max_s: float = 8.0
+
+    def __post_init__(self) -> None:
+        # The services run in the repository root: hand them paths that do not depend on it.
+        self.out = _absolute(self.out)
+        if self.weights is not None:
+            self.weights = _absolute(self.weights)
+        if self.checkpoint is not None:
+            self.checkpoint = _absolute(self.checkpoint)
 
     def checkpoint_path(self) -> Path:
         """The adapter's posterior checkpoint (restored by a restarted adapter). Without
@@ -170,8 +182,40 @@ class StackConfig:
         return [*common, *own, *self.extra.get(service, [])]
 
 
+def _absolute(path: str | os.PathLike[str]) -> Path:
+    """``path`` relative to the current directory, made absolute (symlinks kept)."""
+    return Path(os.path.abspath(os.fspath(path)))
+
+
 class StackError(RuntimeError):
     """A service failed to start, gave up restarting, or the vehicle link died."""
+
+
+#: ANSI colour sequences (MAVSDK colours its console lines).
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
+def last_output(out: Path, name: str, lines: int = 4) -> list[str]:
+    """What a process of the run in ``out`` said last (``logs/<name>.out``): after a
+    traceback, the log line before it and the exception; otherwise its last ``lines``
+    non-blank lines. Empty when there is no output."""
+    path = Path(out) / "logs" / f"{name}.out"
+    try:
+        with path.open("rb") as f:
+            f.seek(max(0, f.seek(0, os.SEEK_END) - 16384))
+            text = f.read().decode(errors="replace")
+    except OSError:
+        return []
+    rows = [_ANSI.sub("", r).rstrip() for r in text.splitlines()]
+    rows = [r for r in rows if r.strip()]
+    tb = max((i for i, r in enumerate(rows) if r.startswith("Traceback (")), default=None)
+    if tb is not None:
+        # Frames are indented; the exception (and what chains it) is not.
+        picked = rows[max(0, tb - 1) : tb] + [r for r in rows[tb + 1 :] if not r[:1].isspace()]
+        rows = picked[-lines:] if picked else rows[-lines:]
+    else:
+        rows = rows[-lines:]
+    return [r if len(r) <= 400 else r[:399] + "…" for r in rows]
 
 
 #: The process whose end is the end of the flight (never restarted: it is the vehicle).
@@ -210,6 +254,7 @@ class Stack:
         self._stopping = threading.Event()
         self._changed = threading.Condition()  # a process ended or the supervisor gave up
         self._failed: str | None = None
+        self._failed_service: str | None = None
         self._event_stamp = 0.0
         self.last_stamp = 0.0
         self.out = Path(config.out)
@@ -265,7 +310,9 @@ class Stack:
         how = f"killed by signal {-code}" if code < 0 else f"exited with code {code}"
         if n >= self.config.max_restarts:
             with self._changed:
-                self._failed = self._failed or f"service {name} {how} (after {n} restarts)"
+                if self._failed is None:
+                    self._failed = f"service {name} {how} (after {n} restarts)"
+                    self._failed_service = name
                 self._changed.notify_all()
             self.emit(
                 "fault",
@@ -355,12 +402,23 @@ class Stack:
         """Services whose liveliness token is visible on the bus right now."""
         return self._bus.alive if self._bus is not None else frozenset()
 
+    def _error(self, what: str, service: str | None) -> StackError:
+        """``what`` happened to ``service``: the error names the logs and quotes its output."""
+        text = f"{what}; see {self.out / 'logs'}"
+        tail = last_output(self.out, service) if service is not None else []
+        if tail:
+            text += f"\n  last output of {service}:\n" + "\n".join(f"    {r}" for r in tail)
+        return StackError(text)
+
     def _check_alive(self) -> None:
         if self._failed is not None:
-            raise StackError(f"{self._failed}; see {self.out / 'logs'}")
-        sim = self.procs.get(self.vehicle_process)
+            raise self._error(self._failed, self._failed_service)
+        name = self.vehicle_process
+        sim = self.procs.get(name)
         if sim is not None and sim.poll() is not None and not self._stopping.is_set():
-            raise StackError(f"vehicle process exited with code {sim.returncode}")
+            code = sim.returncode
+            how = f"killed by signal {-code}" if code < 0 else f"exited with code {code}"
+            raise self._error(f"vehicle process {name} {how}", name)
 
     def wait_alive(self, services: Iterable[str], timeout: float) -> None:
         """Block until each of ``services`` has a liveliness token on this vehicle."""
@@ -415,7 +473,7 @@ class Stack:
             if code is not None:
                 break
             if self._failed is not None:
-                raise StackError(f"{self._failed}; see {self.out / 'logs'}")
+                raise self._error(self._failed, self._failed_service)
             if progress is not None:
                 progress(self.last_stamp)
             if timeout is not None and time.monotonic() - t0 > timeout:

@@ -120,13 +120,13 @@ def load_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
     """ARCADE's adaptive state at take-off and its method, as the in-process evaluation
     builds them (``benchmarks.quadrotor_closedloop``) with :func:`stack_knobs` (the calibrated
     ``sigma^2`` and the ``beta`` tuned at it), feature/residual guard of the training data,
-    beam at the prior)."""
+    beam at the prior). A file that is not a quadrotor VLD raises ``WeightFileError``."""
     from types import SimpleNamespace
 
     from arcade.weights import load_model
     from benchmarks import quadrotor_closedloop as cl
 
-    vld, _, extra = load_model(weights)
+    vld, _, extra = load_model(weights, system="quadrotor")
     models = SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra), closedloop=stack_knobs())
     learner = cl.initial_learner("ours", models, dtype)
     return learner, cl.make_method("ours")

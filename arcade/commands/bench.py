@@ -24,10 +24,12 @@ BENCHES = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from arcade.runs import count
+
     p.add_argument("which", choices=[*BENCHES, "report"], help="benchmark to run")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke run)")
-    p.add_argument("--out", default="BENCHMARKS.md", help="report: file to write")
+    p.add_argument("--out", default=None, help="report: file to write (default: BENCHMARKS.md)")
     g = p.add_argument_group("discrepancy")
     g.add_argument(
         "--sweep",
@@ -40,8 +42,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="measure the minimum detectable magnitude of every quadrotor effect",
     )
-    g.add_argument("--effect", action="append", default=None, help="only this effect (repeatable)")
-    g.add_argument("--seed", type=int, default=0, help="flight seed of --sweep / --limits")
+    g.add_argument(
+        "--effect",
+        action="append",
+        default=None,
+        metavar="NAME",
+        help="only this quadrotor effect (repeatable; `arcade effects` lists them)",
+    )
+    g.add_argument(
+        "--seed", type=count(0), default=None, help="flight seed of --sweep / --limits (default: 0)"
+    )
     m = p.add_argument_group("mpc")
     m.add_argument(
         "--residual",
@@ -67,20 +77,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from arcade import jaxsetup
 
-    jaxsetup.configure()
-    if args.which == "report":
-        from benchmarks.report import write_report
-
-        path = write_report(args.out, quick=args.quick)
-        print(f"wrote {path}")
-        return 0
-    if args.which == "discrepancy" and (args.sweep or args.limits):
-        return _discrepancy_sweep(args)
-    if args.sweep or args.limits or args.effect:
+    if args.out is not None and args.which != "report":
+        print("error: --out belongs to `arcade bench report`", file=sys.stderr)
+        return 2
+    sweep_options = args.sweep or args.limits or args.effect or args.seed is not None
+    if sweep_options and args.which != "discrepancy":
         print(
-            "--sweep, --limits and --effect belong to `arcade bench discrepancy`", file=sys.stderr
+            "error: --sweep, --limits, --effect and --seed belong to `arcade bench discrepancy`",
+            file=sys.stderr,
         )
         return 2
+    if args.which == "discrepancy" and sweep_options:
+        return _discrepancy_sweep(args)
+    if args.which == "report":
+        from arcade.runs import check_output_file
+
+        out = args.out or "BENCHMARKS.md"
+        try:
+            check_output_file(out, "--out")
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        jaxsetup.configure()
+        from benchmarks.report import write_report
+
+        path = write_report(out, quick=args.quick)
+        print(f"wrote {path}")
+        return 0
+    jaxsetup.configure()
     mpc_options = {
         k: v
         for k, v in (
@@ -91,16 +115,19 @@ def run(args: argparse.Namespace) -> int:
         if v is not None
     }
     if mpc_options and args.which != "mpc":
-        print("--residual, --solver and --max-steps belong to `arcade bench mpc`", file=sys.stderr)
+        print(
+            "error: --residual, --solver and --max-steps belong to `arcade bench mpc`",
+            file=sys.stderr,
+        )
         return 2
     if args.max_steps is not None and args.max_steps < 1:
-        print("--max-steps must be at least 1", file=sys.stderr)
+        print("error: --max-steps must be at least 1", file=sys.stderr)
         return 2
     if args.solver is not None:
         from arcade_core.mpc import SOLVERS
 
         if args.solver not in SOLVERS:
-            print(f"--solver must be one of {', '.join(SOLVERS)}", file=sys.stderr)
+            print(f"error: --solver must be one of {', '.join(SOLVERS)}", file=sys.stderr)
             return 2
     module = importlib.import_module(BENCHES[args.which])
     result = module.run(quick=args.quick, **mpc_options)
@@ -113,12 +140,25 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _discrepancy_sweep(args: argparse.Namespace) -> int:
+    from arcade import jaxsetup
     from benchmarks import discrepancy
 
+    if not (args.sweep or args.limits):
+        print("error: --effect and --seed need --sweep or --limits", file=sys.stderr)
+        return 2
+    if args.sweep and args.limits:
+        print("error: --sweep and --limits are separate runs: give one of them", file=sys.stderr)
+        return 2
+    error = discrepancy.check_effects(args.effect, "limits" if args.limits else "sweep")
+    if error:
+        print(f"error: --effect: {error}", file=sys.stderr)
+        return 2
+    jaxsetup.configure()
+    seed = 0 if args.seed is None else args.seed
     if args.limits:
         print(
             json.dumps(
-                discrepancy.detection_limits(seed=args.seed, effects=args.effect),
+                discrepancy.detection_limits(seed=seed, effects=args.effect),
                 indent=None if args.json else 2,
             )
         )
@@ -127,6 +167,6 @@ def _discrepancy_sweep(args: argparse.Namespace) -> int:
     def progress(row: dict) -> None:  # one line per flight on stderr: long job
         print(json.dumps(row), file=sys.stderr, flush=True)
 
-    result = discrepancy.sweep(args.effect, seed=args.seed, progress=progress)
+    result = discrepancy.sweep(args.effect, seed=seed, progress=progress)
     print(json.dumps(result) if args.json else discrepancy.sweep_table(result["cases"]))
     return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 HELP = (
@@ -11,18 +12,41 @@ HELP = (
 )
 
 
+#: Defaults of the stack demo's flight options (None on the command line: not given).
+PAYLOAD_G, SPEED = 175.0, 2.5
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/<time>-demo)")
-    p.add_argument("--payload-g", type=float, default=175.0, help="swinging payload [g]")
-    p.add_argument("--speed", type=float, default=2.5, help="figure-eight mean speed [m/s]")
-    p.add_argument("--seed", type=int, default=0)
+    from arcade.runs import count, number
+
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="run folder (default runs/<time>-demo; relative to the current directory)",
+    )
+    p.add_argument(
+        "--payload-g",
+        type=number(0.0),
+        default=None,
+        help=f"swinging payload [g] (default: {PAYLOAD_G:g})",
+    )
+    p.add_argument(
+        "--speed",
+        type=number(0.0, low_open=True),
+        default=None,
+        help=f"figure-eight mean speed [m/s] (default: {SPEED:g})",
+    )
+    p.add_argument("--seed", type=count(0), default=0, help="trial seed (default: %(default)s)")
     p.add_argument(
         "--weights",
         type=Path,
         default=None,
-        help="VLD weights (quadrotor; default the shipped file; cartpole with --cartpole)",
+        help="VLD weights: quadrotor (default deploy/weights/quadrotor_vld.eqx), with "
+        "--cartpole cartpole (default deploy/weights/cartpole_vld.eqx, trained first if "
+        "missing); a given file must exist and load",
     )
-    p.add_argument("--x64", action="store_true", help="compute in float64")
+    p.add_argument("--x64", action="store_true", help="compute in float64 (stack demo)")
     p.add_argument(
         "--cartpole",
         action="store_true",
@@ -30,13 +54,42 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _error(msg: str, code: int = 2) -> int:
+    print(f"error: {msg}", file=sys.stderr, flush=True)
+    return code
+
+
 def run_cartpole(args: argparse.Namespace) -> int:
+    ignored = [
+        name
+        for name, given in (
+            ("--payload-g", args.payload_g is not None),
+            ("--speed", args.speed is not None),
+            ("--x64", args.x64),
+        )
+        if given
+    ]
+    if ignored:
+        return _error(f"{', '.join(ignored)}: not with --cartpole (stack demo options)")
+    from arcade.commands.up import out_problem
+
+    problem = out_problem(args.out)
+    if problem is not None:
+        return _error(problem)
     from arcade import jaxsetup
     from arcade.runs import new_run_dir
 
     jaxsetup.configure()
+    from arcade.training import CARTPOLE_WEIGHTS, load_cartpole
+    from arcade.weights import weight_file_problem
+
+    # A given file must load; the shipped one is trained first when it is missing.
+    if args.weights is not None or CARTPOLE_WEIGHTS.is_file():
+        path = CARTPOLE_WEIGHTS if args.weights is None else args.weights
+        problem = weight_file_problem(path, "cartpole")
+        if problem is not None:
+            return _error(problem, 2 if args.weights is not None else 1)
     from arcade.demo_cartpole import run_demo
-    from arcade.training import load_cartpole
 
     out = args.out or new_run_dir("demo-cartpole")
     vld = load_cartpole(args.weights)
@@ -61,21 +114,30 @@ def run(args: argparse.Namespace) -> int:
     if args.cartpole:
         return run_cartpole(args)
     from arcade import jaxsetup
+    from arcade.commands.up import out_problem, weights_problem
     from arcade.runs import new_run_dir
 
+    problem = out_problem(args.out)
+    if problem is not None:
+        return _error(problem)
     jaxsetup.configure(x64=args.x64)
+    bad_weights = weights_problem(args.weights)
+    if bad_weights is not None:
+        return _error(*bad_weights)
     from arcade.demo_stack import format_summary, run_demo
 
-    out = args.out or new_run_dir("demo")
+    payload_g = PAYLOAD_G if args.payload_g is None else args.payload_g
+    speed = SPEED if args.speed is None else args.speed
+    out = Path(args.out or new_run_dir("demo")).absolute()
     print(
-        f"ARCADE stack demo: {args.payload_g:g} g payload, {args.speed:g} m/s figure-eight, "
+        f"ARCADE stack demo: {payload_g:g} g payload, {speed:g} m/s figure-eight, "
         "released before the second lap (lockstep)",
         flush=True,
     )
     summary = run_demo(
         out,
-        payload_g=args.payload_g,
-        speed=args.speed,
+        payload_g=payload_g,
+        speed=speed,
         seed=args.seed,
         x64=args.x64,
         weights=args.weights,

@@ -1,6 +1,7 @@
 """`arcade discrepancy LOG` — where do model and data disagree, and which effect is missing.
 
-The workflow of design §6 on one flight log (CSV, design §5 columns, any constant rate):
+The workflow of design §6 on one flight log (CSV with the columns of :mod:`arcade.flightlog`,
+any constant rate):
 
 1. **Align**: predictions of the current model (the vehicle or model file: nominal model,
    motors, rate loop and the file's ``[effects]``) from every measured state with the
@@ -24,9 +25,9 @@ The workflow of design §6 on one flight log (CSV, design §5 columns, any const
    held-out part sees the same kinds of flight as the fitted part). Before/after one-step
    RMSE and multi-step CRMSE per component, plots and a short report in ``--out``.
 
-Inputs are a zero-order hold per row (design §5: the setpoint in effect from ``t`` to the
-next row). A log whose setpoint changed between rows (resampled without regard to the
-controller's instants) shows an apparent input lag, which the workflow will name.
+Inputs are a zero-order hold per row (:mod:`arcade.flightlog`: the setpoint in effect from
+``t`` to the next row). A log whose setpoint changed between rows (resampled without regard
+to the controller's instants) shows an apparent input lag, which the workflow will name.
 
 ``heldout_rmse_before/after`` is the one-step RMSE over the state components the added
 effects act on (the library's ``acts_on``) where their contribution to the held-out
@@ -43,7 +44,6 @@ import functools
 import json
 import math
 import sys
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -82,22 +82,82 @@ class Settings:
     seed: int = 0
 
 
+#: Valid range of the held-out fraction (``--heldout``).
+HELDOUT_RANGE = (0.05, 0.5)
+#: Fewest one-step windows the fit needs.
+MIN_FIT_WINDOWS = 50
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log", type=Path, help="flight log (CSV, design §5 columns)")
-    p.add_argument("--system", choices=["quadrotor", "cartpole"], default="quadrotor")
+    from arcade.flightlog import columns
+    from arcade.runs import count, number
+
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.epilog = (
+        "flight log columns (CSV with a header row, one row per sample at a constant rate,\n"
+        "SI units, world ENU, body FLU; extra columns are ignored; see arcade.flightlog):\n"
+        f"  quadrotor: {', '.join(columns('quadrotor'))}\n"
+        "      (u0 collective thrust [N], u1-u3 body-rate setpoints [rad/s], each in effect\n"
+        "      from its row's t to the next row's)\n"
+        f"  cartpole:  {', '.join(columns('cartpole'))}  (u: force on the cart [N])\n"
+        "`arcade simulate --out LOG` writes such a log."
+    )
+    p.add_argument("log", type=Path, help="flight log (CSV; the columns are listed below)")
+    p.add_argument(
+        "--system",
+        choices=["quadrotor", "cartpole"],
+        default="quadrotor",
+        help="the system that flew the log (default: %(default)s)",
+    )
     p.add_argument(
         "--vehicle", type=Path, default=None,
         help="vehicle file (quadrotor) or cartpole model file; default the shipped one",
     )  # fmt: skip
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    p.add_argument("--out", type=Path, default=None, help="output folder (default runs/...)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder, created if needed (default: runs/<time>-discrepancy-<system>)",
+    )
     s = Settings()
-    p.add_argument("--step", type=float, default=s.step_s, help="model step [s]")
-    p.add_argument("--heldout", type=float, default=s.heldout, help="held-out fraction")
-    p.add_argument("--horizon", type=float, default=s.horizon_s, help="CRMSE horizon [s]")
-    p.add_argument("--confidence", type=float, default=s.confidence)
-    p.add_argument("--bootstrap", type=int, default=s.n_boot, help="bootstrap resamples")
-    p.add_argument("--seed", type=int, default=s.seed)
+    lo, hi = HELDOUT_RANGE
+    p.add_argument(
+        "--step",
+        type=number(0.0, s.heldout_block_s, low_open=True, high_open=True),
+        default=s.step_s,
+        help=f"model step [s], more than 0 and less than {s.heldout_block_s:g} (the held-out "
+        "block), rounded to whole log samples (default: %(default)s)",
+    )
+    p.add_argument(
+        "--heldout",
+        type=number(lo, hi),
+        default=s.heldout,
+        help=f"held-out fraction of the log, {lo:g} to {hi:g} (default: %(default)s)",
+    )
+    p.add_argument(
+        "--horizon",
+        type=number(0.0, s.heldout_block_s, low_open=True, high_open=True),
+        default=s.horizon_s,
+        help=f"CRMSE horizon [s], more than 0 and less than {s.heldout_block_s:g} (the "
+        "held-out block) (default: %(default)s)",
+    )
+    p.add_argument(
+        "--confidence",
+        type=number(0.5, 1.0),
+        default=s.confidence,
+        help="bootstrap confidence an effect needs to be added to the model file, 0.5 to 1 "
+        "(default: %(default)s)",
+    )
+    p.add_argument(
+        "--bootstrap",
+        type=count(10),
+        default=s.n_boot,
+        help="bootstrap resamples, at least 10 (default: %(default)s)",
+    )
+    p.add_argument(
+        "--seed", type=count(0), default=s.seed, help="bootstrap seed (default: %(default)s)"
+    )
 
 
 # --------------------------------------------------------------------------- models
@@ -141,18 +201,19 @@ def quad_model_from_vehicle(vehicle: dict[str, Any]):
 def load_cartpole_file(path: str | Path | None) -> dict[str, Any]:
     """A cartpole model file (TOML ``[cartpole] M, m, L, g`` + ``[effects]``); ``None``:
     the Appendix D nominal model."""
+    from arcade.vehicle import read_toml
     from arcade_core.dynamics.params import CARTPOLE_NOMINAL as N
 
     data: dict[str, Any] = {"cartpole": {"M": N.M, "m": N.m, "L": N.L, "g": N.g}}
     if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"model file not found: {path}")
-        with path.open("rb") as f:
-            loaded = tomllib.load(f)
-        if "cartpole" not in loaded:
+        loaded = read_toml(path, "cartpole model file")
+        if not isinstance(loaded.get("cartpole"), dict):
             raise ValueError(f"{path}: missing [cartpole] table (M, m, L)")
         data = {**loaded, "cartpole": {**data["cartpole"], **loaded["cartpole"]}}
+        for k in ("M", "m", "L", "g"):
+            v = data["cartpole"][k]
+            if isinstance(v, bool) or not isinstance(v, int | float) or not 0 < v < math.inf:
+                raise ValueError(f"{path}: [cartpole] {k} must be a positive number, got {v!r}")
     return data
 
 
@@ -280,6 +341,27 @@ def _rms(a: np.ndarray, axis=0) -> np.ndarray:
     return np.sqrt(np.mean(np.square(a), axis=axis))
 
 
+def check_settings(log, system: str, settings: Settings) -> None:
+    """``ValueError`` if the workflow cannot run on ``log`` with ``settings`` (cheap: no
+    model is built)."""
+    lo, hi = HELDOUT_RANGE
+    if not lo <= settings.heldout <= hi:
+        raise ValueError(f"--heldout must be between {lo:g} and {hi:g}, got {settings.heldout:g}")
+    if system != log.system:
+        raise ValueError(f"log is a {log.system} log, not {system}")
+    dt, n = log.dt, len(log)
+    H = max(1, round(settings.step_s / dt))
+    burn = round(settings.burn_in_s / dt) if system == "quadrotor" else 0
+    blocks = split_blocks(n, max(1, round(settings.heldout_block_s / dt)), settings.heldout)
+    n_windows = len(_block_windows(blocks, False, burn, H, H))
+    if n_windows < MIN_FIT_WINDOWS:
+        raise ValueError(
+            f"log too short: {n_windows} fitting windows of {H * dt:.3g} s "
+            f"(at least {MIN_FIT_WINDOWS} are needed; {n} samples at {1.0 / dt:.4g} Hz, "
+            f"--step {settings.step_s:g})"
+        )
+
+
 def run_workflow(
     log,
     system: str,
@@ -296,8 +378,7 @@ def run_workflow(
     from arcade_core.discrepancy.identify import SelectionConfig, identify
 
     say = progress or (lambda _msg: None)
-    if system != log.system:
-        raise ValueError(f"log is a {log.system} log, not {system}")
+    check_settings(log, system, settings)
     if system == "quadrotor":
         from arcade.vehicle import load_vehicle
 
@@ -310,17 +391,10 @@ def run_workflow(
     X, U, dt = log.X, log.U, log.dt
     n = len(log)
     H = max(1, round(settings.step_s / dt))
-    if not 0.05 <= settings.heldout <= 0.5:
-        raise ValueError("heldout must be between 0.05 and 0.5")
     burn = round(settings.burn_in_s / dt) if system == "quadrotor" else 0
     blocks = split_blocks(n, max(1, round(settings.heldout_block_s / dt)), settings.heldout)
     n_fit = sum(b - a for a, b, h in blocks if not h)
     fit_starts = _block_windows(blocks, False, burn, H, H)
-    if len(fit_starts) < 50:
-        raise ValueError(
-            f"log too short: {len(fit_starts)} fitting windows of {H * dt:.3g} s "
-            "(at least 50 are needed)"
-        )
     ch = np.asarray(sysm.channels)
 
     def residual_fn(theta):
@@ -698,22 +772,73 @@ def write_model_file(
 # --------------------------------------------------------------------------- command
 
 
-def run(args: argparse.Namespace) -> int:
-    from arcade import jaxsetup
+def _log_system(path: Path) -> str | None:
+    """The system whose columns the header of the CSV at ``path`` has (``None``: neither)."""
+    import csv
 
-    jaxsetup.configure(x64=True)
+    from arcade.flightlog import columns
+
+    try:
+        with path.open(newline="") as f:
+            header = next((r for r in csv.reader(f) if any(c.strip() for c in r)), [])
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return None
+    names = {h.strip() for h in header}
+    found = [s for s in ("quadrotor", "cartpole") if set(columns(s)) <= names]
+    return found[0] if len(found) == 1 else None
+
+
+def check_model_file(system: str, path: Path | None) -> None:
+    """Read the vehicle/model file and check its effects (``ValueError``,
+    ``FileNotFoundError``); cheap: no model is built."""
+    from arcade.commands.simulate import validate_tables
+
+    if system == "quadrotor":
+        from arcade.vehicle import load_vehicle
+
+        veh = load_vehicle(path)
+        if veh["rotors"].get("layout", "x") != "x":
+            raise ValueError(f"{path}: only quad-x vehicles are supported")
+    else:
+        veh = load_cartpole_file(path)
+    try:
+        validate_tables(system, dict(veh.get("effects", {})))
+    except ValueError as exc:
+        raise ValueError(f"{path or 'default model'}: {exc}") from None
+
+
+def run(args: argparse.Namespace) -> int:
     from arcade.flightlog import LogError, read_log
-    from arcade.runs import new_run_dir
+    from arcade.runs import check_output_dir, check_runs_root, new_run_dir
 
     settings = Settings(
         step_s=args.step, heldout=args.heldout, horizon_s=args.horizon,
         confidence=args.confidence, n_boot=args.bootstrap, seed=args.seed,
     )  # fmt: skip
+    # Everything is checked before the run folder is made and the work starts.
     try:
-        log = read_log(args.log, args.system)
-    except (LogError, FileNotFoundError) as exc:
+        if args.out is not None:
+            check_output_dir(args.out, "--out")
+        else:
+            check_runs_root()
+        check_model_file(args.system, args.vehicle)
+        try:
+            log = read_log(args.log, args.system)
+        except LogError:
+            other = _log_system(args.log)
+            if other is not None and other != args.system:
+                raise LogError(
+                    f"{args.log}: this looks like a {other} log: pass --system {other}"
+                ) from None
+            raise
+        check_settings(log, args.system, settings)
+    except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+
+    from arcade import jaxsetup
+
+    jaxsetup.configure(x64=True)
     out = args.out or new_run_dir(f"discrepancy-{args.system}")
 
     def progress(msg: str) -> None:

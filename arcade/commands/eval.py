@@ -15,32 +15,42 @@ HELP = (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from arcade.runs import count
+
     p.add_argument("system", choices=["cartpole", "quadrotor"], help="which evaluation")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument(
         "--trials",
-        type=int,
+        type=count(1),
         default=None,
-        help="cartpole: online trajectories; quadrotor: trials per cell (default 10)",
+        help="cartpole: online trajectories; quadrotor: trials per cell; at least 1 "
+        "(default: 10; with --quick 4 for cartpole, 1 for quadrotor)",
     )
     p.add_argument("--quick", action="store_true", help="small, fast variant (smoke test)")
     p.add_argument(
         "--out",
         type=Path,
         default=None,
-        help="folder for figures and results.json (default runs/<time>-eval-<system>)",
+        help="folder for figures and results.json, created if needed "
+        "(default: runs/<time>-eval-<system>)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=count(0), default=0, help="seed (default: %(default)s)")
 
 
 def run(args: argparse.Namespace) -> int:
     from arcade import jaxsetup
-    from arcade.runs import new_run_dir
+    from arcade.runs import check_output_dir, check_runs_root, new_run_dir
 
-    jaxsetup.configure()
-    if args.trials is not None and args.trials < 1:
-        print("--trials must be at least 1", file=sys.stderr)
+    # The output folder is checked before the (long) evaluation starts.
+    try:
+        if args.out is not None:
+            check_output_dir(args.out, "--out")
+        else:
+            check_runs_root()
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
+    jaxsetup.configure()
     out = args.out or new_run_dir(f"eval-{args.system}")
     out.mkdir(parents=True, exist_ok=True)
     progress = lambda m: print(f"[eval] {m}", file=sys.stderr, flush=True)  # noqa: E731

@@ -21,6 +21,8 @@ HELP = "run the simulator alone as a PX4 vehicle on MAVLink (MAVSDK/QGC can fly 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from arcade.runs import count, number
+
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = (
         "examples:\n"
@@ -50,32 +52,37 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--payload-g",
-        type=float,
+        type=number(0.0),
         default=0.0,
-        help="swinging payload under the vehicle [g] (0: none)",
+        help="swinging payload under the vehicle [g]: 0 (none, the default) up to what "
+        "the rotors lift at full thrust (about 1 kg on the default vehicle)",
     )
     p.add_argument(
         "--cable-length",
-        type=float,
+        type=number(0.0, low_open=True),
         default=None,
-        help="payload cable length [m] (default: the vehicle file's)",
+        help="payload cable length [m], > 0; with --payload-g (default: the vehicle file's)",
     )
     p.add_argument(
         "--release-at",
-        type=float,
+        type=number(0.0),
         default=None,
         metavar="S",
-        help="release the payload at this simulated time [s]",
+        help="release the payload at this simulated time [s], >= 0; with --payload-g",
     )
     p.add_argument(
         "--duration",
-        type=float,
+        type=number(0.0, low_open=True),
         default=None,
-        help="stop after this many seconds (default: until Ctrl-C)",
+        metavar="S",
+        help="stop after this many seconds, > 0 (default: until Ctrl-C)",
     )
     add_failsafe_arguments(p)
     p.add_argument(
-        "--takeoff-alt", type=float, default=2.5, help="take-off height MIS_TAKEOFF_ALT [m]"
+        "--takeoff-alt",
+        type=number(0.0, low_open=True),
+        default=2.5,
+        help="take-off height MIS_TAKEOFF_ALT [m], > 0 (default: %(default)s)",
     )
     p.add_argument(
         "--airborne",
@@ -84,18 +91,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--start",
-        type=float,
+        type=number(),
         nargs=3,
         default=(0.0, 0.0, 1.5),
         metavar=("X", "Y", "Z"),
-        help="start position ENU [m] (Z: with --airborne)",
+        help="start position ENU [m] (Z > 0: with --airborne) (default: 0 0 1.5)",
     )
     p.add_argument(
-        "--yaw-deg", type=float, default=0.0, help="start heading, ENU (0 = facing east) [deg]"
+        "--yaw-deg",
+        type=number(),
+        default=0.0,
+        help="start heading, ENU (0 = facing east) [deg] (default: %(default)s)",
     )
-    p.add_argument("--seed", type=int, default=0, help="sensor-noise seed")
     p.add_argument(
-        "--status-every", type=float, default=1.0, help="status line period [s] (0: none)"
+        "--seed", type=count(0), default=0, help="sensor-noise seed (default: %(default)s)"
+    )
+    p.add_argument(
+        "--status-every",
+        type=number(0.0),
+        default=1.0,
+        help="status line period [s], >= 0 (default: %(default)s; 0: none)",
     )
 
 
@@ -110,33 +125,81 @@ def status_line(v) -> str:
     )
 
 
-def run(args: argparse.Namespace) -> int:
-    from simulator.px4 import Px4Sim
+def check_arguments(args: argparse.Namespace) -> dict:
+    """The vehicle file, checked with the options that depend on it; ``ValueError`` /
+    ``FileNotFoundError`` with a one-line message otherwise (nothing has started yet)."""
+    from arcade.vehicle import load_vehicle, max_payload_g
     from simulator.px4.link import parse_url
 
     try:
         parse_url(args.px4)
     except ValueError as err:
+        msg = str(err)
+        raise ValueError(
+            f"--px4: {msg}" if args.px4 in msg else f"--px4 {args.px4}: {msg}"
+        ) from None
+    for name in ("vision_timeout", "of_loss_s"):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value > 0.0):
+            raise ValueError(
+                f"--{name.replace('_', '-')} must be a finite number > 0, got {value:g}"
+            )
+    vehicle = load_vehicle(args.vehicle)
+    limit = max_payload_g(vehicle)
+    if args.payload_g >= limit:
+        raise ValueError(
+            f"--payload-g must be below {limit:.0f} g for this vehicle (the rotors' full "
+            f"thrust carries no more), got {args.payload_g:g}"
+        )
+    if args.payload_g == 0.0:
+        for flag, value in (
+            ("--cable-length", args.cable_length),
+            ("--release-at", args.release_at),
+        ):
+            if value is not None:
+                raise ValueError(f"{flag} needs a payload (--payload-g > 0)")
+    if args.airborne and args.start[2] <= 0.0:
+        raise ValueError(
+            f"--start Z must be above the floor (> 0) with --airborne, got {args.start[2]:g}"
+        )
+    return vehicle
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        vehicle = check_arguments(args)
+    except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    from simulator.px4 import Px4Sim
 
     def on_text(severity: int, text: str) -> None:
         print(f"[px4] {text}", flush=True)
 
     failsafe = failsafe_settings(args)
     failsafe["params"]["MIS_TAKEOFF_ALT"] = args.takeoff_alt
-    sim = Px4Sim(
-        args.px4,
-        vehicle=args.vehicle,
-        payload_g=args.payload_g,
-        cable_length=args.cable_length,
-        start=args.start,
-        yaw=math.radians(args.yaw_deg),
-        airborne=args.airborne,
-        **failsafe,
-        seed=args.seed,
-        on_text=on_text,
-    )
+    try:
+        sim = Px4Sim(
+            args.px4,
+            vehicle=vehicle,
+            payload_g=args.payload_g,
+            cable_length=args.cable_length,
+            start=args.start,
+            yaw=math.radians(args.yaw_deg),
+            airborne=args.airborne,
+            **failsafe,
+            seed=args.seed,
+            on_text=on_text,
+        )
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # the link's socket: address not local, port in use, ...
+        print(
+            f"error: cannot open the MAVLink link {args.px4}: {err.strerror or err}",
+            file=sys.stderr,
+        )
+        return 1
     v = sim.vehicle
     print(f"simulated PX4 vehicle on {args.px4} (system 1, component 1); Ctrl-C stops", flush=True)
 

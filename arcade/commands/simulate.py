@@ -46,7 +46,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -85,13 +84,43 @@ CARTPOLE_NOISE = np.array([1e-3, 0.01, 1e-3, 0.01])
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--system", choices=["quadrotor", "cartpole"], default="quadrotor")
-    p.add_argument("--effects", type=Path, default=None, help="effects file (TOML)")
-    p.add_argument("--vehicle", type=Path, default=None, help="vehicle file (quadrotor)")
-    p.add_argument("--duration", type=float, default=60.0, help="seconds of flight")
-    p.add_argument("--seed", type=int, default=0)
+    from arcade.runs import count, number
+
     p.add_argument(
-        "--noise-scale", type=float, default=1.0, help="sensor-noise multiplier (0: ground truth)"
+        "--system",
+        choices=["quadrotor", "cartpole"],
+        default="quadrotor",
+        help="which simulator (default: %(default)s)",
+    )
+    p.add_argument(
+        "--effects",
+        type=Path,
+        default=None,
+        help="effects file (TOML, one table per effect; `arcade effects` lists them); "
+        "default: none",
+    )
+    p.add_argument(
+        "--vehicle",
+        type=Path,
+        default=None,
+        help="vehicle file (TOML; quadrotor only; default: the shipped arcade-152)",
+    )
+    p.add_argument(
+        "--duration",
+        type=number(1.0, low_open=True),
+        default=60.0,
+        metavar="S",
+        help="seconds of logged flight, more than 1 (default: %(default)s; the "
+        "detectability limits of the effects library are stated for 90 s flights)",
+    )
+    p.add_argument(
+        "--seed", type=count(0), default=0, help="trajectory and noise seed (default: %(default)s)"
+    )
+    p.add_argument(
+        "--noise-scale",
+        type=number(0.0),
+        default=1.0,
+        help="sensor-noise multiplier, >= 0 (default: %(default)s; 0: ground truth)",
     )
     p.add_argument("--out", type=Path, required=True, help="CSV flight log to write")
 
@@ -481,38 +510,58 @@ def validate_tables(system: str, tables: dict[str, Any]) -> dict[str, dict[str, 
 
 def read_effects_file(path: str | Path) -> dict[str, Any]:
     """Effect tables of an effects file (or of a model file's ``[effects]`` table)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"effects file not found: {path}")
-    with path.open("rb") as f:
-        tables = tomllib.load(f)
+    from arcade.vehicle import read_toml
+
+    tables = read_toml(path, "effects file")
     return dict(tables.get("effects", tables))
 
 
+def _check_tables(system: str, tables: dict[str, Any], path) -> None:
+    """:func:`validate_tables`, its error naming the file the tables come from."""
+    try:
+        validate_tables(system, dict(tables))
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
 def run(args: argparse.Namespace) -> int:
+    from arcade.runs import check_output_file
+
+    # Everything the flight needs is checked before it starts.
+    try:
+        check_output_file(args.out, "--out")
+        if args.system != "quadrotor" and args.vehicle is not None:
+            raise ValueError("--vehicle applies to --system quadrotor only")
+        tables = read_effects_file(args.effects) if args.effects else {}
+        _check_tables(args.system, tables, args.effects)
+        vehicle = None
+        if args.system == "quadrotor":
+            from arcade.vehicle import DEFAULT_VEHICLE, load_vehicle
+
+            vehicle = load_vehicle(args.vehicle)
+            _check_tables("quadrotor", vehicle.get("effects", {}), args.vehicle or DEFAULT_VEHICLE)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
     from arcade import jaxsetup
 
     jaxsetup.configure(x64=True)
     from arcade.flightlog import write_log
 
-    if args.duration <= 1.0:
-        print("--duration must be more than 1 s", file=sys.stderr)
-        return 2
     try:
-        tables = read_effects_file(args.effects) if args.effects else {}
         if args.system == "quadrotor":
             log = fly_quadrotor(
-                tables,
-                args.duration,
-                args.seed,
-                vehicle=args.vehicle,
-                noise_scale=args.noise_scale,
+                tables, args.duration, args.seed, vehicle=vehicle, noise_scale=args.noise_scale
             )
         else:
             log = fly_cartpole(tables, args.duration, args.seed, noise_scale=args.noise_scale)
-    except (ValueError, FileNotFoundError) as exc:
+    except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except RuntimeError as exc:  # a flight the pilot cannot fly
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     path = write_log(args.out, log)
     print(
         json.dumps(

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import math
+import sys
 from pathlib import Path
 
 HELP = "launch the service stack as processes over Zenoh (profile sim or px4)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from arcade.runs import count, number
+
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = (
         "examples:\n"
@@ -19,7 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "                                              a real PX4 (asks before arming)\n"
         "  arcade up --profile px4 --simulate --arm   the same chain against a simulated PX4\n"
         "The run folder gets logs/<service>.log, stats/, events.jsonl, truth.csv,\n"
-        "flight_log.csv and bus.mcap (open it in Foxglove Studio)."
+        "flight_log.csv and bus.mcap (open it in Foxglove Studio). Crashes, restarts,\n"
+        "failsafes and degraded modes are shown as they happen. Options that do not fit\n"
+        "together and a --weights file that does not load are refused (exit code 2)\n"
+        "before anything starts. Service options (e.g. the controller's --max-model-age)\n"
+        "are set with `python -m services NAME` or StackConfig.extra from Python."
     )
     p.add_argument(
         "--profile",
@@ -35,17 +43,43 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicle", default="default", help="vehicle name on the bus")
     p.add_argument(
         "--duration",
-        type=float,
+        type=number(0.0, low_open=True),
         default=None,
         help="flight duration [s] (default: take-off, hover, two figure-eight laps)",
     )
-    p.add_argument("--payload-g", type=float, default=175.0, help="swinging payload [g]")
-    p.add_argument("--speed", type=float, default=2.5, help="figure-eight mean speed [m/s]")
-    p.add_argument("--rate", type=float, default=20.0, help="control rate [Hz]")
-    p.add_argument("--seed", type=int, default=0, help="trial seed")
-    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/<time>-up)")
+    p.add_argument(
+        "--payload-g",
+        type=number(0.0),
+        default=175.0,
+        help="swinging payload [g] (default: %(default)s)",
+    )
+    p.add_argument(
+        "--speed",
+        type=number(0.0, low_open=True),
+        default=2.5,
+        help="figure-eight mean speed [m/s] (default: %(default)s)",
+    )
+    p.add_argument(
+        "--rate",
+        type=number(0.0, low_open=True),
+        default=20.0,
+        help="control rate [Hz] (default: %(default)s)",
+    )
+    p.add_argument("--seed", type=count(0), default=0, help="trial seed (default: %(default)s)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="run folder (default runs/<time>-up; relative to the current directory)",
+    )
     p.add_argument("--hub", default=None, help="Zenoh hub endpoint (default: a free loopback port)")
-    p.add_argument("--weights", type=Path, default=None, help="VLD weights file")
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        help="quadrotor VLD weights file (default deploy/weights/quadrotor_vld.eqx); "
+        "checked before anything starts",
+    )
     p.add_argument(
         "--checkpoint",
         type=Path,
@@ -67,17 +101,89 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     px4_profile.add_arguments(p)
 
 
+#: The px4 profile's options and the value each has when not given.
+PX4_OPTIONS = {
+    "connect": None,
+    "simulate": False,
+    "arm": False,
+    "takeoff_m": None,
+    "on_ground": False,
+    "bridge_arg": [],
+}
+
+
+def usage_problem(args: argparse.Namespace) -> str | None:
+    """Why these options do not fit together (one line), or None."""
+    if args.profile != "px4":
+        given = [k for k, v in PX4_OPTIONS.items() if getattr(args, k) != v]
+        if given:
+            names = ", ".join("--" + k.replace("_", "-") for k in given)
+            return f"{names}: only with --profile px4"
+        return None
+    if args.lockstep:
+        return "--lockstep is for --profile sim: profile px4 runs on the wall clock"
+    if args.on_ground and not args.simulate:
+        return "--on-ground is for the simulated PX4: add --simulate"
+    if args.takeoff_m is not None and not (math.isfinite(args.takeoff_m) and args.takeoff_m > 0):
+        return f"--takeoff-m must be a positive number, got {args.takeoff_m:g}"
+    return None
+
+
+def out_problem(out: Path | None) -> str | None:
+    """Why the run folder (``--out``, else one under the runs root) cannot be made, or None."""
+    from arcade.runs import check_output_dir, check_runs_root
+
+    try:
+        if out is not None:
+            check_output_dir(out, "--out")
+        else:
+            check_runs_root()
+    except ValueError as err:
+        return str(err)
+    return None
+
+
+def weights_problem(path: Path | None) -> tuple[str, int] | None:
+    """Why the quadrotor weights the services would load are unusable, with the exit code
+    (2: the given ``--weights``; 1: the shipped file), or None. Without ``--weights`` and
+    without the shipped file the services fly the nominal model and say so (``degraded``)."""
+    from services.adapter import DEFAULT_WEIGHTS
+
+    if path is None and not DEFAULT_WEIGHTS.is_file():
+        return None
+    from arcade import jaxsetup
+
+    jaxsetup.configure()
+    from arcade.weights import weight_file_problem
+
+    problem = weight_file_problem(DEFAULT_WEIGHTS if path is None else path, "quadrotor")
+    if problem is None:
+        return None
+    return problem, 2 if path is not None else 1
+
+
 def run(args: argparse.Namespace) -> int:
     import signal
-    import sys
+
+    def say(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    # Everything a user can get wrong is refused before the run folder exists.
+    problem = usage_problem(args) or out_problem(args.out)
+    if problem is not None:
+        say(f"error: {problem}")
+        return 2
+    bad_weights = weights_problem(args.weights)
+    if bad_weights is not None:
+        say(f"error: {bad_weights[0]}")
+        return bad_weights[1]
 
     from arcade.demo_stack import free_hub
     from arcade.runs import new_run_dir
-    from deploy.launcher import StackConfig, StackError, run_flight
+    from deploy.launcher import StackConfig, StackError, last_output, run_flight
 
-    out = args.out or new_run_dir("up")
     cfg = StackConfig(
-        out=Path(out),
+        out=args.out or new_run_dir("up"),
         profile=args.profile,
         lockstep=args.lockstep,
         vehicle=args.vehicle,
@@ -91,10 +197,7 @@ def run(args: argparse.Namespace) -> int:
         weights=args.weights,
         checkpoint=args.checkpoint,
         realtime_priority=args.realtime_priority,
-    )
-
-    def say(msg: str) -> None:
-        print(msg, file=sys.stderr, flush=True)
+    )  # run folder, weights and checkpoint made absolute
 
     def on_term(*_: object) -> None:
         raise KeyboardInterrupt  # the launcher's context manager stops every service
@@ -125,16 +228,25 @@ def run(args: argparse.Namespace) -> int:
     for name, code in result["codes"].items():
         extra = f"  ({restarts[name]} restart(s))" if restarts.get(name) else ""
         say(f"  {name:10s} exit {code}{extra}")
-    say(f"run folder: {out}")
-    return 0 if all(c == 0 for c in result["codes"].values()) else 1
+    failed = [name for name, code in result["codes"].items() if code != 0]
+    for name in failed:
+        tail = last_output(cfg.out, name)
+        if tail:
+            say(f"last output of {name}:\n" + "\n".join(f"    {r}" for r in tail))
+    if failed:
+        say(f"see {cfg.out / 'logs'}")
+    say(f"run folder: {cfg.out}")
+    return 0 if not failed else 1
 
 
-#: Events worth a line on the console while flying (the rest is in events.jsonl).
-SHOWN = ("fault", "restart", "failsafe")
+#: Events worth a line on the console while flying (the rest is in events.jsonl);
+#: ``degraded``: e.g. no weights (nominal model), stale model, mocap dropout.
+SHOWN = ("fault", "restart", "failsafe", "degraded")
 
 
 def _show_faults(say, then=None):
-    """An ``on_event`` hook that prints crashes, restarts and failsafes as they happen."""
+    """An ``on_event`` hook that prints crashes, restarts, failsafes and degraded modes as
+    they happen."""
 
     def on_event(rec: dict) -> None:
         if rec["kind"] in SHOWN or (rec["kind"] == "info" and "failsafe" in rec["text"]):

@@ -1,0 +1,215 @@
+"""`arcade up` / `arcade demo`: usage errors before anything starts, weights checks, run
+folders independent of the working directory, stack errors that quote the failed process."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from arcade.cli import main
+from arcade.training import load_or_train
+from deploy.launcher import Stack, StackConfig, StackError, last_output
+from deploy.px4_profile import Px4StackConfig
+
+WEIGHTS = Path(__file__).resolve().parents[1] / "deploy" / "weights"
+TRACEBACK = """\
+\x1b[34m[02:23:48|Info ] \x1b[0mMAVSDK version: v4.1.0 (mavsdk_impl.cpp:58)
+2026-11-25 14:23:51,183 ERROR arcade.bridge: bridge failed
+Traceback (most recent call last):
+  File "/repo/services/runtime.py", line 323, in run
+    self.setup(bus)
+  File "/repo/services/px4_bridge.py", line 198, in _connect
+    raise RuntimeError(
+RuntimeError: no autopilot heard on udpin://127.0.0.1:14999 within 3 s: is PX4 powered
+"""
+
+
+@pytest.fixture
+def elsewhere(tmp_path, monkeypatch):
+    """Run from a directory outside the repository, run folders under it."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("ARCADE_RUNS", str(tmp_path / "runs"))
+    return tmp_path
+
+
+def _value(args: list[str], option: str) -> str:
+    return args[args.index(option) + 1]
+
+
+# ------------------------------------------------------------------ run folder
+
+
+def test_relative_paths_reach_the_services_absolute(elsewhere):
+    cfg = StackConfig(out=Path("runs/r1"), weights=Path("w.eqx"), checkpoint=Path("c.npz"))
+    here = Path(os.getcwd())
+    assert cfg.out == here / "runs" / "r1"
+    for service in cfg.services():
+        assert _value(cfg.args(service), "--out") == str(here / "runs" / "r1")
+    for service in ("adapter", "controller"):
+        assert _value(cfg.args(service), "--weights") == str(here / "w.eqx")
+    assert _value(cfg.args("adapter"), "--checkpoint") == str(here / "c.npz")
+    # The run's own checkpoint lies in the absolute run folder too.
+    assert StackConfig(out="r2").checkpoint_path() == here / "r2" / "adapter_checkpoint.npz"
+    px4 = Px4StackConfig(out=Path("r3"), simulate=True)
+    for service in px4.services():
+        assert _value(px4.args(service), "--out") == str(here / "r3")
+
+
+# ------------------------------------------------------------------ stack errors
+
+
+def test_dead_vehicle_error_quotes_its_output_and_names_the_logs(tmp_path):
+    stack = Stack(Px4StackConfig(out=tmp_path))
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / "bridge.out").write_text(TRACEBACK)
+    stack.procs["bridge"] = subprocess.Popen([sys.executable, "-c", "raise SystemExit(1)"])
+    stack.procs["bridge"].wait()
+    with pytest.raises(StackError) as err:
+        stack._check_alive()
+    text = str(err.value)
+    assert text.startswith(f"vehicle process bridge exited with code 1; see {tmp_path / 'logs'}")
+    assert "ERROR arcade.bridge: bridge failed" in text
+    assert "RuntimeError: no autopilot heard on udpin://127.0.0.1:14999" in text
+    assert "File " not in text and "\x1b" not in text  # no frames, no colour codes
+
+
+def test_service_out_of_restarts_error_quotes_its_output(tmp_path):
+    stack = Stack(StackConfig(out=tmp_path, max_restarts=0))
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / "adapter.out").write_text(
+        "Traceback (most recent call last):\n  File 'x', line 1\n"
+        "arcade.weights.WeightFileError: /tmp/q.csv: not an ARCADE VLD weight file (bad magic)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    stack._watch("adapter", proc)  # returns once the process ended: no restart left
+    with pytest.raises(StackError) as err:
+        stack._check_alive()
+    text = str(err.value)
+    assert text.startswith("service adapter exited with code 3 (after 0 restarts); see ")
+    assert "WeightFileError: /tmp/q.csv: not an ARCADE VLD weight file" in text
+
+
+def test_last_output_without_traceback_is_the_last_lines(tmp_path):
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / "sim.out").write_text("".join(f"line {i}\n\n" for i in range(10)))
+    assert last_output(tmp_path, "sim", lines=3) == ["line 7", "line 8", "line 9"]
+    assert last_output(tmp_path, "nothing") == []
+
+
+# ------------------------------------------------------------------ usage errors
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["up", "--rate", "0"], "argument --rate: must be a finite number > 0, got 0"),
+        (["up", "--speed", "0"], "argument --speed: must be a finite number > 0"),
+        (["up", "--rate", "nan"], "argument --rate: must be a finite number > 0"),
+        (["up", "--duration", "-1"], "argument --duration: must be a finite number > 0"),
+        (["up", "--payload-g", "inf"], "argument --payload-g: must be a finite number >= 0"),
+        (["up", "--seed", "-1"], "argument --seed: must be at least 0"),
+        (["demo", "--speed", "0"], "argument --speed: must be a finite number > 0"),
+        (["demo", "--payload-g", "-5"], "argument --payload-g: must be a finite number >= 0"),
+        (["demo", "--seed", "x"], "argument --seed: not an integer"),
+    ],
+)
+def test_bad_numbers_are_argument_errors(elsewhere, capsys, argv, message):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (elsewhere / "runs").exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["up", "--profile", "px4", "--lockstep"], "--lockstep is for --profile sim"),
+        (["up", "--connect", "udpin://127.0.0.1:14999"], "--connect: only with --profile px4"),
+        (["up", "--arm", "--on-ground"], "--arm, --on-ground: only with --profile px4"),
+        (["up", "--bridge-arg=--connect-timeout=3"], "--bridge-arg: only with --profile px4"),
+        (["up", "--profile", "px4", "--on-ground"], "--on-ground is for the simulated PX4"),
+        (["up", "--profile", "px4", "--takeoff-m", "-1"], "--takeoff-m must be a positive"),
+        (["demo", "--cartpole", "--speed", "3", "--x64"], "--speed, --x64: not with --cartpole"),
+    ],
+)
+def test_options_that_do_not_fit_together(elsewhere, capsys, argv, message):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {message}") and err.count("\n") == 1
+    assert not (elsewhere / "runs").exists()
+
+
+# ------------------------------------------------------------------ weights
+
+
+@pytest.mark.parametrize("command", [["up", "--lockstep"], ["demo"], ["demo", "--cartpole"]])
+def test_missing_weights_file_is_an_error(elsewhere, capsys, command):
+    assert main([*command, "--weights", "typo.eqx"]) == 2
+    assert capsys.readouterr().err == "error: typo.eqx: no such file\n"
+    assert not (elsewhere / "runs").exists() and not (elsewhere / "typo.eqx").exists()
+
+
+@pytest.mark.parametrize("command", [["up"], ["demo"], ["demo", "--cartpole"]])
+def test_corrupt_weights_file_is_an_error(elsewhere, capsys, command):
+    Path("q.csv").write_text("t,x\n0,1\n")
+    assert main([*command, "--weights", "q.csv"]) == 2
+    assert capsys.readouterr().err == ("error: q.csv: not an ARCADE VLD weight file (bad magic)\n")
+    assert not (elsewhere / "runs").exists()
+
+
+@pytest.mark.parametrize(
+    ("command", "file", "message"),
+    [
+        (["up"], "cartpole_vld.eqx", "weights of the cartpole, not of the quadrotor"),
+        (["demo"], "cartpole_vld.eqx", "weights of the cartpole, not of the quadrotor"),
+        (
+            ["demo", "--cartpole"],
+            "quadrotor_vld.eqx",
+            "weights of the quadrotor, not of the cartpole",
+        ),
+    ],
+)
+def test_weights_of_another_system_are_an_error(elsewhere, capsys, command, file, message):
+    assert main([*command, "--weights", str(WEIGHTS / file)]) == 2
+    assert capsys.readouterr().err == f"error: {WEIGHTS / file}: {message}\n"
+    assert not (elsewhere / "runs").exists()
+
+
+def test_only_the_default_weights_are_trained_on_demand(tmp_path):
+    def train(out):
+        raise RuntimeError(f"training {out}")
+
+    with pytest.raises(FileNotFoundError, match=r"typo\.eqx: no such file"):
+        load_or_train(tmp_path / "typo.eqx", "cmd", train, train_if_missing=False)
+    with pytest.raises(RuntimeError, match=r"training .*default\.eqx"):
+        load_or_train(tmp_path / "default.eqx", "cmd", train)
+
+
+def test_the_shipped_weights_pass_the_check():
+    from arcade.commands.up import weights_problem
+
+    assert weights_problem(None) is None
+    assert weights_problem(WEIGHTS / "quadrotor_vld.eqx") is None
+
+
+def test_degraded_events_are_shown_on_the_console():
+    from arcade.commands.up import _show_faults
+
+    lines: list[str] = []
+    hook = _show_faults(lines.append)
+    text = "no weights file at /x.eqx: nominal MPC"
+    hook({"src": "controller/abc", "kind": "degraded", "text": text})
+    hook({"src": "adapter/abc", "kind": "changepoint", "text": "changepoint at 3.1 s"})
+    assert lines == [f"\n  [controller] degraded: {text}"]
+
+
+@pytest.mark.parametrize("command", [["up"], ["demo"], ["demo", "--cartpole"]])
+def test_an_out_that_is_a_file_is_refused(elsewhere, capsys, command):
+    Path("taken").write_text("")
+    assert main([*command, "--out", "taken"]) == 2
+    assert capsys.readouterr().err == "error: --out taken is an existing file, not a folder\n"
