@@ -25,10 +25,16 @@ records the end), then SIGTERM and SIGKILL for those that do not exit in time.
 Run folder (``--out``): ``logs/<service>.log`` (each service's log), ``logs/<service>.out``
 (its stdout/stderr), ``stats/<service>.json``, ``events.jsonl`` (every event seen by the
 launcher), ``truth.csv`` (simulator ground truth), ``flight_log.csv`` and ``bus.mcap``
-(recorder). :class:`StackConfig` makes the run folder, the weights file and the checkpoint
-absolute (relative to the caller's working directory) when it is built: the services run
-in the repository root. A :class:`StackError` names the run's ``logs/`` folder and quotes
-the last output of the process that failed.
+(recorder). :class:`StackConfig` makes the run folder, the weights file, the checkpoint and
+the bus configuration files absolute (relative to the caller's working directory) when it
+is built: the services run in the repository root. A :class:`StackError` names the run's
+``logs/`` folder and quotes the last output of the process that failed.
+
+Bus: by default every process (and the launcher's own session) is a peer on loopback that
+meets the others through ``hub``. With ``StackConfig.bus_configs`` each one opens the Zenoh
+configuration file given for it instead (``--bus-config``), e.g. a client of an ACL router
+with its own user and password (``deploy/zenoh/router-acl.json5``, which expects the
+launcher as user ``launcher``); the router must be up before the stack starts.
 """
 
 from __future__ import annotations
@@ -95,6 +101,11 @@ class StackConfig:
     max_restarts: int = 3
     restart_backoff_s: float = 0.5
     restart_backoff_max_s: float = 8.0
+    #: Zenoh configuration file of each process's bus session, keyed by process name plus
+    #: ``launcher`` (the launcher's own session) and optionally ``operator`` (commands
+    #: sent on a user's behalf); empty: peers on loopback through ``hub``. Given, it must
+    #: name every process and the launcher; ``hub`` is then unused.
+    bus_configs: dict[str, Path] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         # The services run in the repository root: hand them paths that do not depend on it.
@@ -103,6 +114,37 @@ class StackConfig:
             self.weights = _absolute(self.weights)
         if self.checkpoint is not None:
             self.checkpoint = _absolute(self.checkpoint)
+        self.bus_configs = {k: _absolute(v) for k, v in self.bus_configs.items()}
+
+    def bus_config_problem(self, processes: Iterable[str]) -> str | None:
+        """Why ``bus_configs`` does not fit ``processes`` (one line), or None."""
+        if not self.bus_configs:
+            return None
+        wanted = [*processes, "launcher"]
+        missing = [n for n in wanted if n not in self.bus_configs]
+        unknown = sorted(set(self.bus_configs) - {*wanted, "operator"})
+        if missing:
+            return f"bus_configs: no configuration for {', '.join(missing)}"
+        if unknown:
+            return f"bus_configs: not a process of this stack: {', '.join(unknown)}"
+        return None
+
+    def bus_config(self, name: str) -> Any:
+        """The Zenoh configuration of process ``name``'s session (``launcher``, a service,
+        ``operator``): its file in ``bus_configs``, else a peer on ``hub``. ``ValueError``
+        naming the file if it cannot be read."""
+        from services.bus import peer_config, read_config
+
+        if not self.bus_configs:
+            return peer_config(self.hub)
+        if name not in self.bus_configs:
+            raise ValueError(f"bus_configs: no configuration for {name}")
+        return read_config(self.bus_configs[name])
+
+    def bus_args(self, name: str) -> list[str]:
+        """``--bus-config FILE`` of process ``name`` (none without ``bus_configs``: the
+        peers' ``--hub`` is among :meth:`base_args`)."""
+        return ["--bus-config", str(self.bus_configs[name])] if self.bus_configs else []
 
     def checkpoint_path(self) -> Path:
         """The adapter's posterior checkpoint (restored by a restarted adapter). Without
@@ -121,12 +163,14 @@ class StackConfig:
         return SERVICES
 
     def base_args(self) -> list[str]:
-        """The arguments every process of the stack takes (vehicle, bus, run folder, rate)."""
+        """The arguments every process of the stack takes (vehicle, hub, run folder, rate);
+        with ``bus_configs`` no hub: each process gets its own :meth:`bus_args` when it is
+        spawned."""
+        hub = [] if self.bus_configs else ["--hub", self.hub]
         return [
             "--vehicle",
             self.vehicle,
-            "--hub",
-            self.hub,
+            *hub,
             "--out",
             str(self.out),
             "--rate",
@@ -239,6 +283,9 @@ class Stack:
             raise ValueError(f"unknown profile {config.profile!r} (one of {PROFILES})")
         if config.profile == "px4" and not hasattr(config, "vehicle_process"):
             raise ValueError("profile px4 takes a deploy.px4_profile.Px4StackConfig")
+        problem = config.bus_config_problem(services if services is not None else config.services())
+        if problem is not None:
+            raise ValueError(problem)
         #: The vehicle link process (profile px4: see deploy.px4_profile).
         self.vehicle_process: str = getattr(config, "vehicle_process", VEHICLE)
         self.config = config
@@ -255,18 +302,29 @@ class Stack:
         self._changed = threading.Condition()  # a process ended or the supervisor gave up
         self._failed: str | None = None
         self._failed_service: str | None = None
+        self._finished = False  # the vehicle process said "flight finished"
         self._event_stamp = 0.0
         self.last_stamp = 0.0
         self.out = Path(config.out)
 
     # -- lifecycle
     def start(self) -> Stack:
-        from services.bus import Bus, peer_config
+        import zenoh
 
+        from services.bus import Bus, zenoh_reason
+
+        bus_config = self.config.bus_config("launcher")  # ValueError naming a bad file
         (self.out / "logs").mkdir(parents=True, exist_ok=True)
         if self.config.checkpoint is None:  # the run's own checkpoint: for restarts only
             self.config.checkpoint_path().unlink(missing_ok=True)
-        self._bus = Bus(self.config.vehicle, "launcher", peer_config(self.config.hub)).open()
+        try:
+            self._bus = Bus(self.config.vehicle, "launcher", bus_config).open()
+        except zenoh.ZError as err:
+            path = self.config.bus_configs.get("launcher")
+            where = f"bus config {path}" if path is not None else "peer session"
+            raise StackError(
+                f"launcher: could not open the bus ({where}): {zenoh_reason(err)}"
+            ) from None
         self._bus.on_alive_change(self._on_alive_change)
         self._bus.subscribe("event", self._on_event, check_order=False)
         self._bus.subscribe("state", self._on_state, check_order=False)
@@ -282,7 +340,14 @@ class Stack:
     def _spawn(self, name: str) -> None:
         self._seen.discard(name)  # ready again only once this incarnation says so
         n = self.restarts[name]
-        cmd = [sys.executable, "-m", "services", name, *self.config.args(name)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "services",
+            name,
+            *self.config.args(name),
+            *self.config.bus_args(name),
+        ]
         if n:
             cmd += ["--incarnation", str(n)]
         with (self.out / "logs" / f"{name}.out").open("a" if n else "w") as log:
@@ -378,6 +443,10 @@ class Stack:
     def _on_event(self, e: Any) -> None:
         if e.src.startswith("launcher/"):
             return  # our own, recorded when emitted
+        if e.text == "flight finished" and e.src.split("/")[0] == self.vehicle_process:
+            with self._changed:
+                self._finished = True
+                self._changed.notify_all()
         self._record(
             {
                 "stamp": e.stamp,
@@ -455,7 +524,9 @@ class Stack:
     def wait(
         self, timeout: float | None = None, progress: Callable[[float], None] | None = None
     ) -> int:
-        """Wait for the vehicle process (the flight) to end; returns its exit code.
+        """Wait for the vehicle process (the flight) to end; returns its exit code, or 0
+        once it said ``flight finished`` (a vehicle may outlive its plan until stopped,
+        e.g. ``px4sim`` answering the bridge's Hold: :meth:`stop` stops the bridge first).
 
         Crashed services are restarted meanwhile; :class:`StackError` when one has no
         restart left.
@@ -467,10 +538,14 @@ class Stack:
         while True:
             with self._changed:  # woken by any process end; 0.5 s slices for progress
                 self._changed.wait_for(
-                    lambda: sim.poll() is not None or self._failed is not None, 0.5
+                    lambda: sim.poll() is not None or self._failed is not None or self._finished,
+                    0.5,
                 )
             code = sim.poll()
             if code is not None:
+                break
+            if self._finished:
+                code = 0
                 break
             if self._failed is not None:
                 raise self._error(self._failed, self._failed_service)
@@ -541,7 +616,8 @@ def run_flight(
         sim_code = stack.wait(timeout=timeout, progress=on_time)
         flight_s = time.monotonic() - t0
         codes = stack.stop()
-    codes[stack.vehicle_process] = sim_code
+    if codes.get(stack.vehicle_process) is None:
+        codes[stack.vehicle_process] = sim_code
     return {
         "codes": codes,
         "events": list(stack.events),

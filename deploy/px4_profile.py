@@ -139,7 +139,7 @@ def arm(
 
     ``events`` must be the stack's ``on_event`` hook (it sees the bridge's events).
     """
-    from services.bus import Bus, peer_config
+    from services.bus import Bus
     from services.messages import Command
 
     def steady(r: dict[str, Any]) -> bool:
@@ -157,7 +157,7 @@ def arm(
 
     args = {} if config.takeoff_m is None else {"takeoff_m": float(config.takeoff_m)}
     deadline = time.monotonic() + timeout
-    with Bus(config.vehicle, "operator", peer_config(config.hub)) as bus:
+    with Bus(config.vehicle, "operator", config.bus_config("operator")) as bus:
         # Seeing the bridge's token means this new session is linked: the put arrives.
         bus.wait_alive(["bridge"], timeout)
         mark = events.mark()  # only what the bridge says from now on
@@ -286,7 +286,7 @@ def flight_hooks(args: Any, config: Px4StackConfig, say: Callable[[str], None]) 
 def _console(events: EventWaiter, config: Px4StackConfig, say: Callable[[str], None]) -> None:
     import sys
 
-    from services.bus import Bus, peer_config
+    from services.bus import Bus
     from services.messages import Command
 
     for line in sys.stdin:
@@ -294,7 +294,7 @@ def _console(events: EventWaiter, config: Px4StackConfig, say: Callable[[str], N
         if word == "arm":
             arm(events, config, say=say)
         elif word in ("hold", "land", "disarm"):
-            with Bus(config.vehicle, "operator", peer_config(config.hub)) as bus:
+            with Bus(config.vehicle, "operator", config.bus_config("operator")) as bus:
                 bus.wait_alive(["bridge"], 10.0)
                 bus.put(Command(name=word, target="bridge", stamp=time.monotonic()))
             say(f"{word} command sent")

@@ -25,9 +25,11 @@ measured on its own, independent of what a message's ``stamp`` means. Meaningful
 processes of one host (one monotonic clock).
 
 Multi-host deployments use a router (``mode: "router"`` in a Python session, see
-:func:`router_config`; ``zenohd`` is not on PyPI) and clients (:func:`client_config`) so
-that the router's access control applies: ``deploy/zenoh/router-acl.json5`` lets only
-the controller put ``setpoint`` and only the simulator/bridge put ``mocap``/``imu``.
+:func:`router_config`; ``zenohd`` is not on PyPI) and clients (:func:`client_config`, or a
+JSON5 file per process read by :func:`read_config`: a service's ``--bus-config``) so that
+the router's access control applies: ``deploy/zenoh/router-acl.json5`` lets each user put
+only the topics its process writes (e.g. only the controller ``setpoint``). The readiness
+protocol holds through a router: it forwards what one link declared in order.
 """
 
 from __future__ import annotations
@@ -75,7 +77,9 @@ __all__ = [
     "key_expr",
     "load_config",
     "peer_config",
+    "read_config",
     "router_config",
+    "zenoh_reason",
 ]
 
 log = logging.getLogger("arcade.bus")
@@ -263,6 +267,32 @@ def load_config(path: str | Path, overrides: Mapping[str, Any] | None = None) ->
     for key, value in (overrides or {}).items():
         config.insert_json5(key, json.dumps(value))
     return config
+
+
+#: The source location Zenoh appends to its error messages.
+_ZENOH_WHERE = re.compile(r"\s+at \S+\.rs:\d+\.?\s*$")
+
+
+def zenoh_reason(err: BaseException) -> str:
+    """A Zenoh error on one line, without the library's source location."""
+    text = _ZENOH_WHERE.sub("", str(err)).strip()
+    if "\n" in text:  # a JSON5 syntax error: " --> line:col", the source, "= expected ..."
+        where = re.search(r"-->\s*(\d+:\d+)", text)
+        last = text.splitlines()[-1].strip().lstrip("= ")
+        text = f"line:column {where.group(1)}: {last}" if where else " ".join(text.split())
+    return text
+
+
+def read_config(path: str | Path) -> zenoh.Config:
+    """The session configuration in the file ``path`` (JSON5, JSON or YAML).
+
+    Raises ``ValueError`` with one line naming the file when it is missing, unreadable or
+    not a valid Zenoh configuration.
+    """
+    try:
+        return load_config(path)
+    except zenoh.ZError as err:
+        raise ValueError(f"bus config {path}: {zenoh_reason(err)}") from None
 
 
 # ------------------------------------------------------------------------------ bus

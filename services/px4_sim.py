@@ -23,6 +23,11 @@ position instead of the reference. Realtime only (MAVLink runs on the wall
 clock): ``--lockstep`` is refused; ``--wait-for`` is not used (the mission waits for
 offboard instead).
 
+At the plan's end the service emits ``flight finished`` and keeps the vehicle running
+(mocap, imu and MAVLink) until it is stopped or ``--linger-s`` passed: a real vehicle does
+not vanish when the mission ends, and the launcher stops the bridge first, whose Hold
+command must still be answered.
+
 With the PX4 bridge (:mod:`services.px4_bridge`) on the same bus exactly one of the two may
 publish ``imu`` and the ``start`` command: either this service (default; run the bridge
 with ``--imu off --no-start-mission``) or, closer to a real vehicle where only the mocap
@@ -67,6 +72,7 @@ class Px4SimNode(SimNode):
         if a.lockstep:
             raise ValueError("px4sim runs on the wall clock only (MAVLink): drop --lockstep")
         super().setup(bus)
+        self._finished = False  # the plan flown to its end ("flight finished" emitted)
         start = self.sim.state()[0:3]
         self.px4 = Px4Sim(
             a.px4,
@@ -107,6 +113,11 @@ class Px4SimNode(SimNode):
             self._realtime()
         finally:
             self.stats["wall_s"] = time.perf_counter() - t0
+        if not self._finished:  # stopped or crashed before the plan's end
+            self._finish()
+
+    def _finish(self) -> None:
+        self._finished = True
         self.event(
             "info", "flight finished", stamp=max(self._last_stamp, 0.0), steps=self.stats["steps"]
         )
@@ -124,6 +135,7 @@ class Px4SimNode(SimNode):
             "prev_sp": None,
             "t_tick": math.nan,
             "seen_sp": None,
+            "linger_until": math.inf,
         }
         delays: list[float] = []  # control instant -> first new SET_ATTITUDE_TARGET [s]
 
@@ -157,7 +169,7 @@ class Px4SimNode(SimNode):
                     self.bus.put(Command(name="start", args={"t0": stamp}, stamp=stamp))
                 self._flight_stamp = stamp
                 self.stats.update(preroll_s=t_sim, offboard_at=t_sim)
-            elif k >= 0:
+            elif k >= 0 and not self._finished:
                 k += 1
                 if engaged and sp is st["prev_sp"]:
                     self.stats["missed_deadlines"] += 1
@@ -171,11 +183,17 @@ class Px4SimNode(SimNode):
             self._last_stamp = stamp
             st["n"] += 1
             st["t_next"] += self.period
-            if k >= 0:
+            if k >= 0 and not self._finished:
                 if not self._record(u, t_sim - st["t_start"]):
                     return True
                 self.stats["steps"] = k + 1
-            return k >= self.n_steps - 1
+                if k >= self.n_steps - 1:
+                    # The vehicle outlives its plan (mocap and imu still flowing) until
+                    # stopped or --linger-s passed: a bridge stopped after the flight still
+                    # gets its Hold command answered.
+                    self._finish()
+                    st["linger_until"] = t_sim + self.args.linger_s
+            return t_sim >= st["linger_until"]
 
         px4.run(on_chunk=on_chunk)
         self.stats["epoch"] = px4.epoch  # the last anchor (moved by overruns)
@@ -228,6 +246,14 @@ def _extra(p) -> None:
         "--no-start-command",
         action="store_true",
         help="do not put the mission's start command (the PX4 bridge does)",
+    )
+    p.add_argument(
+        "--linger-s",
+        type=float,
+        default=5.0,
+        help="after the plan's end keep the vehicle running this long, or until stopped, "
+        "so that a bridge stopped after the flight gets its Hold answered [s] "
+        "(default: %(default)s)",
     )
 
 

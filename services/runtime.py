@@ -6,6 +6,11 @@ cache, optional float64, synchronous dispatch for small low-latency calls), a wa
 (compile everything) *before* the liveliness token is declared, and a clean shutdown on
 SIGINT/SIGTERM (or a ``shutdown`` command on the bus). Statistics a service wants to
 report (latencies, counters) go to ``<out>/stats/<name>.json`` at exit.
+
+The bus session: by default a peer on loopback that meets the others through ``--hub``
+(:func:`services.bus.peer_config`); with ``--bus-config FILE`` the Zenoh configuration in
+``FILE`` instead, e.g. a client of a router with its user/password or TLS settings
+(``deploy/zenoh/router-acl.json5``).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from services.bus import DEFAULT_HUB, Bus, peer_config
+from services.bus import DEFAULT_HUB, Bus, peer_config, read_config, zenoh_reason
 
 log = logging.getLogger("arcade.service")
 
@@ -34,7 +39,19 @@ def common_parser(name: str, description: str) -> argparse.ArgumentParser:
     """Options every service takes."""
     p = argparse.ArgumentParser(prog=f"python -m services {name}", description=description)
     p.add_argument("--vehicle", default="default", help="vehicle name on the bus (key prefix)")
-    p.add_argument("--hub", default=DEFAULT_HUB, help="Zenoh hub endpoint (peer mode)")
+    p.add_argument(
+        "--hub",
+        default=None,
+        help=f"Zenoh hub endpoint of the peer session (default {DEFAULT_HUB})",
+    )
+    p.add_argument(
+        "--bus-config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="Zenoh configuration (JSON5) of this process's session instead of the peer "
+        "session on --hub, e.g. a client of a router with user/password or TLS",
+    )
     p.add_argument(
         "--out",
         type=Path,
@@ -82,6 +99,16 @@ def common_parser(name: str, description: str) -> argparse.ArgumentParser:
         help="restart count given by the supervisor (0: first start)",
     )
     return p
+
+
+def bus_config(args: argparse.Namespace) -> Any:
+    """The Zenoh configuration of a service's session: ``--bus-config`` if given (a
+    ``ValueError`` naming the file if it cannot be read), else a peer on ``--hub``."""
+    path = getattr(args, "bus_config", None)
+    if path is not None:
+        return read_config(path)
+    hub = getattr(args, "hub", None)
+    return peer_config(hub if hub is not None else DEFAULT_HUB)
 
 
 def setup_logging(name: str, out: Path | None, level: str = "INFO") -> Path | None:
@@ -223,6 +250,10 @@ class GcPauses:
         }
 
 
+class BusOpenError(RuntimeError):
+    """The bus session of a service cannot be opened (its configuration or its links)."""
+
+
 class Service:
     """Base of a service process: subclasses implement :meth:`setup` and may override
     :meth:`warmup`, :meth:`main` (default: wait for the stop signal) and :meth:`teardown`.
@@ -309,6 +340,22 @@ class Service:
         os.replace(tmp, path)
 
     # -- lifecycle
+    def _open_bus(self) -> Bus:
+        """This service's bus, open (:class:`BusOpenError` if it cannot be)."""
+        import zenoh
+
+        try:
+            config = bus_config(self.args)
+        except ValueError as err:
+            raise BusOpenError(str(err)) from None
+        bus = Bus(self.args.vehicle, self.name, config)
+        try:
+            return bus.open()
+        except zenoh.ZError as err:
+            path = getattr(self.args, "bus_config", None)
+            where = f"bus config {path}" if path is not None else "peer session"
+            raise BusOpenError(f"could not open the bus ({where}): {zenoh_reason(err)}") from None
+
     def run(self) -> int:
         """Set up, warm up, announce liveliness, run, shut down cleanly. Returns an exit code."""
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -316,7 +363,7 @@ class Service:
         t0 = time.perf_counter()
         code = 0
         try:
-            with Bus(self.args.vehicle, self.name, peer_config(self.args.hub)) as bus:
+            with self._open_bus() as bus:
                 self.bus = bus
                 bus.subscribe("command", self._on_command)
                 bus.publisher("event")  # declared now, not on the first (timed) event
@@ -352,6 +399,9 @@ class Service:
                         os.close(self._pm_qos)  # withdraws the request
                         self._pm_qos = None
                     self.log.info("stopped; rejects %s", bus.rejects.counts)
+        except BusOpenError as err:
+            self.log.error("%s", err)
+            code = 1
         except Exception:
             self.log.exception("%s failed", self.name)
             code = 1
@@ -444,6 +494,8 @@ def main_for(
     if extra is not None:
         extra(parser)
     args = parser.parse_args(argv)
+    if args.bus_config is not None and args.hub is not None:
+        parser.error("--hub and --bus-config exclude each other (the file names the endpoints)")
     setup_logging(cls.name, args.out, args.log_level)
     if args.nice:
         try:

@@ -34,8 +34,24 @@ PASSWORDS = {
     "controller": "c-pw",
     "simulator": "s-pw",
     "estimator": "e-pw",
-    "operator": "o-pw",
+    "adapter": "a-pw",
+    "bridge": "b-pw",
+    "mocap": "m-pw",
     "recorder": "r-pw",
+    "launcher": "l-pw",
+    "operator": "o-pw",
+}
+#: Who may put what: the table of deploy/zenoh/router-acl.json5 (the writers of both
+#: profiles; the recorder writes nothing).
+WRITERS = {
+    "setpoint": {"controller"},
+    "state": {"estimator"},
+    "model": {"adapter"},
+    "residual": {"adapter"},
+    "mocap": {"simulator", "mocap"},
+    "imu": {"simulator", "bridge"},
+    "event": {"controller", "estimator", "adapter", "simulator", "bridge", "launcher"},
+    "command": {"simulator", "bridge", "operator"},
 }
 
 
@@ -108,6 +124,73 @@ def acl_router(tmp_path: Path):
 def _client(endpoint: str, user: str, password: str | None = None) -> Bus:
     cfg = client_config([endpoint], user=user, password=password or PASSWORDS[user])
     return Bus(VEHICLE, user, cfg)
+
+
+class RawTap:
+    """``(topic, payload)`` of everything on ``arcade/<vehicle>/**``, in arrival order."""
+
+    def __init__(self, bus: Bus):
+        self.q: queue.Queue = queue.Queue()
+        handler = zenoh.handlers.Callback(
+            lambda s: self.q.put((str(s.key_expr).rsplit("/", 1)[-1], s.payload.to_bytes())),
+            indirect=False,
+        )
+        self._sub = bus.session.declare_subscriber(f"arcade/{VEHICLE}/**", handler)
+
+    def until(self, payload: bytes) -> list[tuple[str, bytes]]:
+        seen = []
+        while True:
+            try:
+                got = self.q.get(timeout=TIMEOUT)
+            except queue.Empty:
+                raise AssertionError(f"not delivered within {TIMEOUT} s; got {seen}") from None
+            if got[1] == payload:
+                return seen
+            seen.append(got)
+
+
+def test_acl_lets_each_user_put_exactly_its_topics(acl_router):
+    # Every user puts every topic (the router does not look into payloads), then a
+    # sentinel on a topic it may write at the lowest priority: whatever the router let
+    # through arrives before it.
+    assert set(WRITERS) == set(zbus.QOS)
+    with _client(acl_router, "recorder") as rec:
+        tap = RawTap(rec)
+        rec.declare_alive()
+        for user in sorted(set(PASSWORDS) - {"recorder"}):
+            own = sorted(t for t, users in WRITERS.items() if user in users)
+            with _client(acl_router, user) as bus:
+                bus.wait_alive(["recorder"], TIMEOUT)
+                for topic in zbus.QOS:
+                    bus.session.put(
+                        bus.key(topic),
+                        f"{user}:{topic}".encode(),
+                        priority=zbus.QOS[topic].priority,
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                    )
+                sentinel = f"sentinel:{user}".encode()
+                bus.session.put(
+                    bus.key(own[0]),
+                    sentinel,
+                    priority=zenoh.Priority.BACKGROUND,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
+                got = tap.until(sentinel)
+            assert sorted(t for t, _ in got) == own, (user, got)
+            assert all(payload == f"{user}:{t}".encode() for t, payload in got), got
+
+
+def test_acl_liveliness_tokens_come_and_go(acl_router):
+    # Crash detection (a token that disappears) works through the router for every user.
+    changes: queue.Queue = queue.Queue()
+    with _client(acl_router, "launcher") as launcher:
+        launcher.on_alive_change(lambda service, up: changes.put((service, up)))
+        for user in sorted(set(PASSWORDS) - {"launcher"}):
+            with _client(acl_router, user) as bus:
+                bus.declare_alive()
+                launcher.wait_alive([user], TIMEOUT)
+            assert changes.get(timeout=TIMEOUT) == (user, True)
+            assert changes.get(timeout=TIMEOUT) == (user, False)
 
 
 def test_acl_setpoint_only_from_the_controller(acl_router):
@@ -399,12 +482,10 @@ def test_acl_by_certificate_common_name_over_mtls(certs: Path):
     port = free_port()
     subjects = [
         {"id": "everyone", "cert_common_names": ["controller", "estimator", "recorder"]},
-        {"id": "services", "cert_common_names": ["controller", "estimator"]},
-        {"id": "controller", "cert_common_names": ["controller"]},
-        {"id": "sensors", "cert_common_names": ["simulator", "bridge"]},
-        {"id": "estimator", "cert_common_names": ["estimator"]},
-        {"id": "adapter", "cert_common_names": ["adapter"]},
-        {"id": "operator", "cert_common_names": ["operator"]},
+        *(
+            {"id": name, "cert_common_names": [name]}
+            for name in sorted(set(PASSWORDS) - {"recorder"})
+        ),
     ]
     cfg = load_config(
         zbus.config_path("router-acl.json5"),

@@ -22,6 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "  arcade up --profile px4 --connect serial:///dev/ttyACM0:921600\n"
         "                                              a real PX4 (asks before arming)\n"
         "  arcade up --profile px4 --simulate --arm   the same chain against a simulated PX4\n"
+        "  arcade up --lockstep --bus-configs deploy/my-router\n"
+        "                                              every process a client of a router\n"
         "The run folder gets logs/<service>.log, stats/, events.jsonl, truth.csv,\n"
         "flight_log.csv and bus.mcap (open it in Foxglove Studio). Crashes, restarts,\n"
         "failsafes and degraded modes are shown as they happen. Options that do not fit\n"
@@ -72,7 +74,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="run folder (default runs/<time>-up; relative to the current directory)",
     )
-    p.add_argument("--hub", default=None, help="Zenoh hub endpoint (default: a free loopback port)")
+    p.add_argument(
+        "--hub",
+        default=None,
+        help="Zenoh hub endpoint of the peers (default: a free loopback port)",
+    )
+    p.add_argument(
+        "--bus-configs",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="one Zenoh configuration per process instead of peers on the hub: "
+        "DIR/<name>.json5 for launcher, recorder, estimator, adapter, controller and sim "
+        "(e.g. clients of a router with their own user and password); checked before "
+        "anything starts",
+    )
     p.add_argument(
         "--weights",
         type=Path,
@@ -114,6 +130,8 @@ PX4_OPTIONS = {
 
 def usage_problem(args: argparse.Namespace) -> str | None:
     """Why these options do not fit together (one line), or None."""
+    if args.bus_configs is not None and args.hub is not None:
+        return "--hub and --bus-configs exclude each other: the configurations name the endpoints"
     if args.profile != "px4":
         given = [k for k, v in PX4_OPTIONS.items() if getattr(args, k) != v]
         if given:
@@ -127,6 +145,25 @@ def usage_problem(args: argparse.Namespace) -> str | None:
     if args.takeoff_m is not None and not (math.isfinite(args.takeoff_m) and args.takeoff_m > 0):
         return f"--takeoff-m must be a positive number, got {args.takeoff_m:g}"
     return None
+
+
+def bus_configs(directory: Path, processes: tuple[str, ...]) -> dict[str, Path] | str:
+    """``{name: DIR/<name>.json5}`` for the launcher and ``processes``, or why not (one
+    line: the missing files, or the first that is not a readable Zenoh configuration)."""
+    from services.bus import read_config
+
+    if not directory.is_dir():
+        return f"--bus-configs {directory}: not a directory"
+    files = {name: directory / f"{name}.json5" for name in ("launcher", *processes)}
+    missing = [f.name for f in files.values() if not f.is_file()]
+    if missing:
+        return f"--bus-configs {directory}: missing {', '.join(missing)}"
+    for path in files.values():
+        try:
+            read_config(path)
+        except ValueError as err:
+            return f"--bus-configs: {err}"
+    return files
 
 
 def out_problem(out: Path | None) -> str | None:
@@ -173,6 +210,20 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         say(f"error: {problem}")
         return 2
+    configs: dict[str, Path] = {}
+    if args.bus_configs is not None:
+        from deploy.launcher import SERVICES
+        from deploy.px4_profile import PX4_SERVICES
+
+        if args.profile == "px4":  # the operator session sends arm, hold, land, disarm
+            processes = (*PX4_SERVICES, *(("px4sim",) if args.simulate else ()), "operator")
+        else:
+            processes = SERVICES
+        found = bus_configs(args.bus_configs, processes)
+        if isinstance(found, str):
+            say(f"error: {found}")
+            return 2
+        configs = found
     bad_weights = weights_problem(args.weights)
     if bad_weights is not None:
         say(f"error: {bad_weights[0]}")
@@ -187,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
         profile=args.profile,
         lockstep=args.lockstep,
         vehicle=args.vehicle,
-        hub=args.hub or free_hub(),
+        hub=args.hub or free_hub(),  # unused with bus configurations
         rate=args.rate,
         duration=args.duration,
         payload_g=args.payload_g,
@@ -197,7 +248,8 @@ def run(args: argparse.Namespace) -> int:
         weights=args.weights,
         checkpoint=args.checkpoint,
         realtime_priority=args.realtime_priority,
-    )  # run folder, weights and checkpoint made absolute
+        bus_configs=configs,
+    )  # run folder, weights, checkpoint and bus configurations made absolute
 
     def on_term(*_: object) -> None:
         raise KeyboardInterrupt  # the launcher's context manager stops every service
