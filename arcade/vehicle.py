@@ -16,8 +16,10 @@ REQUIRED = {
     "rotors": {"max_thrust_n": 1, "motor_time_constant_s": 1, "yaw_moment_coeff_m": 1},
     "rate_loop": {"time_constant_s": 1, "max_rate_rad_s": 3},
 }
-#: Cable mass [kg] when the vehicle file gives none (the simulator's default).
+#: Cable and electromagnet masses [kg] when the vehicle file gives none (the simulator's
+#: defaults: it always carries the electromagnet, and the nominal model counts it).
 DEFAULT_CABLE_MASS_KG = 0.002
+DEFAULT_ELECTROMAGNET_MASS_KG = 0.02
 
 
 def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:
@@ -77,7 +79,7 @@ def max_payload_g(vehicle: dict[str, Any]) -> float:
     lift_kg = 4.0 * float(rotors["max_thrust_n"]) * scale / gravity
     carried_kg = (
         float(body["mass_kg"])
-        + float(pay.get("electromagnet_mass_kg", 0.02))
+        + float(pay.get("electromagnet_mass_kg", DEFAULT_ELECTROMAGNET_MASS_KG))
         + float(pay.get("cable_mass_kg", DEFAULT_CABLE_MASS_KG))
     )
     return max(0.0, 1000.0 * (lift_kg - carried_kg))
@@ -90,7 +92,7 @@ def quadrotor_params(vehicle: dict[str, Any]):
     from arcade_core.dynamics.params import QuadrotorParams
 
     body = vehicle["body"]
-    magnet = vehicle.get("payload", {}).get("electromagnet_mass_kg", 0.0)
+    magnet = vehicle.get("payload", {}).get("electromagnet_mass_kg", DEFAULT_ELECTROMAGNET_MASS_KG)
     return QuadrotorParams(
         mass=float(body["mass_kg"]) + float(magnet),
         inertia=jnp.asarray(body["inertia_kgm2"], dtype=float),

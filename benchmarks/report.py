@@ -2,7 +2,7 @@
 
 `arcade bench report` (or `make benchmarks`) runs every benchmark and the cartpole
 evaluation, writes the figures under ``benchmarks/results/`` and the tables into
-BENCHMARKS.md; the quadrotor evaluation (40 minutes or more on 2 cores) has its own command
+BENCHMARKS.md; the quadrotor evaluation (about 30 minutes on 2 cores) has its own command
 (``QUADROTOR_COMMAND``) and the report renders its stored results. The file is never edited
 by hand.
 """
@@ -356,7 +356,7 @@ def _quadrotor_section(path: Path) -> list[str]:
     if not path.is_file():
         return [
             *head,
-            f"No results yet: run `{QUADROTOR_COMMAND}` (40 minutes or more on 2 "
+            f"No results yet: run `{QUADROTOR_COMMAND}` (about 30 minutes on 2 "
             "cores), then `make benchmarks`.",
             "",
         ]

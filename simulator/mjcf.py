@@ -31,6 +31,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from arcade.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG
+
 #: Name of the equality constraint that holds the cable at the electromagnet.
 RELEASE_EQUALITY = "magnet_lock"
 #: Rotor site names in PX4 quad-x order.
@@ -96,7 +98,7 @@ def build_mjcf(
     inertia = [float(x) for x in body["inertia_kgm2"]]
     size = [float(x) for x in body["size_m"]]
     gravity = float(vehicle.get("nominal", {}).get("gravity_mps2", 9.81))
-    magnet_mass = float(pay.get("electromagnet_mass_kg", 0.02))
+    magnet_mass = float(pay.get("electromagnet_mass_kg", DEFAULT_ELECTROMAGNET_MASS_KG))
     cable_mass = float(pay.get("cable_mass_kg", DEFAULT_CABLE_MASS))
     if cable_length is None:
         cable_length = float(pay.get("cable_length_m", 0.5))

@@ -28,7 +28,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from arcade.vehicle import load_vehicle
+from arcade.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG, load_vehicle
 from simulator.effects import Effects, drag_force_body, ground_effect_gain, load_effects
 from simulator.mjcf import (
     PAYLOAD_RADIUS,
@@ -119,7 +119,9 @@ class QuadrotorSim:
         # Airframe + electromagnet (+ rigid payload): the subtree rooted at the airframe.
         self._airframe_subtree_mass = float(m.body_subtreemass[self._airframe])
         self.vehicle_mass = float(self.vehicle["body"]["mass_kg"]) + float(
-            self.vehicle.get("payload", {}).get("electromagnet_mass_kg", 0.02)
+            self.vehicle.get("payload", {}).get(
+                "electromagnet_mass_kg", DEFAULT_ELECTROMAGNET_MASS_KG
+            )
         )
 
         rotors = self.vehicle["rotors"]
