@@ -61,9 +61,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-class Tap:
-    """Every message on ``arcade/<vehicle>/**`` in arrival order (callback on the
-    receiving thread), decoded; ``until`` waits for a message and returns those before it."""
+class RawTap:
+    """``(topic, payload)`` of everything on ``arcade/<vehicle>/**``, in arrival order
+    (callback on the receiving thread); ``until`` waits for a match and returns those
+    before it."""
 
     def __init__(self, bus: Bus):
         self.q: queue.Queue = queue.Queue()
@@ -73,17 +74,34 @@ class Tap:
         )
         self._sub = bus.session.declare_subscriber(f"arcade/{VEHICLE}/**", handler)
 
-    def until(self, pred) -> list:
+    def _item(self, topic: str, payload: bytes):
+        return topic, payload
+
+    def _matches(self, item, want) -> bool:
+        return item[1] == want  # the exact payload
+
+    def until(self, want) -> list:
         seen = []
         while True:
             try:
-                topic, payload = self.q.get(timeout=TIMEOUT)
+                got = self.q.get(timeout=TIMEOUT)
             except queue.Empty:
                 raise AssertionError(f"not delivered within {TIMEOUT} s; got {seen}") from None
-            m = decode(topic, payload)
-            if pred(m):
+            item = self._item(*got)
+            if self._matches(item, want):
                 return seen
-            seen.append(m)
+            seen.append(item)
+
+
+class Tap(RawTap):
+    """As :class:`RawTap`, messages decoded; ``until(pred)`` waits for one that ``pred``
+    accepts."""
+
+    def _item(self, topic: str, payload: bytes):
+        return decode(topic, payload)
+
+    def _matches(self, item, want) -> bool:
+        return want(item)
 
 
 def _mocap(stamp: float = 0.0) -> Mocap:
@@ -124,29 +142,6 @@ def acl_router(tmp_path: Path):
 def _client(endpoint: str, user: str, password: str | None = None) -> Bus:
     cfg = client_config([endpoint], user=user, password=password or PASSWORDS[user])
     return Bus(VEHICLE, user, cfg)
-
-
-class RawTap:
-    """``(topic, payload)`` of everything on ``arcade/<vehicle>/**``, in arrival order."""
-
-    def __init__(self, bus: Bus):
-        self.q: queue.Queue = queue.Queue()
-        handler = zenoh.handlers.Callback(
-            lambda s: self.q.put((str(s.key_expr).rsplit("/", 1)[-1], s.payload.to_bytes())),
-            indirect=False,
-        )
-        self._sub = bus.session.declare_subscriber(f"arcade/{VEHICLE}/**", handler)
-
-    def until(self, payload: bytes) -> list[tuple[str, bytes]]:
-        seen = []
-        while True:
-            try:
-                got = self.q.get(timeout=TIMEOUT)
-            except queue.Empty:
-                raise AssertionError(f"not delivered within {TIMEOUT} s; got {seen}") from None
-            if got[1] == payload:
-                return seen
-            seen.append(got)
 
 
 def test_acl_lets_each_user_put_exactly_its_topics(acl_router):
