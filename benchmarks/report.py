@@ -525,5 +525,6 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
         "",
     ]
     path = Path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(header + sections))
     return path

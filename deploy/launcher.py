@@ -15,12 +15,16 @@ each restart is published as an ``event`` (kinds ``fault`` and ``restart``, sour
 ``--incarnation N`` (its files that would overwrite the first run's get a suffix) and,
 for the adapter, the same posterior checkpoint (default ``<out>/adapter_checkpoint.npz``),
 which it restores. The vehicle link is not restarted: its process *is* the vehicle (the
-simulator's physics state); when it ends, the flight ends (code 0: normal end; otherwise
-:class:`StackError`). :attr:`Stack.alive` is the set of services whose liveliness token is
-visible on the bus (a crashed process's token disappears with its session).
+simulator's physics state); the flight ends when it ends or says ``flight finished`` (a
+simulated PX4 outlives its plan until stopped, so that the bridge's Hold is answered);
+:meth:`Stack.wait` returns its exit code (0 on ``flight finished``), :class:`StackError`
+when a service runs out of restarts. :attr:`Stack.alive` is the set of services whose
+liveliness token is visible on the bus (a crashed process's token disappears with its
+session).
 
-Stop: SIGINT to every service in data-flow order (vehicle first, recorder last so it
-records the end), then SIGTERM and SIGKILL for those that do not exit in time.
+Stop: SIGINT to every service in data-flow order (vehicle link first: in the px4 profile
+the bridge, then the simulated PX4; the recorder last so it records the end), then SIGTERM
+and SIGKILL for those that do not exit in time.
 
 Run folder (``--out``): ``logs/<service>.log`` (each service's log), ``logs/<service>.out``
 (its stdout/stderr), ``stats/<service>.json``, ``events.jsonl`` (every event seen by the
@@ -120,9 +124,10 @@ class StackConfig:
         """Why ``bus_configs`` does not fit ``processes`` (one line), or None."""
         if not self.bus_configs:
             return None
-        wanted = [*processes, "launcher"]
+        # The px4 profile's operator session (arm, hold, land, disarm) needs its own.
+        wanted = [*processes, "launcher", *(("operator",) if self.profile == "px4" else ())]
         missing = [n for n in wanted if n not in self.bus_configs]
-        unknown = sorted(set(self.bus_configs) - {*wanted, "operator"})
+        unknown = sorted(set(self.bus_configs) - set(wanted))
         if missing:
             return f"bus_configs: no configuration for {', '.join(missing)}"
         if unknown:
@@ -254,9 +259,14 @@ def last_output(out: Path, name: str, lines: int = 4) -> list[str]:
     rows = [r for r in rows if r.strip()]
     tb = max((i for i, r in enumerate(rows) if r.startswith("Traceback (")), default=None)
     if tb is not None:
-        # Frames are indented; the exception (and what chains it) is not.
-        picked = rows[max(0, tb - 1) : tb] + [r for r in rows[tb + 1 :] if not r[:1].isspace()]
-        rows = picked[-lines:] if picked else rows[-lines:]
+        # Frames are indented; the exception (and what chains it) is not. The exception
+        # line stays even when more output follows it.
+        after = [r for r in rows[tb + 1 :] if not r[:1].isspace()]
+        before = rows[max(0, tb - 1) : tb]
+        if len(before) + len(after) <= lines:
+            rows = before + after
+        else:
+            rows = after[:1] + after[1:][-(lines - 1) :] if lines > 1 else after[:1]
     else:
         rows = rows[-lines:]
     return [r if len(r) <= 400 else r[:399] + "…" for r in rows]
@@ -443,10 +453,6 @@ class Stack:
     def _on_event(self, e: Any) -> None:
         if e.src.startswith("launcher/"):
             return  # our own, recorded when emitted
-        if e.text == "flight finished" and e.src.split("/")[0] == self.vehicle_process:
-            with self._changed:
-                self._finished = True
-                self._changed.notify_all()
         self._record(
             {
                 "stamp": e.stamp,
@@ -457,6 +463,11 @@ class Stack:
                 "data": dict(e.data),
             }
         )
+        # After recording: what wait() returns to must already hold this event.
+        if e.text == "flight finished" and e.src.split("/")[0] == self.vehicle_process:
+            with self._changed:
+                self._finished = True
+                self._changed.notify_all()
 
     def _on_state(self, s: Any) -> None:
         self.last_stamp = s.stamp

@@ -41,6 +41,7 @@ import math
 import time
 
 from arcade.px4_failsafe import add_failsafe_arguments, failsafe_settings
+from arcade.runs import number
 from services import runtime
 from services.messages import Command, Setpoint
 from services.sim_node import SimNode
@@ -249,7 +250,7 @@ def _extra(p) -> None:
     )
     p.add_argument(
         "--linger-s",
-        type=float,
+        type=number(0.0),
         default=5.0,
         help="after the plan's end keep the vehicle running this long, or until stopped, "
         "so that a bridge stopped after the flight gets its Hold answered [s] "

@@ -213,3 +213,61 @@ def test_an_out_that_is_a_file_is_refused(elsewhere, capsys, command):
     Path("taken").write_text("")
     assert main([*command, "--out", "taken"]) == 2
     assert capsys.readouterr().err == "error: --out taken is an existing file, not a folder\n"
+
+
+def test_last_output_keeps_the_exception_when_more_output_follows(tmp_path):
+    (tmp_path / "logs").mkdir()
+    tail = "".join(f"exit message {i}\n" for i in range(6))
+    (tmp_path / "logs" / "bridge.out").write_text(TRACEBACK + tail)
+    rows = last_output(tmp_path, "bridge", lines=4)
+    assert rows[0].startswith("RuntimeError: no autopilot heard on udpin://127.0.0.1:14999")
+    assert rows[1:] == ["exit message 3", "exit message 4", "exit message 5"]
+
+
+def test_demo_stack_failure_is_one_line(elsewhere, capsys, monkeypatch):
+    import arcade.demo_stack
+
+    def fail(*args, **kwargs):
+        raise StackError("service adapter exited with code 1 (after 3 restarts)")
+
+    monkeypatch.setattr(arcade.demo_stack, "run_demo", fail)
+    assert main(["demo", "--out", "d"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"error: service adapter exited with code 1 (after 3 restarts) (run folder: "
+        f"{elsewhere / 'd'})"
+    ]
+
+
+def test_px4_bus_configs_need_the_operator_session(tmp_path):
+    files = {n: tmp_path / f"{n}.json5" for n in ("launcher", "bridge", "px4sim", "recorder")}
+    files.update({n: tmp_path / f"{n}.json5" for n in ("estimator", "adapter", "controller")})
+    cfg = Px4StackConfig(out=tmp_path / "r", simulate=True, bus_configs=files)
+    with pytest.raises(ValueError, match=r"^bus_configs: no configuration for operator$"):
+        Stack(cfg)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--seed", "-1"], "--seed: must be at least 0, got -1"),
+        (["--epochs", "0"], "--epochs: must be at least 1, got 0"),
+    ],
+)
+def test_train_bad_numbers_are_argument_errors(capsys, argv, message):
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--system", "cartpole", *argv])
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_train_refuses_an_out_that_is_a_folder_before_training(tmp_path, capsys, monkeypatch):
+    import arcade.training
+
+    def no_training(**kwargs):
+        raise AssertionError("trained despite an unusable --out")
+
+    monkeypatch.setattr(arcade.training, "train_cartpole", no_training)
+    assert main(["train", "--system", "cartpole", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: --out {tmp_path} is an existing folder; give a file name"]

@@ -134,14 +134,19 @@ def run(args: argparse.Namespace) -> int:
         "released before the second lap (lockstep)",
         flush=True,
     )
-    summary = run_demo(
-        out,
-        payload_g=payload_g,
-        speed=speed,
-        seed=args.seed,
-        x64=args.x64,
-        weights=args.weights,
-    )
+    from deploy.launcher import StackError
+
+    try:
+        summary = run_demo(
+            out,
+            payload_g=payload_g,
+            speed=speed,
+            seed=args.seed,
+            x64=args.x64,
+            weights=args.weights,
+        )
+    except (StackError, ValueError, OSError) as err:
+        return _error(f"{err} (run folder: {out})", 1)
     print()
     print(format_summary(summary))
     print(f"\nrun folder: {out} (flight.png, metrics.json, logs/, flight_log.csv, bus.mcap)")

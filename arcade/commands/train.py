@@ -10,6 +10,8 @@ HELP = "offline training of the VLD encoder and decoder prior; writes a weights 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from arcade.runs import count
+
     p.add_argument(
         "--system",
         required=True,
@@ -22,13 +24,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="weights file to write (default: the shipped file under deploy/weights/)",
     )
-    p.add_argument("--epochs", type=int, default=None, help="override the Appendix D epochs")
+    p.add_argument("--epochs", type=count(1), default=None, help="override the Appendix D epochs")
     p.add_argument(
         "--deterministic",
         action="store_true",
         help="train the deterministic (MAP) encoder of Appendix E instead",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=count(0), default=0, help="training seed (default: 0)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,13 +39,18 @@ def run(args: argparse.Namespace) -> int:
     jaxsetup.configure()
     from arcade import training
 
-    if args.epochs is not None and args.epochs < 1:
-        print("--epochs must be at least 1", file=sys.stderr)
+    if args.system == "quadrotor" and args.deterministic:
+        print("error: --deterministic is only available for the cartpole", file=sys.stderr)
         return 2
-    if args.system == "quadrotor":
-        if args.deterministic:
-            print("--deterministic is only available for the cartpole", file=sys.stderr)
+    if args.out is not None:
+        from arcade.runs import check_output_file
+
+        try:
+            check_output_file(args.out, "--out")
+        except ValueError as err:
+            print(f"error: {err}", file=sys.stderr)
             return 2
+    if args.system == "quadrotor":
         from arcade.training_quadrotor import train_quadrotor
 
         path = train_quadrotor(out=args.out, epochs=args.epochs, seed=args.seed)

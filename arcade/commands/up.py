@@ -85,9 +85,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="DIR",
         help="one Zenoh configuration per process instead of peers on the hub: "
-        "DIR/<name>.json5 for launcher, recorder, estimator, adapter, controller and sim "
-        "(e.g. clients of a router with their own user and password); checked before "
-        "anything starts",
+        "DIR/<name>.json5 for launcher, recorder, estimator, adapter, controller and sim; "
+        "with --profile px4 bridge (and px4sim with --simulate) instead of sim, and "
+        "operator (e.g. clients of a router with their own user and password); checked "
+        "before anything starts",
     )
     p.add_argument(
         "--weights",
