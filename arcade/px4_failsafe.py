@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from arcade.runs import number
+
 #: ``--of-loss-action`` name -> ``COM_OBL_RC_ACT`` value (PX4's codes; the simulated
 #: vehicle maps them to its modes, :data:`simulator.px4.vehicle.OFFBOARD_LOSS_ACTIONS`).
 LOSS_ACTIONS = {"position": 0, "land": 4, "hold": 5}
@@ -25,13 +27,13 @@ def add_failsafe_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--vision-timeout",
-        type=float,
+        type=number(0.0, low_open=True),
         default=0.5,
         help="mocap older than this no longer gives a valid position [s]",
     )
     p.add_argument(
         "--of-loss-s",
-        type=float,
+        type=number(0.0, low_open=True),
         default=1.0,
         help="offboard loss timeout COM_OF_LOSS_T [s] (default: %(default)s, PX4's)",
     )

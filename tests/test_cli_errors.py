@@ -79,7 +79,8 @@ def _error_line(capsys) -> str:
         (["--cable-length", "0.3"], "--cable-length needs a payload"),
         (["--duration", "nan"], "argument --duration: must be a finite number > 0"),
         (["--status-every", "-1"], "argument --status-every"),
-        (["--of-loss-s", "0"], "--of-loss-s must be a finite number > 0"),
+        (["--of-loss-s", "0"], "argument --of-loss-s: must be a finite number > 0"),
+        (["--vision-timeout", "nan"], "argument --vision-timeout: must be a finite number > 0"),
         (["--airborne", "--start", "0", "0", "0"], "--start Z must be above the floor"),
     ],
 )

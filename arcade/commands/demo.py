@@ -80,19 +80,16 @@ def run_cartpole(args: argparse.Namespace) -> int:
     from arcade.runs import new_run_dir
 
     jaxsetup.configure()
-    from arcade.training import CARTPOLE_WEIGHTS, load_cartpole
-    from arcade.weights import weight_file_problem
+    from arcade.training import load_cartpole
+    from arcade.weights import WeightFileError
 
-    # A given file must load; the shipped one is trained first when it is missing.
-    if args.weights is not None or CARTPOLE_WEIGHTS.is_file():
-        path = CARTPOLE_WEIGHTS if args.weights is None else args.weights
-        problem = weight_file_problem(path, "cartpole")
-        if problem is not None:
-            return _error(problem, 2 if args.weights is not None else 1)
+    try:  # a given file must load; the shipped one is trained first when it is missing
+        vld = load_cartpole(args.weights)
+    except (OSError, WeightFileError) as err:
+        return _error(str(err).splitlines()[0], 2 if args.weights is not None else 1)
     from arcade.demo_cartpole import run_demo
 
     out = args.out or new_run_dir("demo-cartpole")
-    vld = load_cartpole(args.weights)
     print("flying the cartpole scenario (nominal MPC, then ARCADE MPC) ...", flush=True)
     summary = run_demo(vld, out, seed=args.seed)
     print(

@@ -138,12 +138,6 @@ def check_arguments(args: argparse.Namespace) -> dict:
         raise ValueError(
             f"--px4: {msg}" if args.px4 in msg else f"--px4 {args.px4}: {msg}"
         ) from None
-    for name in ("vision_timeout", "of_loss_s"):
-        value = getattr(args, name)
-        if not (math.isfinite(value) and value > 0.0):
-            raise ValueError(
-                f"--{name.replace('_', '-')} must be a finite number > 0, got {value:g}"
-            )
     vehicle = load_vehicle(args.vehicle)
     limit = max_payload_g(vehicle)
     if args.payload_g >= limit:
