@@ -38,7 +38,10 @@ Methods:
   by ``sigma_tot^2`` (Sec. IV), Appendix D values (``K = 15``, ``pi = 0.05``,
   ``tau^2 = 0.1``; ``beta`` and ``sigma^2`` tuned, see below) and the offline prior re-injected
   at changepoints, which Lemma 2's proof assumes
-  (:func:`arcade_core.adaptation.quadrotor_config`).
+  (:func:`arcade_core.adaptation.quadrotor_config`);
+- ``ours_matched`` (:data:`VARIANTS`, not the paper's method, not in :data:`METHODS`):
+  ours with an intercept feature, planning with :func:`matched_residual` only; flown by
+  ``arcade bench variants`` (:mod:`benchmarks.quadrotor_variants`).
 
 Units of the variance that modulates ``Q`` (Sec. IV, ``alpha1 = 10``, ``alpha2 = 1e3``):
 Sec. IV builds ``sigma_tot^2`` from the posterior of the regression itself (``mu_{k,h}``,
@@ -117,6 +120,9 @@ from benchmarks.common import machine
 from benchmarks.quadrotor_data import f_nom
 
 METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
+#: Variants of ours that are not the paper's method, flown beside it by
+#: :mod:`benchmarks.quadrotor_variants` (:func:`beam_method`).
+VARIANTS = ("ours_matched",)
 PAYLOADS_G = (75.0, 125.0, 175.0)
 SPEEDS_MPS = (0.5, 1.5, 2.5)
 BEAM_SIZES = (5, 10, 15, 20, 30)
@@ -139,6 +145,8 @@ TUNING_GRIDS = {
     "l1_cutoff": (5.0, 10.0, 20.0, 40.0, 80.0),
     "l1_cutoff_rates": (0.0, 5.0, 10.0, 20.0, 40.0, 80.0),  # 0: rate channel not applied
     "l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1),
+    "ours_matched_beta": (0.997, 0.9, 0.5, 0.2, 0.05),
+    "ours_matched_sigma2": (0.1, 0.01, 0.001, 0.0001),
 }
 #: Where :func:`tune` starts: the presets (Appendix D ``sigma^2 = 0.1``, the GP's
 #: marginal-likelihood noise, L1 on the thrust channel only) and a middle value of the
@@ -151,6 +159,8 @@ TUNING_START = {
     "l1_cutoff": 40.0,
     "l1_cutoff_rates": 0.0,
     "l1_a_s": -2.0,
+    "ours_matched_beta": 0.05,
+    "ours_matched_sigma2": 0.1,
 }
 #: The method each knob belongs to.
 TUNING_METHOD = {
@@ -161,6 +171,8 @@ TUNING_METHOD = {
     "l1_cutoff": "l1",
     "l1_cutoff_rates": "l1",
     "l1_a_s": "l1",
+    "ours_matched_beta": "ours_matched",
+    "ours_matched_sigma2": "ours_matched",
 }
 MAX_TUNING_PASSES = 4
 #: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
@@ -173,6 +185,9 @@ TUNED_DEFAULTS = {
     "l1_cutoff": 80.0,
     "l1_cutoff_rates": 0.0,
     "l1_a_s": -0.1,
+    # Tuned by `arcade bench variants` (benchmarks/results/quadrotor_variants/), 2-core AMD EPYC.
+    "ours_matched_beta": 0.2,
+    "ours_matched_sigma2": 0.0001,
 }
 
 
@@ -450,14 +465,54 @@ def _features(vld: encoder.VLD, guard: Guard, x: Array, u: Array) -> Array:
     return jnp.clip(vld.features(x, u), guard.feature_lo, guard.feature_hi)
 
 
-def beam_method(name: str = "ours") -> Method:
+def _body_z(q: Array) -> Array:
+    """The body z axis (thrust direction) in the world frame, of the unit quaternion ``q``."""
+    return jnp.stack(
+        [
+            2 * (q[1] * q[3] + q[0] * q[2]),
+            2 * (q[2] * q[3] - q[0] * q[1]),
+            1 - 2 * (q[1] ** 2 + q[2] ** 2),
+        ]
+    )
+
+
+def matched_residual(x: Array, delta: Array) -> Array:
+    """The part of a residual ``delta`` (13,) that the collective thrust can cancel.
+
+    Position and velocity parts projected onto the body z axis of ``x``; the attitude and
+    body-rate parts zero. What ``ours_matched`` plans with (:func:`beam_method`).
+    """
+    zb = _body_z(x[6:10])
+    out = jnp.zeros_like(delta)
+    out = out.at[0:3].set(jnp.dot(delta[0:3], zb) * zb)
+    return out.at[3:6].set(jnp.dot(delta[3:6], zb) * zb)
+
+
+def beam_method(name: str = "ours", intercept: bool = False, matched: bool = False) -> Method:
+    """Ours (Sec. III-IV), or a variant that is not the paper's method (:data:`VARIANTS`).
+
+    ``intercept``: the latent features get a constant ``1`` appended (``l + 1`` columns;
+    the offline decoder's column is zero), so the online regression can learn an offset
+    that does not depend on the state or the input. ``matched``: the MPC's rollout uses
+    only :func:`matched_residual` of the learned residual; learning, the changepoints and
+    ``sigma_tot^2`` see every output as in ours.
+    """
+
+    def features(vld, guard, x, u):
+        z = _features(vld, guard, x, u)
+        return jnp.concatenate([z, jnp.ones((1,), z.dtype)]) if intercept else z
+
+    def latent_variance(vld, x, u):
+        v = vld.latent_variance(x, u)
+        return jnp.concatenate([v, jnp.zeros((1,), v.dtype)]) if intercept else v
+
     def step_fn(x, u, model):
         vld, theta, guard = model
-        delta = vld.denormalise_residual(theta @ _features(vld, guard, x, u))
-        return f_nom(x, u) + _clip_residual(delta, guard)
+        delta = _clip_residual(vld.denormalise_residual(theta @ features(vld, guard, x, u)), guard)
+        return f_nom(x, u) + (matched_residual(x, delta) if matched else delta)
 
     def learn(a: BeamLearner, xp, up, x):
-        z = _features(a.vld, a.guard, xp, up)
+        z = features(a.vld, a.guard, xp, up)
         dn = a.vld.normalise_residual(x - f_nom(xp, up))
         beam, info = adaptation.update(a.beam, z, dn, a.config)
         return a._replace(
@@ -469,8 +524,8 @@ def beam_method(name: str = "ours") -> Method:
         return a.vld, adaptation.marginal_decoder(a.beam)[0], a.guard
 
     def sigma(a: BeamLearner, x, u):
-        z = _features(a.vld, a.guard, x, u)
-        return adaptation.sigma_tot2(a.beam, z, a.vld.latent_variance(x, u))
+        z = features(a.vld, a.guard, x, u)
+        return adaptation.sigma_tot2(a.beam, z, latent_variance(a.vld, x, u))
 
     def info(a: BeamLearner):
         return jnp.stack([a.changepoint, a.cp_prob])
@@ -498,9 +553,11 @@ def make_method(name: str) -> Method:
         return gp_method()
     if name == "mlp":
         return mlp_method()
+    if name == "ours_matched":
+        return beam_method(name, intercept=True, matched=True)
     if name in ("ours", "ours_no_cp") or name.startswith("ours_K"):
         return beam_method(name)
-    raise ValueError(f"unknown method {name!r} (one of {', '.join(METHODS)})")
+    raise ValueError(f"unknown method {name!r} (one of {', '.join(METHODS + VARIANTS)})")
 
 
 def scale_gp_noise(model: gp.GPModel, scale: float) -> gp.GPModel:
@@ -546,15 +603,19 @@ def initial_learner(name: str, models, dtype) -> Any:
                 cast(models.mlp), std[:13], std[13:], capacity=FIFO, learning_rate=tuned["mlp_lr"]
             )
         ), guard
+    knobs = "ours_matched" if name == "ours_matched" else "ours"
     cfg = adaptation.quadrotor_config()._replace(
-        beta=tuned["ours_beta"], sigma2=tuned["ours_sigma2"]
+        beta=tuned[f"{knobs}_beta"], sigma2=tuned[f"{knobs}_sigma2"]
     )
     if name == "ours_no_cp":
         cfg = no_cp_config(cfg)
     elif name.startswith("ours_K"):
         cfg = cfg._replace(K=int(name[len("ours_K") :]))
     vld = cast(models.vld)
-    beam = adaptation.init(vld.theta0, cfg)
+    theta0 = vld.theta0
+    if name == "ours_matched":  # the intercept's column (beam_method) starts at zero
+        theta0 = jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
+    beam = adaptation.init(theta0, cfg)
     traced_cfg = adaptation.AdaptationConfig(
         K=jnp.asarray(cfg.K),
         pi=jnp.asarray(cfg.pi, dtype),
@@ -606,15 +667,7 @@ def thrust_reference(step_fn, model, x_ref: Array, u_ref: Array) -> Array:
 
     def one(x, u):
         dv = (step_fn(x, u, model) - f_nom(x, u))[3:6]
-        q = x[6:10]
-        z_b = jnp.stack(
-            [
-                2 * (q[1] * q[3] + q[0] * q[2]),
-                2 * (q[2] * q[3] - q[0] * q[1]),
-                1 - 2 * (q[1] ** 2 + q[2] ** 2),
-            ]
-        )
-        return u.at[0].add(-p.mass * jnp.dot(dv, z_b) / DT)
+        return u.at[0].add(-p.mass * jnp.dot(dv, _body_z(x[6:10])) / DT)
 
     return jax.vmap(one)(x_ref[:-1], u_ref)
 
@@ -856,6 +909,7 @@ def tune(
     models,
     progress: Callable[[str], None] = lambda msg: None,
     runner: Runner | None = None,
+    methods: Sequence[str] = METHODS,
 ) -> dict[str, Any]:
     """Pick the adaptive methods' knobs on the tuning cell (the flights of
     :data:`TUNING_SEEDS` per grid value, lowest mean tracking RMSE wins; crashes are
@@ -870,13 +924,15 @@ def tune(
     passes over all knobs until a pass changes none (at most :data:`MAX_TUNING_PASSES`): a
     knob tuned first is tuned again at the others' choice, so the result does not hinge on
     the order. ``rmse_m`` holds each knob's scores in the last pass, ``rmse_m_by_pass`` in
-    every pass. The nominal MPC has nothing to tune.
+    every pass. The nominal MPC has nothing to tune. Only the knobs of ``methods`` are
+    tuned; the others keep their :data:`TUNED_DEFAULTS`.
     """
     runner = runner or Runner(models)
     scen = Scenario(payload_g=TUNING_CELL[0], speed_mps=TUNING_CELL[1])
+    grids = {k: g for k, g in TUNING_GRIDS.items() if TUNING_METHOD[k] in methods}
     knobs_of: dict[str, list[str]] = {}
-    for knob, method in TUNING_METHOD.items():
-        knobs_of.setdefault(method, []).append(knob)
+    for knob in grids:
+        knobs_of.setdefault(TUNING_METHOD[knob], []).append(knob)
     flown: dict[tuple, float] = {}  # (method, its knob values) -> RMSE; flights are seeded
 
     def score(knob: str, value: float) -> float:
@@ -893,12 +949,12 @@ def tune(
             )
         return flown[key]
 
-    models.closedloop = dict(TUNING_START)
+    models.closedloop = {**TUNED_DEFAULTS, **{k: TUNING_START[k] for k in grids}}
     by_pass: list[dict[str, dict[str, float]]] = []
     while len(by_pass) < MAX_TUNING_PASSES:
         changed = False
         table = {}
-        for knob, grid in TUNING_GRIDS.items():
+        for knob, grid in grids.items():
             scores = {value: score(knob, value) for value in grid}
             best = min(scores, key=scores.get)
             changed |= best != models.closedloop[knob]
@@ -907,7 +963,7 @@ def tune(
         by_pass.append(table)
         if not changed:
             break
-    chosen = {k: models.closedloop[k] for k in TUNING_GRIDS}
+    chosen = {k: models.closedloop[k] for k in grids}
     return {
         "chosen": chosen,
         "rmse_m": by_pass[-1],
@@ -953,7 +1009,7 @@ def run_closedloop(
         models = prepare_models(quick=quick, seed=seed, progress=progress)
     runner = Runner(models)
     tuning = (not quick) if tuning is None else tuning
-    tuning_result = tune(models, progress, runner) if tuning else None
+    tuning_result = tune(models, progress, runner, methods) if tuning else None
     rows, per_trial, fig5 = [], [], {}
     for pay, speed in cells:
         scen = Scenario(payload_g=float(pay), speed_mps=float(speed))

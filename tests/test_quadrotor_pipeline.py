@@ -10,6 +10,7 @@ import pytest
 from arcade.training_quadrotor import QUADROTOR_COMMAND, QUADROTOR_WEIGHTS
 from arcade.weights import load_model, read_header
 from arcade_core import encoder
+from arcade_core.dynamics import quaternion as quat
 from benchmarks import quadrotor_closedloop as cl
 from benchmarks import quadrotor_data as qd
 
@@ -90,10 +91,11 @@ def test_shipped_weights_load_and_predict():
     assert float(heavy) < float(light) - 0.05
 
 
-@pytest.mark.parametrize("method", ["ours", "ours_held"])
+@pytest.mark.parametrize("method", ["ours", "ours_held", "ours_matched"])
 def test_short_closed_loop_flight_of_ours(data, method):
     """A few seconds of ARCADE in closed loop with a 75 g swinging payload stay on track,
-    with the learned residual inside the MPC rollout and held along the warm start.
+    with the learned residual inside the MPC rollout and held along the warm start, and
+    the matched-channel variant (intercept feature, thrust-axis residual).
 
     The nominal MPC sags by about 0.35 m under this payload (no integral action); the
     adapted model has to remove most of that for the bounds to hold.
@@ -116,6 +118,42 @@ def test_short_closed_loop_flight_of_ours(data, method):
     assert np.all(np.isfinite(flight.u))
     assert err.max() < 0.15, err.max()
     assert flight.metrics["rmse_m"] < 0.08
+
+
+def test_matched_residual_keeps_what_the_thrust_can_cancel():
+    """``ours_matched`` plans with the translational residual along the body z axis only."""
+    rng = np.random.default_rng(4)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    x = jnp.asarray(np.r_[rng.normal(size=6), q, rng.normal(size=3)])
+    delta = jnp.asarray(rng.normal(size=13))
+    m = np.asarray(cl.matched_residual(x, delta))
+    R = np.asarray(quat.to_rotation_matrix(jnp.asarray(q)))
+    zb = R[:, 2]
+    for part in (slice(0, 3), slice(3, 6)):
+        np.testing.assert_allclose(m[part], np.dot(np.asarray(delta[part]), zb) * zb, atol=1e-12)
+        np.testing.assert_allclose(np.dot(np.asarray(delta[part]) - m[part], zb), 0, atol=1e-12)
+    assert np.all(m[6:] == 0)
+    level = x.at[6:10].set(jnp.asarray([1.0, 0, 0, 0]))
+    np.testing.assert_allclose(cl.matched_residual(level, delta)[3:6], [0, 0, delta[5]])
+
+
+def test_tuning_flies_only_the_methods_asked_for():
+    """The variants' knobs are tuned in their own run; the others keep their defaults."""
+    models = SimpleNamespace()
+    flown = set()
+
+    class FakeRunner:
+        def fly(self, method, scenario, seed):
+            flown.add(method)
+            s2 = models.closedloop["ours_matched_sigma2"]
+            return SimpleNamespace(metrics={"rmse_m": abs(np.log(s2 / 1e-2))})
+
+    out = cl.tune(models, runner=FakeRunner(), methods=cl.VARIANTS)
+    assert flown == {"ours_matched"}
+    assert set(out["chosen"]) == {"ours_matched_beta", "ours_matched_sigma2"}
+    assert out["chosen"]["ours_matched_sigma2"] == 1e-2
+    assert models.closedloop["ours_beta"] == cl.TUNED_DEFAULTS["ours_beta"]
 
 
 def test_tuned_knobs_reach_the_learners():

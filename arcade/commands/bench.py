@@ -1,4 +1,4 @@
-"""`arcade bench adapt|mpc|loop|discrepancy|soak|fuzz|report` — figures of design §7."""
+"""`arcade bench adapt|mpc|loop|discrepancy|soak|fuzz|variants|report` — figures of design §7."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import sys
 
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
-    "fuzzing; `report` regenerates BENCHMARKS.md"
+    "fuzzing, quadrotor variants beside ours (~30 min); `report` regenerates BENCHMARKS.md"
 )
 
 # name -> module in `benchmarks/` exposing run(**kwargs) -> dict
@@ -20,6 +20,7 @@ BENCHES = {
     "discrepancy": "benchmarks.discrepancy",
     "soak": "benchmarks.soak",
     "fuzz": "benchmarks.fuzz",
+    "variants": "benchmarks.quadrotor_variants",
 }
 
 
