@@ -31,7 +31,9 @@ Run folder (``--out``): ``logs/<service>.log`` (each service's log), ``logs/<ser
 launcher), ``truth.csv`` (simulator ground truth), ``flight_log.csv`` and ``bus.mcap``
 (recorder). :class:`StackConfig` makes the run folder, the weights file, the checkpoint and
 the bus configuration files absolute (relative to the caller's working directory) when it
-is built: the services run in the repository root. A :class:`StackError` names the run's
+is built. The services run in the caller's working directory too (with ``python -P``, so
+that folder's modules do not shadow the stack's), so a relative path inside a bus
+configuration file resolves the same for every process. A :class:`StackError` names the run's
 ``logs/`` folder and quotes the last output of the process that failed.
 
 Bus: by default every process (and the launcher's own session) is a peer on loopback that
@@ -112,7 +114,7 @@ class StackConfig:
     bus_configs: dict[str, Path] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        # The services run in the repository root: hand them paths that do not depend on it.
+        # Absolute paths: what a service is handed does not depend on where it runs.
         self.out = _absolute(self.out)
         if self.weights is not None:
             self.weights = _absolute(self.weights)
@@ -339,6 +341,9 @@ class Stack:
         self._bus.subscribe("event", self._on_event, check_order=False)
         self._bus.subscribe("state", self._on_state, check_order=False)
         self._bus.publisher("event")
+        # Services run in the caller's folder, as the launcher does: a relative path in a
+        # bus configuration (a TLS certificate) means the same file to every process.
+        self._cwd = Path.cwd()
         env = dict(os.environ)
         env.setdefault("JAX_PLATFORMS", "cpu")
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
@@ -352,6 +357,7 @@ class Stack:
         n = self.restarts[name]
         cmd = [
             sys.executable,
+            "-P",  # the caller's folder is not on sys.path: its modules do not shadow ours
             "-m",
             "services",
             name,
@@ -363,7 +369,7 @@ class Stack:
         with (self.out / "logs" / f"{name}.out").open("a" if n else "w") as log:
             proc = subprocess.Popen(
                 cmd,
-                cwd=REPO,
+                cwd=self._cwd,
                 env=self._env,
                 stdout=log,
                 stderr=subprocess.STDOUT,

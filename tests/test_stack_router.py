@@ -16,6 +16,7 @@ Plus the usage errors of ``arcade up --bus-configs`` and of a service's ``--bus-
 from __future__ import annotations
 
 import json
+import shutil
 import socket
 import subprocess
 import sys
@@ -190,6 +191,44 @@ def test_realtime_mission_start_passes_the_acl_router(tmp_path, acl_router):
     assert "mission clock started" in (out / "logs" / "controller.log").read_text()
     assert "mission started" in (out / "logs" / "adapter.log").read_text()
     assert stats["adapter"]["learned"] >= stats["sim"]["steps"] // 2, stats["adapter"]
+
+
+@pytest.mark.integration
+def test_relative_tls_paths_resolve_where_the_stack_starts(certs, tmp_path, monkeypatch):
+    # Each process's client configuration names the router's CA by a path relative to the
+    # folder the stack is started from: the services run there, like the launcher, and a
+    # `services` package in that folder is not imported in place of the stack's.
+    here = tmp_path / "here"
+    (here / "certs").mkdir(parents=True)
+    shutil.copy(certs / "ca.pem", here / "certs" / "ca.pem")
+    (here / "services").mkdir()
+    (here / "services" / "__init__.py").write_text("raise ImportError('not the stack')\n")
+    monkeypatch.chdir(here)
+    port = free_port()
+    router = load_config(
+        config_path("router-tls.json5"),
+        {
+            "listen/endpoints": [f"tls/127.0.0.1:{port}"],
+            "transport/link/tls": {
+                "listen_certificate": str(certs / "router.pem"),
+                "listen_private_key": str(certs / "router.key"),
+            },
+        },
+    )
+    (here / "bus").mkdir()
+    configs = {}
+    for process in USERS:
+        tree = {
+            "mode": "client",
+            "connect": {"endpoints": [f"tls/localhost:{port}"]},
+            "scouting": {"multicast": {"enabled": False}},
+            "transport": {"link": {"tls": {"root_ca_certificate": "certs/ca.pem"}}},
+        }
+        configs[process] = Path("bus") / f"{process}.json5"
+        configs[process].write_text(json.dumps(tree))
+    with zenoh.open(router):
+        stats = fly(tmp_path / "run", configs, lockstep=True)
+    assert stats["adapter"]["learned"] == round(DURATION * RATE), stats["adapter"]
 
 
 # ------------------------------------------------------------------ usage errors
