@@ -62,6 +62,7 @@ def run(quick: bool = False, trials: int | None = None) -> dict[str, Any]:
         if key not in best or c["rmse_m"] < _rmse(r, key, best[key]):
             best[key] = c["method"]
     return {
+        "generated": time.strftime("%Y-%m-%d %H:%M"),
         "machine": machine(),
         "methods": list(methods),
         "cells": r["cells"],

@@ -177,3 +177,33 @@ def test_cartpole_section_renders_the_reference_rows_and_the_latent_ablation(tmp
     del r["latent_ablation"], r["tuning"]["ours_known_changepoints"]
     text = "\n".join(report._cartpole_section(r, tmp_path))
     assert "latent dimension" not in text and "shows the noise floor." in text
+
+
+def test_variants_section_keeps_the_run_s_method_order_and_marks_the_best(tmp_path):
+    cells = [
+        _cell(75, 0.5, "l1", 0.004, 0.0),
+        _cell(75, 0.5, "ours", 0.006, 0.0),
+        _cell(75, 0.5, "ours_matched", 0.002, 0.5),
+    ]
+    path = tmp_path / "results.json"
+    path.write_text(
+        json.dumps(
+            {
+                "cells": cells,
+                "methods": ["l1", "ours", "ours_matched"],
+                "trials": 10,
+                "tuning": {"chosen": {"ours_matched_beta": 0.2}},
+                "generated": "2026-01-01 00:00",
+                "machine": "test machine",
+                "wall_time_s": 660.0,
+            }
+        )
+    )
+    text = "\n".join(report._variants_section(path))
+    assert "| payload (g) | speed (m/s) | l1 | ours | ours_matched |" in text
+    assert "| 75 | 0.5 | 0.0040 | 0.0060 | **0.0020** |" in text
+    assert "| 75 | 0.5 | **0.00** | **0.00** | 0.50 |" in text  # settling: lowest in bold
+    assert "not the paper's method" in text and "ours_matched_beta = 0.2" in text
+    assert "in 11 min" in text and "test machine" in text
+    missing = "\n".join(report._variants_section(tmp_path / "none.json"))
+    assert "No results yet" in missing and "arcade bench variants" in missing

@@ -3,6 +3,7 @@
 starts and before a run folder is made. The work itself is replaced by functions that
 fail the test if they are reached, so these tests take seconds."""
 
+import json
 import socket
 
 import pytest
@@ -256,6 +257,19 @@ def test_bench_sweep_options_need_a_sweep(monkeypatch, capsys):
     _forbid(monkeypatch, "benchmarks.discrepancy.run")
     assert _exit_code(["bench", "discrepancy", "--effect", "rotor_drag"]) == 2
     assert "need --sweep or --limits" in _error_line(capsys)
+
+
+def test_bench_variants_checks_out_first_and_writes_it_whole(tmp_path, monkeypatch, capsys):
+    _forbid(monkeypatch, "benchmarks.quadrotor_variants.run")
+    assert _exit_code(["bench", "variants", "--out", str(tmp_path)]) == 2
+    assert "is an existing folder" in _error_line(capsys)
+    assert _exit_code(["bench", "adapt", "--out", str(tmp_path / "a.json")]) == 2
+    assert "--out belongs to" in _error_line(capsys)
+    out = tmp_path / "deeper" / "results.json"
+    monkeypatch.setattr("benchmarks.quadrotor_variants.run", lambda quick: {"cells": [1]})
+    assert _exit_code(["bench", "variants", "--quick", "--out", str(out)]) == 0
+    assert json.loads(out.read_text()) == {"cells": [1]}
+    assert [p.name for p in out.parent.iterdir()] == ["results.json"]  # no temporary left
 
 
 # --------------------------------------------------------------------------- files

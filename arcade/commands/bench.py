@@ -9,7 +9,7 @@ import sys
 
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
-    "fuzzing, quadrotor variants beside ours (~30 min); `report` regenerates BENCHMARKS.md"
+    "fuzzing, quadrotor variants beside ours (~11 min); `report` regenerates BENCHMARKS.md"
 )
 
 # name -> module in `benchmarks/` exposing run(**kwargs) -> dict
@@ -30,7 +30,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("which", choices=[*BENCHES, "report"], help="benchmark to run")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke run)")
-    p.add_argument("--out", default=None, help="report: file to write (default: BENCHMARKS.md)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="report: file to write (default: BENCHMARKS.md); variants: also write the "
+        "results to this JSON file, once the run has finished",
+    )
     g = p.add_argument_group("discrepancy")
     g.add_argument(
         "--sweep",
@@ -78,9 +83,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from arcade import jaxsetup
 
-    if args.out is not None and args.which != "report":
-        print("error: --out belongs to `arcade bench report`", file=sys.stderr)
+    if args.out is not None and args.which not in ("report", "variants"):
+        print("error: --out belongs to `arcade bench report` and `variants`", file=sys.stderr)
         return 2
+    if args.out is not None and args.which == "variants":
+        from arcade.runs import check_output_file
+
+        try:
+            check_output_file(args.out, "--out")
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     sweep_options = args.sweep or args.limits or args.effect or args.seed is not None
     if sweep_options and args.which != "discrepancy":
         print(
@@ -132,6 +145,15 @@ def run(args: argparse.Namespace) -> int:
             return 2
     module = importlib.import_module(BENCHES[args.which])
     result = module.run(quick=args.quick, **mpc_options)
+    if args.out is not None:  # written whole, so a failed run leaves an older file intact
+        from pathlib import Path
+
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(out.name + ".tmp")
+        tmp.write_text(json.dumps(result, indent=1))
+        tmp.replace(out)
+        print(f"wrote {out}", file=sys.stderr)
     if args.json:
         print(json.dumps(result))
     else:
