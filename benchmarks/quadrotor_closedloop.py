@@ -123,6 +123,14 @@ METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
 #: Variants of ours that are not the paper's method, flown beside it by
 #: :mod:`benchmarks.quadrotor_variants` (:func:`beam_method`).
 VARIANTS = ("ours_matched",)
+#: ``(intercept, matched)`` of :func:`beam_method` per variant: ``ours_matched`` and its two
+#: changes one at a time (these two with ours' knobs; the ablation of
+#: :mod:`benchmarks.quadrotor_variants`).
+BEAM_VARIANTS = {
+    "ours_matched": (True, True),
+    "ours_intercept": (True, False),
+    "ours_thrust_axis": (False, True),
+}
 PAYLOADS_G = (75.0, 125.0, 175.0)
 SPEEDS_MPS = (0.5, 1.5, 2.5)
 BEAM_SIZES = (5, 10, 15, 20, 30)
@@ -465,24 +473,13 @@ def _features(vld: encoder.VLD, guard: Guard, x: Array, u: Array) -> Array:
     return jnp.clip(vld.features(x, u), guard.feature_lo, guard.feature_hi)
 
 
-def _body_z(q: Array) -> Array:
-    """The body z axis (thrust direction) in the world frame, of the unit quaternion ``q``."""
-    return jnp.stack(
-        [
-            2 * (q[1] * q[3] + q[0] * q[2]),
-            2 * (q[2] * q[3] - q[0] * q[1]),
-            1 - 2 * (q[1] ** 2 + q[2] ** 2),
-        ]
-    )
-
-
 def matched_residual(x: Array, delta: Array) -> Array:
     """The part of a residual ``delta`` (13,) that the collective thrust can cancel.
 
     Position and velocity parts projected onto the body z axis of ``x``; the attitude and
     body-rate parts zero. What ``ours_matched`` plans with (:func:`beam_method`).
     """
-    zb = _body_z(x[6:10])
+    zb = quat.to_rotation_matrix(x[6:10])[:, 2]  # body z axis (thrust) in the world frame
     out = jnp.zeros_like(delta)
     out = out.at[0:3].set(jnp.dot(delta[0:3], zb) * zb)
     return out.at[3:6].set(jnp.dot(delta[3:6], zb) * zb)
@@ -553,11 +550,13 @@ def make_method(name: str) -> Method:
         return gp_method()
     if name == "mlp":
         return mlp_method()
-    if name == "ours_matched":
-        return beam_method(name, intercept=True, matched=True)
+    if name in BEAM_VARIANTS:
+        intercept, matched = BEAM_VARIANTS[name]
+        return beam_method(name, intercept=intercept, matched=matched)
     if name in ("ours", "ours_no_cp") or name.startswith("ours_K"):
         return beam_method(name)
-    raise ValueError(f"unknown method {name!r} (one of {', '.join(METHODS + VARIANTS)})")
+    known = (*METHODS, *BEAM_VARIANTS)
+    raise ValueError(f"unknown method {name!r} (one of {', '.join(known)})")
 
 
 def scale_gp_noise(model: gp.GPModel, scale: float) -> gp.GPModel:
@@ -613,7 +612,7 @@ def initial_learner(name: str, models, dtype) -> Any:
         cfg = cfg._replace(K=int(name[len("ours_K") :]))
     vld = cast(models.vld)
     theta0 = vld.theta0
-    if name == "ours_matched":  # the intercept's column (beam_method) starts at zero
+    if BEAM_VARIANTS.get(name, (False, False))[0]:  # the intercept's column starts at zero
         theta0 = jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
     beam = adaptation.init(theta0, cfg)
     traced_cfg = adaptation.AdaptationConfig(
@@ -667,7 +666,8 @@ def thrust_reference(step_fn, model, x_ref: Array, u_ref: Array) -> Array:
 
     def one(x, u):
         dv = (step_fn(x, u, model) - f_nom(x, u))[3:6]
-        return u.at[0].add(-p.mass * jnp.dot(dv, _body_z(x[6:10])) / DT)
+        z_b = quat.to_rotation_matrix(x[6:10])[:, 2]
+        return u.at[0].add(-p.mass * jnp.dot(dv, z_b) / DT)
 
     return jax.vmap(one)(x_ref[:-1], u_ref)
 

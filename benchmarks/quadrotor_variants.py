@@ -19,8 +19,6 @@ import time
 from types import SimpleNamespace
 from typing import Any
 
-import numpy as np
-
 from benchmarks.common import machine
 
 METHODS = ("l1", "ours")
@@ -56,18 +54,18 @@ def run(quick: bool = False, trials: int | None = None) -> dict[str, Any]:
         tuning=not quick,
         progress=_progress,
     )
-    best: dict[tuple[float, float], str] = {}
+    best: dict[tuple[float, float], dict[str, Any]] = {}
     for c in r["cells"]:
         key = (c["payload_g"], c["speed_mps"])
-        if key not in best or c["rmse_m"] < _rmse(r, key, best[key]):
-            best[key] = c["method"]
+        if key not in best or c["rmse_m"] < best[key]["rmse_m"]:
+            best[key] = c
     return {
         "generated": time.strftime("%Y-%m-%d %H:%M"),
         "machine": machine(),
         "methods": list(methods),
         "cells": r["cells"],
         "lowest_rmse": [
-            {"payload_g": p, "speed_mps": s, "method": m} for (p, s), m in best.items()
+            {"payload_g": p, "speed_mps": s, "method": c["method"]} for (p, s), c in best.items()
         ],
         "tuned": r["settings"]["tuned"],
         "tuning": r["tuning"],
@@ -76,27 +74,52 @@ def run(quick: bool = False, trials: int | None = None) -> dict[str, Any]:
     }
 
 
-def _rmse(r: dict[str, Any], key: tuple[float, float], method: str) -> float:
-    for c in r["cells"]:
-        if (c["payload_g"], c["speed_mps"]) == key and c["method"] == method:
-            return float(c["rmse_m"])
-    return float(np.inf)
+#: The ablation of ``ours_matched``'s two changes: method and knobs (``models.closedloop``).
+#: ``ours_matched`` here with ``beta = 0.05``, ``sigma^2 = 1e-3``, knobs picked by looking at
+#: evaluation cells (``docs/quadrotor-closed-loop.md`` says so): the split, not a result.
+ABLATION = (
+    ("l1", {}),
+    ("ours", {}),
+    ("ours_intercept", {"ours_sigma2": 1e-3}),
+    ("ours_thrust_axis", {}),
+    ("ours_matched", {"ours_matched_beta": 0.05, "ours_matched_sigma2": 1e-3}),
+)
 
 
-def table(result: dict[str, Any]) -> str:
-    """RMSE / z-RMSE / settling per cell and method, as a markdown table."""
-    methods = result["methods"]
-    lines = [
-        "| payload (g) | speed (m/s) | " + " | ".join(methods) + " |",
-        "|---|---|" + "---|" * len(methods),
-    ]
-    by_cell: dict[tuple[float, float], dict[str, dict]] = {}
-    for c in result["cells"]:
-        by_cell.setdefault((c["payload_g"], c["speed_mps"]), {})[c["method"]] = c
-    for (p, s), row in by_cell.items():
-        vals = [
-            f"{row[m]['rmse_m']:.4f} / {row[m]['rmse_z_m']:.4f} / {row[m]['settling_s']:.2f}"
-            for m in methods
-        ]
-        lines.append(f"| {p:g} | {s:g} | " + " | ".join(vals) + " |")
-    return "\n".join(lines)
+def ablation(seeds: tuple[int, ...] = (0, 1, 2)) -> dict[str, Any]:
+    """Mean RMSE per cell of :data:`ABLATION`, flown in process on ``seeds`` (no tuning:
+    the stored knobs of :data:`benchmarks.quadrotor_closedloop.TUNED_DEFAULTS` plus each
+    row's overrides). ``python -m benchmarks.quadrotor_variants`` prints it (~7 min)."""
+    from benchmarks import quadrotor_closedloop as qc
+
+    m = models()
+    runner = qc.Runner(m)
+    t0 = time.perf_counter()
+    rows = []
+    for pay in qc.PAYLOADS_G:
+        for speed in qc.SPEEDS_MPS:
+            scen = qc.Scenario(payload_g=pay, speed_mps=speed)
+            row: dict[str, Any] = {"payload_g": pay, "speed_mps": speed}
+            for name, knobs in ABLATION:
+                m.closedloop = dict(knobs)
+                row[name] = sum(runner.fly(name, scen, seed=sd).metrics["rmse_m"] for sd in seeds)
+                row[name] /= len(seeds)
+            rmse = " ".join(f"{n} {row[n]:.4f}" for n, _ in ABLATION)
+            _progress(f"{pay:g} g, {speed:g} m/s: RMSE {rmse}")
+            rows.append(row)
+    return {
+        "machine": machine(),
+        "seeds": list(seeds),
+        "methods": [{"method": n, "knobs": k} for n, k in ABLATION],
+        "rows": rows,
+        "wall_time_s": time.perf_counter() - t0,
+    }
+
+
+if __name__ == "__main__":
+    import json
+
+    from arcade import jaxsetup
+
+    jaxsetup.configure()
+    print(json.dumps(ablation(), indent=1))

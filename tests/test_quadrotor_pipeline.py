@@ -138,6 +138,25 @@ def test_matched_residual_keeps_what_the_thrust_can_cancel():
     np.testing.assert_allclose(cl.matched_residual(level, delta)[3:6], [0, 0, delta[5]])
 
 
+def test_beam_variants_start_from_the_offline_decoder():
+    """A variant with the intercept starts with one more, zero, decoder column; its knobs
+    are its own (``ours_matched``) or ours' (the two changes one at a time)."""
+    vld, _, extra = load_model(QUADROTOR_WEIGHTS)
+    models = SimpleNamespace(
+        vld=vld, guard=cl.guard_from_metadata(extra), closedloop={"ours_matched_beta": 0.5}
+    )
+    d, l = vld.theta0.shape
+    for name, (intercept, _) in cl.BEAM_VARIANTS.items():
+        a = cl.initial_learner(name, models, jnp.float64)
+        mean = np.asarray(a.beam.means[0])
+        assert mean.shape == (d, l + intercept), name
+        np.testing.assert_array_equal(mean[:, :l], np.asarray(vld.theta0))
+        if intercept:
+            assert np.all(mean[:, l] == 0)
+        want = 0.5 if name == "ours_matched" else cl.TUNED_DEFAULTS["ours_beta"]
+        assert float(a.config.beta) == want, name
+
+
 def test_tuning_flies_only_the_methods_asked_for():
     """The variants' knobs are tuned in their own run; the others keep their defaults."""
     models = SimpleNamespace()
