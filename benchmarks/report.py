@@ -358,7 +358,7 @@ VARIANTS_COMMAND = f"arcade bench variants --out {(VARIANTS_DIR / 'results.json'
 
 
 def _variants_section(path: Path) -> list[str]:
-    """The stored `arcade bench variants` run (its own command, ~11 min on 2 cores)."""
+    """The stored `arcade bench variants` run (its own command, ~13 min on 2 cores)."""
     head = ["## Quadrotor variants beside ours (`arcade bench variants`)", ""]
     if not path.is_file():
         return [*head, f"No results yet: run `{VARIANTS_COMMAND}`, then `make benchmarks`.", ""]

@@ -228,6 +228,18 @@ def test_tuning_passes_until_no_knob_changes():
     assert {f[1] for f in flights} == set(cl.TUNING_SEEDS)
 
 
+def test_a_run_records_only_the_knobs_of_the_methods_it_flies():
+    """A results file's setting names what its flights used, not another method's knobs;
+    the beam methods other than the matched variant fly with ours' knobs."""
+    paper = cl.knobs_of({"ours_beta": 0.2}, cl.METHODS)
+    assert set(paper) == {k for k, m in cl.TUNING_METHOD.items() if m != "ours_matched"}
+    assert paper["ours_beta"] == 0.2 and paper["l1_a_s"] == cl.TUNED_DEFAULTS["l1_a_s"]
+    assert set(cl.knobs_of({}, ("ours_K5", "ours_no_cp_held"))) == {"ours_beta", "ours_sigma2"}
+    assert set(cl.knobs_of({}, ("nominal",))) == set()
+    assert {cl.knob_owner(m) for m in cl.BEAM_VARIANTS} == {"ours", "ours_matched"}
+    assert cl.knob_owner("ours_matched_held") == "ours_matched"
+
+
 def test_mpc_input_bounds_are_what_the_simulated_vehicle_executes():
     """The MPC must not plan with thrust or body rates the vehicle clamps away."""
     from simulator import QuadrotorSim
