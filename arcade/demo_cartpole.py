@@ -9,7 +9,6 @@ beam-marginal decoder adapted online (Algorithm 1) and Q modulated by sigma_tot 
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from arcade import jsonout
 from arcade_core import adaptation, metrics, mpc
 from arcade_core.dynamics.cartpole import cartpole_nominal_step, cartpole_true_step
 from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_TRUE
@@ -100,7 +100,7 @@ def run_demo(vld, out: Path, seed: int = 0) -> dict[str, Any]:
         }
     summary["interventions"] = list(cd.INTERVENTION_STEPS)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(json.dumps(summary, indent=2))
+    (out / "metrics.json").write_text(jsonout.dumps(summary, indent=2))
     _write_log(out / "log.csv", runs["arcade_mpc"])
     _plot(out / "rollout.png", runs)
     return summary

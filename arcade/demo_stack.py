@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from arcade import jsonout
+
 
 def free_hub() -> str:
     """A loopback endpoint on a free port (a private bus for this run)."""
@@ -183,7 +185,7 @@ def run_demo(
             rejects[f.stem] = r
     summary["rejects"] = rejects
     plot(out / "flight.png", truth, t_release, cps)
-    (out / "metrics.json").write_text(json.dumps(summary, indent=2))
+    (out / "metrics.json").write_text(jsonout.dumps(summary, indent=2))
     return summary
 
 

@@ -33,6 +33,7 @@ import time
 
 import numpy as np
 
+from arcade import jsonout
 from benchmarks.common import machine, percentiles
 
 # One-step residual scales for the 13 quadrotor states (p, v, q, omega) at 20 Hz.
@@ -134,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
         _worker(json.loads(args.worker))
         return
     result = run(steps=args.steps, quick=args.quick, sync_dispatch=not args.async_dispatch)
-    print(json.dumps(result, indent=2))
+    print(jsonout.dumps(result, indent=2))
 
 
 if __name__ == "__main__":

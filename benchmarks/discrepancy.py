@@ -22,11 +22,11 @@ Run: ``python -m benchmarks.discrepancy [--quick] [--sweep [--effect NAME ...]] 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
 
+from arcade import jsonout
 from benchmarks.common import machine
 
 HIDDEN = {
@@ -352,19 +352,19 @@ def main() -> None:
     if error:
         p.error(f"argument --effect: {error}")
     if args.limits:
-        print(json.dumps(detection_limits(seed=args.seed, effects=args.effect), indent=2))
+        print(jsonout.dumps(detection_limits(seed=args.seed, effects=args.effect), indent=2))
         return
     if not args.sweep:
-        print(json.dumps(run(quick=args.quick), indent=2))
+        print(jsonout.dumps(run(quick=args.quick), indent=2))
         return
 
     def progress(row):
         import sys
 
-        print(json.dumps(row), file=sys.stderr, flush=True)
+        print(jsonout.dumps(row), file=sys.stderr, flush=True)
 
     result = sweep(args.effect, seed=args.seed, progress=progress)
-    print(json.dumps(result, indent=2) if args.json else sweep_table(result["cases"]))
+    print(jsonout.dumps(result, indent=2) if args.json else sweep_table(result["cases"]))
 
 
 if __name__ == "__main__":

@@ -11,7 +11,6 @@ the outcome and the time it took. Needs the source tree (the tests are not insta
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
 import subprocess
@@ -20,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from arcade import jsonout
 from benchmarks.common import machine
 
 TESTS = ("tests/test_fuzz_messages.py", "tests/test_fuzz_handlers.py")
@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cases", type=int, default=None)
     a = p.parse_args(argv)
     r = run(quick=a.quick, cases=a.cases)
-    print(json.dumps(r, indent=2))
+    print(jsonout.dumps(r, indent=2))
     return 0 if r["ok"] else 1
 
 

@@ -15,12 +15,12 @@ warm-started with the shifted previous solution and timed to completion
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from arcade import jsonout
 from benchmarks.common import machine, percentiles
 
 
@@ -176,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         max_steps=args.max_steps,
         residual=args.residual,
     )
-    print(json.dumps(result, indent=2))
+    print(jsonout.dumps(result, indent=2))
     return 0
 
 

@@ -19,6 +19,7 @@ import time
 from types import SimpleNamespace
 from typing import Any
 
+from arcade import jsonout
 from benchmarks.common import machine
 
 METHODS = ("l1", "ours")
@@ -117,9 +118,7 @@ def ablation(seeds: tuple[int, ...] = (0, 1, 2)) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    import json
-
     from arcade import jaxsetup
 
     jaxsetup.configure()
-    print(json.dumps(ablation(), indent=1))
+    print(jsonout.dumps(ablation(), indent=1))

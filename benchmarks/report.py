@@ -10,6 +10,7 @@ by hand.
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -17,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from arcade import jsonout
 from benchmarks.common import machine
 
 RESULTS = Path("benchmarks") / "results"
@@ -290,13 +292,21 @@ METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
 
 
 def _cell_table(
-    cells: list[dict[str, Any]], key: str, fmt: str, best=min, order: tuple[str, ...] = METHODS
+    cells: list[dict[str, Any]],
+    key: str,
+    fmt: str,
+    best=min,
+    order: tuple[str, ...] = METHODS,
+    missing: float = math.nan,
 ) -> list[str]:
     """One row per (payload, speed), one column per method of ``order`` present; the best
-    value in bold."""
+    value in bold. A value the results file holds as ``null`` reads as ``missing``
+    (``inf`` for a settling time: a trial never settled)."""
     by_cell: dict[tuple[float, float], dict[str, float]] = {}
     for c in cells:
-        by_cell.setdefault((c["payload_g"], c["speed_mps"]), {})[c["method"]] = c[key]
+        by_cell.setdefault((c["payload_g"], c["speed_mps"]), {})[c["method"]] = jsonout.number(
+            c[key], missing
+        )
     methods = [m for m in order if any(m in v for v in by_cell.values())]
     lines = [
         "| payload (g) | speed (m/s) | " + " | ".join(methods) + " |",
@@ -317,7 +327,9 @@ def _settling_per_trial(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
     were outside the band at some sample after the release (settling time above zero)."""
     by: dict[tuple[float, float, str], list[float]] = {}
     for t in trials:
-        by.setdefault((t["payload_g"], t["speed_mps"], t["method"]), []).append(t["settling_s"])
+        by.setdefault((t["payload_g"], t["speed_mps"], t["method"]), []).append(
+            jsonout.number(t["settling_s"], math.inf)  # null: never settled
+        )
     return [
         {
             "payload_g": p,
@@ -385,17 +397,23 @@ def _variants_section(path: Path) -> list[str]:
         ("Shift magnitude at the release (m)", "shift_m", ".4f"),
         ("Settling time after the release, 0.05 m band (s, mean)", "settling_s", ".2f"),
     ):
-        lines += [f"{title}:", "", *_cell_table(r["cells"], key, fmt, order=order), ""]
+        missing = math.inf if key == "settling_s" else math.nan
+        lines += [
+            f"{title}:",
+            "",
+            *_cell_table(r["cells"], key, fmt, order=order, missing=missing),
+            "",
+        ]
     return lines
 
 
 def _quadrotor_section(path: Path) -> list[str]:
-    """Tables of the stored quadrotor evaluation (its own command: ~1 h on 2 cores)."""
+    """Tables of the stored quadrotor evaluation (its own command: ~25 min on 2 cores)."""
     head = ["## Quadrotor (`arcade eval quadrotor --json`; paper Sec. V-B, Tables II, III, V)", ""]
     if not path.is_file():
         return [
             *head,
-            f"No results yet: run `{QUADROTOR_COMMAND}` (about 30 minutes on 2 "
+            f"No results yet: run `{QUADROTOR_COMMAND}` (about 25 minutes on 2 "
             "cores), then `make benchmarks`.",
             "",
         ]
@@ -429,7 +447,7 @@ def _quadrotor_section(path: Path) -> list[str]:
         "Settling time after the release, 0.05 m band (s; mean over the trials, `inf` when "
         "one of them never settled):",
         "",
-        *_cell_table(r["cells"], "settling_s", ".2f"),
+        *_cell_table(r["cells"], "settling_s", ".2f", missing=math.inf),
         "",
     ]
     if r.get("trials"):
@@ -550,7 +568,7 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
 
     with jaxsetup.x64(False):  # as `arcade eval cartpole` runs it, whatever ran before
         result = cartpole_eval.evaluate(settings, fig_dir, progress=_log)
-    (fig_dir / "results.json").write_text(json.dumps(result, indent=2))
+    (fig_dir / "results.json").write_text(jsonout.dumps(result, indent=2))
     sections += _cartpole_section(result, fig_dir)
     sections += _quadrotor_section(QUADROTOR_DIR / "results.json")
     sections += _variants_section(VARIANTS_DIR / "results.json")

@@ -42,11 +42,11 @@ Checks, for every step and every hypothesis ``h`` of the beam (per-step checks i
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 from typing import Any, NamedTuple
 
+from arcade import jsonout
 from benchmarks.common import machine
 
 D, L = 13, 8
@@ -348,7 +348,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
     r = run(quick=a.quick, steps=a.steps, dtypes=tuple(a.dtype or ("float32", "float64")))
-    print(json.dumps(r) if a.json else json.dumps(r, indent=2))
+    print(jsonout.dumps(r) if a.json else jsonout.dumps(r, indent=2))
     return 0 if r["ok"] else 1
 
 

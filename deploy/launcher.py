@@ -46,7 +46,6 @@ launcher as user ``launcher``); the router must be up before the stack starts.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import re
 import signal
@@ -58,6 +57,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from arcade import jsonout
 
 REPO = Path(__file__).resolve().parents[1]
 #: Start order; stop order is the reverse of the data flow (vehicle first, recorder last).
@@ -451,7 +452,7 @@ class Stack:
         with self._events_lock:
             self.events.append(rec)
             with (self.out / "events.jsonl").open("a") as f:
-                f.write(json.dumps(rec) + "\n")
+                f.write(jsonout.dumps(rec) + "\n")
         if self._on_event_cb is not None:
             with contextlib.suppress(Exception):
                 self._on_event_cb(rec)

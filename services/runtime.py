@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import logging
 import os
 import signal
@@ -30,6 +29,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from arcade import jsonout
 from services.bus import DEFAULT_HUB, Bus, peer_config, read_config, zenoh_reason
 
 log = logging.getLogger("arcade.service")
@@ -336,7 +336,7 @@ class Service:
         if self.bus is not None:
             stats["rejects"] = self.bus.rejects.counts
         tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(stats, indent=1, default=float))
+        tmp.write_text(jsonout.dumps(stats, indent=1, default=float))
         os.replace(tmp, path)
 
     # -- lifecycle

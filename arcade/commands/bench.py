@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
+
+from arcade import jsonout
 
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
@@ -151,13 +152,13 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = out.with_name(out.name + ".tmp")
-        tmp.write_text(json.dumps(result, indent=1))
+        tmp.write_text(jsonout.dumps(result, indent=1))
         tmp.replace(out)
         print(f"wrote {out}", file=sys.stderr)
     if args.json:
-        print(json.dumps(result))
+        print(jsonout.dumps(result))
     else:
-        print(json.dumps(result, indent=2))
+        print(jsonout.dumps(result, indent=2))
     sys.stdout.flush()
     return 0
 
@@ -180,7 +181,7 @@ def _discrepancy_sweep(args: argparse.Namespace) -> int:
     seed = 0 if args.seed is None else args.seed
     if args.limits:
         print(
-            json.dumps(
+            jsonout.dumps(
                 discrepancy.detection_limits(seed=seed, effects=args.effect),
                 indent=None if args.json else 2,
             )
@@ -188,8 +189,8 @@ def _discrepancy_sweep(args: argparse.Namespace) -> int:
         return 0
 
     def progress(row: dict) -> None:  # one line per flight on stderr: long job
-        print(json.dumps(row), file=sys.stderr, flush=True)
+        print(jsonout.dumps(row), file=sys.stderr, flush=True)
 
     result = discrepancy.sweep(args.effect, seed=seed, progress=progress)
-    print(json.dumps(result) if args.json else discrepancy.sweep_table(result["cases"]))
+    print(jsonout.dumps(result) if args.json else discrepancy.sweep_table(result["cases"]))
     return 0

@@ -50,6 +50,8 @@ from typing import Any
 
 import numpy as np
 
+from arcade import jsonout
+
 HELP = "find where a flight log and the model disagree, name the missing effect, show the fix"
 
 QUAD_COMPONENTS = (
@@ -538,7 +540,7 @@ def run_workflow(
         model_file = write_model_file(out, system, veh, vehicle_path, sysm, ident)
         result["model_file"] = str(model_file)
         result.update(write_outputs(out, result, details))
-        (out / "result.json").write_text(json.dumps(result, indent=2))
+        (out / "result.json").write_text(jsonout.dumps(result, indent=2))
     return Outcome(result, details)
 
 
@@ -851,7 +853,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     result = outcome.result
     if args.json:
-        print(json.dumps(result))
+        print(jsonout.dumps(result))
     else:
         print(result["summary"])
         for e in result["effects"]:

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
+
+from arcade import jsonout
 
 HELP = "list the library of physical effects (name, parameters with units and ranges)"
 
@@ -23,7 +24,7 @@ def run(args: argparse.Namespace) -> int:
 
     effects = describe(args.system)
     if args.json:
-        print(json.dumps({"effects": effects}))
+        print(jsonout.dumps({"effects": effects}))
         return 0
     for e in effects:
         print(f"{e['name']} ({e['system']}): {e['description']}")

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
+
+from arcade import jsonout
 
 HELP = (
     "reproduce the paper's evaluations, all methods in one run (cartpole: Table I, Fig. 3, "
@@ -62,9 +63,9 @@ def run(args: argparse.Namespace) -> int:
 
     result["generated"] = time.strftime("%Y-%m-%d %H:%M")
     result["machine"] = machine()
-    (out / "results.json").write_text(json.dumps(result, indent=2))
+    (out / "results.json").write_text(jsonout.dumps(result, indent=2))
     if args.json:
-        print(json.dumps(result))
+        print(jsonout.dumps(result))
     else:
         print(table)
         print(f"figures and results.json in {out}")

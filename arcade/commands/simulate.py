@@ -44,12 +44,13 @@ PD plus a low-pass random force (the pole swings freely: rich excitation), senso
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from arcade import jsonout
 
 HELP = "fly a standard exciting trajectory in the simulator with effects injected; write a log"
 
@@ -564,7 +565,7 @@ def run(args: argparse.Namespace) -> int:
         return 1
     path = write_log(args.out, log)
     print(
-        json.dumps(
+        jsonout.dumps(
             {
                 "log": str(path),
                 "system": args.system,
