@@ -950,15 +950,15 @@ def tune(
     runner = runner or Runner(models)
     scen = Scenario(payload_g=TUNING_CELL[0], speed_mps=TUNING_CELL[1])
     grids = {k: g for k, g in TUNING_GRIDS.items() if TUNING_METHOD[k] in methods}
-    knobs_of: dict[str, list[str]] = {}
+    knobs_by_method: dict[str, list[str]] = {}
     for knob in grids:
-        knobs_of.setdefault(TUNING_METHOD[knob], []).append(knob)
+        knobs_by_method.setdefault(TUNING_METHOD[knob], []).append(knob)
     flown: dict[tuple, float] = {}  # (method, its knob values) -> RMSE; flights are seeded
 
     def score(knob: str, value: float) -> float:
         method = TUNING_METHOD[knob]
         setting = {**models.closedloop, knob: value}
-        key = (method, *(setting[k] for k in knobs_of[method]))
+        key = (method, *(setting[k] for k in knobs_by_method[method]))
         if key not in flown:
             models.closedloop = setting
             progress(f"tuning {method}: {knob} = {value:g}")

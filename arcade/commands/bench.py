@@ -10,7 +10,7 @@ from arcade import jsonout
 
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
-    "fuzzing, quadrotor variants beside ours (~11 min); `report` regenerates BENCHMARKS.md"
+    "fuzzing, quadrotor variants beside ours (~13 min); `report` regenerates BENCHMARKS.md"
 )
 
 # name -> module in `benchmarks/` exposing run(**kwargs) -> dict
