@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from arcade import jsonout
+from arcade import atomicfile, jsonout
 from arcade_core import adaptation, metrics, mpc
 from arcade_core.dynamics.cartpole import cartpole_nominal_step, cartpole_true_step
 from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_TRUE
@@ -100,14 +100,14 @@ def run_demo(vld, out: Path, seed: int = 0) -> dict[str, Any]:
         }
     summary["interventions"] = list(cd.INTERVENTION_STEPS)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(jsonout.dumps(summary, indent=2))
+    atomicfile.write_text(out / "metrics.json", jsonout.dumps(summary, indent=2))
     _write_log(out / "log.csv", runs["arcade_mpc"])
     _plot(out / "rollout.png", runs)
     return summary
 
 
 def _write_log(path: Path, r: dict[str, np.ndarray]) -> None:
-    with path.open("w", newline="") as f:
+    with atomicfile.atomic_open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["t", "x", "xdot", "theta", "thetadot", "u", "cp_prob", "changepoint"])
         for k in range(len(r["U"])):
@@ -153,5 +153,5 @@ def _plot(path: Path, runs: dict[str, dict[str, np.ndarray]]) -> None:
     axes[-1].set_xlabel("t [s]")
     axes[0].set_title("Cartpole: nominal vs ARCADE MPC (grey: interventions, red: detections)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomicfile.save_figure(fig, path, dpi=110)
     plt.close(fig)

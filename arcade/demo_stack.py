@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade import jsonout
+from arcade import atomicfile, jsonout
 
 
 def free_hub() -> str:
@@ -87,7 +87,7 @@ def plot(
     ax2.legend(fontsize=8)
     fig.suptitle("ARCADE service stack (lockstep): figure-eight with payload release")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    atomicfile.save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -185,7 +185,7 @@ def run_demo(
             rejects[f.stem] = r
     summary["rejects"] = rejects
     plot(out / "flight.png", truth, t_release, cps)
-    (out / "metrics.json").write_text(jsonout.dumps(summary, indent=2))
+    atomicfile.write_text(out / "metrics.json", jsonout.dumps(summary, indent=2))
     return summary
 
 

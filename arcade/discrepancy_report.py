@@ -7,12 +7,14 @@ from typing import Any
 
 import numpy as np
 
+from arcade import atomicfile
+
 
 def write_outputs(out: Path, result: dict[str, Any], details: dict[str, Any]) -> dict[str, Any]:
     """Write plots and ``report.md`` into ``out``; returns their paths for the JSON."""
     plots = write_plots(out, result, details)
     report = out / "report.md"
-    report.write_text(render_report(result, plots))
+    atomicfile.write_text(report, render_report(result, plots))
     return {"report": str(report), "plots": [str(p) for p in plots]}
 
 
@@ -38,7 +40,7 @@ def write_plots(out: Path, result: dict[str, Any], details: dict[str, Any]) -> l
     ax.legend()
     fig.tight_layout()
     paths.append(out / "gap_per_component.png")
-    fig.savefig(paths[-1], dpi=110)
+    atomicfile.save_figure(fig, paths[-1], dpi=110)
     plt.close(fig)
 
     act = result["heldout_components"]
@@ -60,7 +62,7 @@ def write_plots(out: Path, result: dict[str, Any], details: dict[str, Any]) -> l
     axes[-1, 0].set_xlabel("time [s] (held-out blocks)")
     fig.tight_layout()
     paths.append(out / "heldout_residuals.png")
-    fig.savefig(paths[-1], dpi=110)
+    atomicfile.save_figure(fig, paths[-1], dpi=110)
     plt.close(fig)
 
     loc = details["localisation"]
@@ -78,7 +80,7 @@ def write_plots(out: Path, result: dict[str, Any], details: dict[str, Any]) -> l
     axes[0, -1].legend(fontsize=6)
     fig.tight_layout()
     paths.append(out / "gap_by_regime.png")
-    fig.savefig(paths[-1], dpi=110)
+    atomicfile.save_figure(fig, paths[-1], dpi=110)
     plt.close(fig)
     return paths
 

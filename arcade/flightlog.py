@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from arcade import atomicfile
+
 STATE_COLUMNS = {
     "quadrotor": ("px", "py", "pz", "vx", "vy", "vz", "qw", "qx", "qy", "qz", "wx", "wy", "wz"),
     "cartpole": ("x", "xdot", "theta", "thetadot"),
@@ -71,9 +73,8 @@ def _check_system(system: str) -> None:
 def write_log(path: str | Path, log: FlightLog) -> Path:
     """Write ``log`` as CSV with the canonical columns (full float precision)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     data = np.column_stack([log.t, log.X, log.U])
-    with path.open("w", newline="") as f:
+    with atomicfile.atomic_open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(columns(log.system))
         for row in data:

@@ -26,7 +26,6 @@ import io
 import json
 import os
 import struct
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +33,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from arcade import __version__
+from arcade import __version__, atomicfile
 from arcade_core.encoder import VLD, EncoderConfig
 
 MAGIC = b"ARCADE-VLD\n"
@@ -80,16 +79,9 @@ def save_model(
     except (TypeError, ValueError) as err:
         raise ValueError(f"extra must be JSON-serialisable (finite numbers): {err}") from err
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(MAGIC + _LEN.pack(len(header_bytes)) + header_bytes + payload)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomicfile.write_bytes(
+        path, MAGIC + _LEN.pack(len(header_bytes)) + header_bytes + payload
+    )
 
 
 def read_header(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from arcade import atomicfile
 from arcade_core import adaptation
 from benchmarks import cartpole_data as cd
 
@@ -47,7 +48,7 @@ def online_rollout(path: Path, data: cd.Batch, ours_out, i: int = 0) -> None:
     axes[0].legend(loc="upper right", fontsize=7)
     axes[0].set_title("Online rollout: grey = interventions, red dashed = detected changepoints")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomicfile.save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -72,7 +73,7 @@ def offline_distribution(path: Path, per_split: dict[str, list[np.ndarray]]) -> 
     ax.legend(ncol=3, fontsize=8)
     ax.set_title("Offline one-step prediction error (stationary dynamics)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomicfile.save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -120,5 +121,5 @@ def latent_comparison(path: Path, models, data: cd.Batch, output: int = 3) -> No
         ax.axis("equal")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomicfile.save_figure(fig, path, dpi=110)
     plt.close(fig)

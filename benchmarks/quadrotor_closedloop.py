@@ -111,6 +111,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from arcade import atomicfile
 from arcade_core import adaptation, encoder, metrics, mpc
 from arcade_core.baselines import gp, l1, mlp
 from arcade_core.dynamics import quaternion as quat
@@ -1092,14 +1093,13 @@ def run_closedloop(
         out.mkdir(parents=True, exist_ok=True)
         if fig5:
             figs.tracking_error_figure(out / "quadrotor_tracking_175g_2.5mps.png", fig5)
-            np.savez_compressed(
-                out / "quadrotor_flights_175g_2.5mps.npz",
-                **{
-                    f"{m}_{k}": getattr(f, k)
-                    for m, f in fig5.items()
-                    for k in ("t", "x", "x_ref", "u", "diag")
-                },
-            )
+            series = {
+                f"{m}_{k}": getattr(f, k)
+                for m, f in fig5.items()
+                for k in ("t", "x", "x_ref", "u", "diag")
+            }
+            with atomicfile.atomic_open(out / "quadrotor_flights_175g_2.5mps.npz", "wb") as f:
+                np.savez_compressed(f, **series)
         figs.metric_bars_figure(out / "quadrotor_metrics.png", per_trial)
     result["wall_time_s"] = time.perf_counter() - t_start
     return result

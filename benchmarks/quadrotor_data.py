@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline
 
+from arcade import atomicfile
 from arcade.vehicle import load_vehicle, quadrotor_params
 from arcade_core.dynamics import quadrotor_step
 
@@ -322,11 +323,9 @@ def _flights(
             )
         flights.append(fly_expert(pay, 60.0 * minutes_per_payload, ss))
     if cache:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
         arrays = {f"{k}{i}": f[k] for i, f in enumerate(flights) for k in ("t", "X", "U")}
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)
+        with atomicfile.atomic_open(path, "wb") as f:
+            np.savez_compressed(f, **arrays)
     return flights
 
 

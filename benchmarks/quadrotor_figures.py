@@ -15,6 +15,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from arcade import atomicfile
+
 LABELS = {
     "nominal": "Nominal MPC",
     "l1": "L1-adaptive",
@@ -66,7 +68,7 @@ def gramian_figure(path: Path, curves: Mapping[str, Any]) -> Path:
     b2.set_ylabel("log det", color="tab:blue")
     b.set_title("conditioning and information volume")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    atomicfile.save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path
 
@@ -101,7 +103,7 @@ def tracking_error_figure(path: Path, flights: Mapping[str, Any], window_s: floa
             "tracking errors around the payload release"
         )
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    atomicfile.save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path
 
@@ -139,6 +141,6 @@ def metric_bars_figure(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
         ax.set_title(label)
         ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    atomicfile.save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade import jsonout
+from arcade import atomicfile, jsonout
 from benchmarks.common import machine
 
 RESULTS = Path("benchmarks") / "results"
@@ -568,7 +568,7 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
 
     with jaxsetup.x64(False):  # as `arcade eval cartpole` runs it, whatever ran before
         result = cartpole_eval.evaluate(settings, fig_dir, progress=_log)
-    (fig_dir / "results.json").write_text(jsonout.dumps(result, indent=2))
+    atomicfile.write_text(fig_dir / "results.json", jsonout.dumps(result, indent=2))
     sections += _cartpole_section(result, fig_dir)
     sections += _quadrotor_section(QUADROTOR_DIR / "results.json")
     sections += _variants_section(VARIANTS_DIR / "results.json")
@@ -584,5 +584,5 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
     ]
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(header + sections))
+    atomicfile.write_text(path, "\n".join(header + sections))
     return path

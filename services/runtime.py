@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from arcade import jsonout
+from arcade import atomicfile, jsonout
 from services.bus import DEFAULT_HUB, Bus, peer_config, read_config, zenoh_reason
 
 log = logging.getLogger("arcade.service")
@@ -330,14 +330,11 @@ class Service:
             return
         if self._gc is not None:
             self.stats["gc_pauses"] = self._gc.summary()
-        path = Path(self.out) / "stats" / f"{self.name}.json"
-        path.parent.mkdir(parents=True, exist_ok=True)
         stats = dict(self.stats)
         if self.bus is not None:
             stats["rejects"] = self.bus.rejects.counts
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(jsonout.dumps(stats, indent=1, default=float))
-        os.replace(tmp, path)
+        path = Path(self.out) / "stats" / f"{self.name}.json"
+        atomicfile.write_text(path, jsonout.dumps(stats, indent=1, default=float))
 
     # -- lifecycle
     def _open_bus(self) -> Bus:

@@ -68,7 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
-from arcade import flightlog
+from arcade import atomicfile, flightlog
 from services import runtime
 from services.messages import Command, Event, Imu, Mocap, Setpoint, State
 
@@ -541,9 +541,7 @@ class SimNode(runtime.Service):
         self.stats["hop_setpoint"] = runtime.percentiles_ms(list(self._sp_sub.transit_s))
         self.stats["k_release"] = self.k_release
         if self.out is not None:
-            path = Path(self.out) / "truth.csv"
-            path.parent.mkdir(parents=True, exist_ok=True)
-            with path.open("w", newline="") as f:
+            with atomicfile.atomic_open(Path(self.out) / "truth.csv", "w", newline="") as f:
                 w = csv.writer(f)
                 w.writerow([*FLIGHT_COLUMNS, "ref_px", "ref_py", "ref_pz", "released", "failsafe"])
                 w.writerows(self.rows)

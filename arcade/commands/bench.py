@@ -6,7 +6,7 @@ import argparse
 import importlib
 import sys
 
-from arcade import jsonout
+from arcade import atomicfile, jsonout
 
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
@@ -149,11 +149,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out is not None:  # written whole, so a failed run leaves an older file intact
         from pathlib import Path
 
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(out.name + ".tmp")
-        tmp.write_text(jsonout.dumps(result, indent=1))
-        tmp.replace(out)
+        out = atomicfile.write_text(Path(args.out), jsonout.dumps(result, indent=1))
         print(f"wrote {out}", file=sys.stderr)
     if args.json:
         print(jsonout.dumps(result))

@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade import jsonout
+from arcade import atomicfile, jsonout
 
 HELP = "find where a flight log and the model disagree, name the missing effect, show the fix"
 
@@ -540,7 +540,7 @@ def run_workflow(
         model_file = write_model_file(out, system, veh, vehicle_path, sysm, ident)
         result["model_file"] = str(model_file)
         result.update(write_outputs(out, result, details))
-        (out / "result.json").write_text(jsonout.dumps(result, indent=2))
+        atomicfile.write_text(out / "result.json", jsonout.dumps(result, indent=2))
     return Outcome(result, details)
 
 
@@ -767,7 +767,7 @@ def write_model_file(
         )
         path = out / "cartpole_model.toml"
         header = "# Cartpole model file updated by `arcade discrepancy`.\n"
-    path.write_text(header + base + _effects_toml(effects))
+    atomicfile.write_text(path, header + base + _effects_toml(effects))
     return path
 
 

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from arcade import jsonout
+from arcade import atomicfile, jsonout
 
 HELP = (
     "reproduce the paper's evaluations, all methods in one run (cartpole: Table I, Fig. 3, "
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     result["generated"] = time.strftime("%Y-%m-%d %H:%M")
     result["machine"] = machine()
-    (out / "results.json").write_text(jsonout.dumps(result, indent=2))
+    atomicfile.write_text(out / "results.json", jsonout.dumps(result, indent=2))
     if args.json:
         print(jsonout.dumps(result))
     else:
