@@ -21,8 +21,8 @@ from typing import IO, Any
 
 
 def _umask() -> int:
-    # os.umask can only be read by setting it; set it back at once. Read once, at import
-    # (single-threaded), so that no other thread ever sees the temporary value.
+    # os.umask can only be read by setting it; set it back at once. Read once, at import:
+    # the services import this module before they start any thread.
     mask = os.umask(0o022)
     os.umask(mask)
     return mask

@@ -582,7 +582,4 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
         f"- Generated: {started}" + (" (quick settings)" if quick else ""),
         "",
     ]
-    path = Path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomicfile.write_text(path, "\n".join(header + sections))
-    return path
+    return atomicfile.write_text(out, "\n".join(header + sections))
