@@ -190,6 +190,12 @@ class UpdateInfo(NamedTuple):
         log_evidence: ``()`` one-step log predictive density of ``delta_k`` under the
             beam and the changepoint prior,
             ``log sum_h w_h [pi p(delta|c=1,h) + (1 - pi) p(delta|c=0,h)]`` (App. "LRT").
+        accepted: ``()`` bool, False when the observation was skipped: ``z`` or ``delta``
+            not finite, or no candidate with a finite score (a residual so large that
+            Eq. 8 underflows for every hypothesis). The state is then returned unchanged
+            (same step), ``p_change``, ``cp_prob`` and ``cp_mass`` are 0, ``changepoint``
+            is False, ``map_last_changepoint`` is that of the unchanged MAP path and
+            ``log_evidence`` is NaN.
     """
 
     p_change: Array
@@ -198,6 +204,7 @@ class UpdateInfo(NamedTuple):
     changepoint: Array
     map_last_changepoint: Array
     log_evidence: Array
+    accepted: Array
 
 
 # ----------------------------------------------------------------------------- init
@@ -386,12 +393,17 @@ def top_k(values: Array, k: int) -> tuple[Array, Array]:
     Same result as ``jax.lax.top_k`` (Algorithm 1, "prune beam"), computed by
     pairwise ranking: for the ``2K <= 60`` candidates of a beam this is one fused
     ``O(K^2)`` comparison kernel, several times faster on CPU than the sort behind
-    ``lax.top_k``. ``values`` must be free of NaN (``-inf`` is fine).
+    ``lax.top_k``. NaN ranks below every number (``-inf`` included), so the indices are
+    always a valid selection.
     """
     n = values.shape[0]
     i = jnp.arange(n)
-    before = (values[None, :] > values[:, None]) | (
-        (values[None, :] == values[:, None]) & (i[None, :] < i[:, None])
+    nan = jnp.isnan(values)
+    # A strict total order (NaN last) keeps the ranks a permutation.
+    same_class = nan[None, :] == nan[:, None]
+    tie = (values[None, :] == values[:, None]) | (nan[None, :] & nan[:, None])
+    before = (nan[:, None] & ~nan[None, :]) | (
+        same_class & ((values[None, :] > values[:, None]) | (tie & (i[None, :] < i[:, None])))
     )
     rank = jnp.sum(before, axis=1)  # a permutation of 0..n-1
     hit = rank[None, :] == jnp.arange(k)[:, None]
@@ -481,6 +493,12 @@ def _update(
     prev = state.log_scores
     cand = jnp.concatenate([prev + ll0 + logp0, prev + ll1 + logp1])
     top, idx = top_k(cand, K)
+    # A non-finite observation (or one no hypothesis can score) would turn every score
+    # into NaN for good: it is skipped. Each hypothesis then keeps its slot on the c = 0
+    # branch with a zero gain and innovation, which makes Eq. 6 the identity bit for bit
+    # (cheaper than selecting between the old and the new beam).
+    accepted = jnp.all(jnp.isfinite(z)) & jnp.all(jnp.isfinite(delta)) & jnp.isfinite(top[0])
+    idx = jnp.where(accepted, idx, jnp.arange(K))
     parent = idx % K
     branch = idx >= K
     gamma = jnp.where(branch, g1, jnp.ones((), dtype))
@@ -499,27 +517,30 @@ def _update(
     mean_p, w_p, a_p, b_p, q_p, r_p = (
         x.reshape(K, *y.shape[1:]) for x, y in zip(jnp.split(rows, splits, axis=1), parts)
     )
+    # On a skip: mu + 0 * (-0 / s) = mu and (W - c 0 0^T) / sqrt(1) = W exactly.
+    a_p, b_p, q_p = (jnp.where(accepted, x, 0.0) for x in (a_p, b_p, q_p))
+    r_p = jnp.where(accepted, r_p, -0.0)
     new_mean, new_w = _potter(mean_p, w_p, a_p, b_p, q_p, r_p, sigma2, sigma2[:d_cov], gamma)
 
-    shift = top[0]  # top_k is sorted: the best candidate (always finite) leads
-    k = state.step + 1
+    shift = top[0]  # top_k is sorted: the best candidate (finite when accepted) leads
+    k = jnp.where(accepted, state.step + 1, state.step)
     last = jnp.where(branch, k, state.last_changepoint[parent])
     new_state = BeamState(
         means=new_mean,
         sqrt_covariances=new_w,
-        log_scores=top - shift,
-        log_offset=state.log_offset + shift,
+        log_scores=jnp.where(accepted, top - shift, prev),
+        log_offset=jnp.where(accepted, state.log_offset + shift, state.log_offset),
         num_changepoints=state.num_changepoints[parent] + branch.astype(jnp.int32),
         last_changepoint=last,
-        is_changepoint=branch,
+        is_changepoint=jnp.where(accepted, branch, state.is_changepoint),
         step=k,
-        sigma2=sigma2,
+        sigma2=jnp.where(accepted, sigma2, state.sigma2),
         prior_mean=state.prior_mean,
     )
 
     w_prev = jax.nn.softmax(prev)
     w_new = jax.nn.softmax(new_state.log_scores)
-    p1 = jnp.exp(logp1)
+    p1 = jnp.where(accepted, jnp.exp(logp1), 0.0)
     mix = jnp.logaddexp(jnp.log(pi) + ll1, jnp.log1p(-pi) + ll0)
     log_evidence = jax.nn.logsumexp(mix, b=w_prev)
     prev_map_last = state.last_changepoint[jnp.argmax(prev)]
@@ -527,9 +548,10 @@ def _update(
         p_change=p1,
         cp_prob=w_prev @ p1,
         cp_mass=jnp.sum(jnp.where(branch, w_new, 0.0)),
-        changepoint=last[0] > prev_map_last,
+        changepoint=accepted & (last[0] > prev_map_last),
         map_last_changepoint=last[0],
-        log_evidence=log_evidence,
+        log_evidence=jnp.where(accepted, log_evidence, jnp.nan),
+        accepted=accepted,
     )
     return new_state, info
 
@@ -551,6 +573,10 @@ def update(
     already contains ``p(delta_k|c_k)``, so the data term enters a candidate's score twice
     and two sibling candidates differ by ``2 log Lambda_k + log(pi / (1 - pi))`` (with
     ``Lambda_k`` the Eq. 9 likelihood ratio) rather than by the log posterior odds.
+
+    An observation with a non-finite ``z`` or ``delta`` (or one that no hypothesis can
+    score) is skipped: the state comes back unchanged and ``info.accepted`` is False (see
+    :class:`UpdateInfo`), so later updates proceed as if it had never arrived.
 
     Args:
         state: beam after step ``k - 1``.
@@ -683,7 +709,7 @@ def packed_step(packed: PackedBeam, inputs: Array) -> tuple[PackedBeam, Array]:
             *pred,
             info.p_change,
             jnp.stack([info.cp_prob, info.cp_mass, info.log_evidence]),
-            jnp.stack([info.changepoint, info.map_last_changepoint]).astype(dtype),
+            jnp.stack([info.changepoint, info.map_last_changepoint, info.accepted]).astype(dtype),
         ]
     )
     return pack(new_state, config), outputs
@@ -704,6 +730,7 @@ def unpack_outputs(outputs, d: int, K: int) -> tuple[Prediction, UpdateInfo]:
         log_evidence=outputs[o + K + 2],
         changepoint=outputs[o + K + 3] != 0,
         map_last_changepoint=outputs[o + K + 4],
+        accepted=outputs[o + K + 5] != 0,
     )
     return pred, info
 

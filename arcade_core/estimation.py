@@ -208,9 +208,12 @@ def update(
     """Fuse one frame captured at ``stamp``; returns ``(state, accepted)``.
 
     Predicts to ``stamp`` (attitude with ``omega``), gates the innovation, then applies
-    the Kalman update per axis and the complementary attitude correction. A frame older
-    than the filter state (out of order) is ignored; the first frame (or one after
-    ``max_rejects`` consecutive rejects) initialises the filter.
+    the Kalman update per axis and the complementary attitude correction. A frame not
+    newer than the filter state is ignored (and counted as rejected): an older one is out
+    of order, and one at ``state.t`` repeats the capture instant of the frame fused last
+    (only a fused frame moves ``state.t``), so fusing it again would count the same
+    measurement twice. The first frame (or one after ``max_rejects`` consecutive rejects)
+    initialises the filter.
     """
     dtype = state.p.dtype
     stamp = jnp.asarray(stamp, dtype)
@@ -229,7 +232,7 @@ def update(
     )
     close = (d2 <= config.gate_chi2) | (jnp.sum(nu * nu) <= config.gate_floor_m**2)
     in_gate = close & (_angle_between(q_pred, q_meas) <= config.gate_angle_rad)
-    in_order = stamp >= state.t
+    in_order = (stamp > state.t) | ~state.initialised
     reinit = ~state.initialised | (state.rejects + 1 >= config.max_rejects)
     accept = in_order & (in_gate | reinit)
 

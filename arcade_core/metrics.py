@@ -88,7 +88,8 @@ def shift_magnitude(t: Array, e_z: Array, t_drop: float | Array, window: float =
 
 class Settling(NamedTuple):
     """``time``: seconds from ``t_drop`` until the error stays in the band (``inf`` if
-    it never does); ``settled``: False when the last sample is still outside the band."""
+    it never does, NaN without samples after ``t_drop``); ``settled``: False when the
+    last sample is still outside the band or there is no sample after ``t_drop``."""
 
     time: Array
     settled: Array
@@ -102,16 +103,22 @@ def settling_time(t: Array, e: Array, t_drop: float | Array, band: float = 0.05)
     error is considered settled from the next sample, so the time is ``t[v+1] - t_drop``
     (resolution one sample period); 0 if no sample after ``t_drop`` leaves the band. If
     the last sample is outside the band the response never settled within the record:
-    ``time = inf`` and ``settled = False`` (a finite number would understate it). ``e`` is
-    a scalar error per sample ``(T,)``; pass a norm for vector errors.
+    ``time = inf`` and ``settled = False`` (a finite number would understate it). A
+    non-finite error counts as outside the band (a diverged state is not settled). With
+    no sample at or after ``t_drop`` the time is undefined: ``time = NaN`` and ``settled =
+    False``, as :func:`shift_magnitude` returns NaN then. ``e`` is a scalar error per
+    sample ``(T,)``; pass a norm for vector errors.
     """
     t, e = _float(t), jnp.asarray(e)
     n = t.shape[0]
-    outside = (t >= t_drop) & (jnp.abs(e) > band)
+    after = t >= t_drop
+    outside = after & ~(jnp.abs(e) <= band)  # NaN compares False: outside
     last_out = jnp.max(jnp.where(outside, jnp.arange(n), -1))
-    settled = last_out < n - 1
+    observed = jnp.any(after)
+    settled = observed & (last_out < n - 1)
     t_settle = t[jnp.clip(last_out + 1, 0, n - 1)] - t_drop
     time = jnp.where(last_out < 0, 0.0, jnp.where(settled, t_settle, jnp.inf))
+    time = jnp.where(observed, time, jnp.nan)
     return Settling(time.astype(t.dtype), settled)
 
 

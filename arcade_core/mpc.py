@@ -47,7 +47,8 @@ Design decisions:
   hovering), and ``converged`` is False. The input reference is the fallback of last
   resort: a warm start that the model rolls out to non-finite states (a diverged plan,
   carried over by the receding-horizon shift) is then dropped instead of being handed
-  out again at every later step.
+  out again at every later step, and so is a warm start with non-finite inputs, whatever
+  the costs: the returned inputs are finite whenever ``u_ref`` is.
 - **Models never recompile**: the learned model is an arbitrary pytree passed at solve
   time, ``step_fn(x, u, model) -> x_next``.
 - **Learned residual along the warm start** (optional, :func:`residual_along`,
@@ -497,7 +498,11 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
         U_ref = jnp.clip(u_ref, lo, hi).astype(U_warm.dtype)
         X_warm, cost_warm = plan(U_warm)
         X_ref, cost_ref = plan(U_ref)
-        warm_ok = ~(cost_warm > cost_ref)
+        # Costs are finite or inf. Both inf (e.g. a non-finite x0 or model): keep the warm
+        # start, unless its inputs are themselves non-finite; then the input reference.
+        warm_ok = jnp.all(jnp.isfinite(U_warm)) & (
+            ~(cost_warm > cost_ref) | ~jnp.all(jnp.isfinite(U_ref))
+        )
         U_safe = jnp.where(warm_ok, U_warm, U_ref)
         X_safe = jnp.where(warm_ok, X_warm, X_ref)
         cost_safe = jnp.where(warm_ok, cost_warm, cost_ref)

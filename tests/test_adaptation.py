@@ -366,6 +366,82 @@ def test_top_k_matches_lax_top_k_with_ties_and_infinities():
             np.testing.assert_array_equal(idx, ref_idx)
 
 
+def test_top_k_ranks_nan_last_and_returns_valid_indices():
+    v = jnp.asarray([0.0, np.nan, -1.0, 2.0, np.nan, 1.0, -np.inf])
+    vals, idx = A.top_k(v, 3)
+    np.testing.assert_array_equal(idx, [3, 5, 0])
+    np.testing.assert_array_equal(vals, [2.0, 1.0, 0.0])
+    _, idx = jax.jit(A.top_k, static_argnums=1)(v, 7)
+    np.testing.assert_array_equal(idx, [3, 5, 0, 2, 6, 1, 4])  # a permutation, NaN last
+    _, idx = A.top_k(jnp.full(4, jnp.nan), 2)
+    np.testing.assert_array_equal(idx, [0, 1])
+
+
+# ------------------------------------------------------------ non-finite observations
+
+
+def _assert_same_state(a, b):
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_a_non_finite_observation_is_skipped_and_leaves_no_trace(dtype):
+    d, l, K, T, bad = 3, 2, 4, 12, 6
+    theta0, Z, D = random_problem(21, d, l, T, switch=8)
+    theta0, Z, D = (x.astype(dtype) for x in (theta0, Z, D))
+    cfg = A.AdaptationConfig(K=K, pi=0.1, beta=0.7, tau2=0.1, sigma2=0.1, prior_floor=1.0)
+    fn = jax.jit(A.update)
+    clean = A.init(theta0, cfg)
+    for t in range(T):
+        clean, info = fn(clean, Z[t], D[t], cfg)
+        assert bool(info.accepted)
+    huge = np.full(d, 1e19 if dtype == np.float32 else 1e300, dtype)  # Eq. 8 overflows
+    nan_z, inf_z = Z[bad].copy(), Z[bad].copy()
+    nan_z[1], inf_z[0] = np.nan, -np.inf
+    nan_d = D[bad].copy()
+    nan_d[0] = np.nan
+    for z_bad, d_bad in [(Z[bad], nan_d), (nan_z, D[bad]), (inf_z, D[bad]), (Z[bad], huge)]:
+        state = A.init(theta0, cfg)
+        for t in range(T):
+            if t == bad:
+                before = state
+                state, info = fn(state, z_bad, d_bad, cfg)
+                _assert_same_state(state, before)  # bit for bit, step included
+                assert not bool(info.accepted) and not bool(info.changepoint)
+                assert float(info.cp_prob) == 0.0 and np.isnan(float(info.log_evidence))
+                assert int(info.map_last_changepoint) == int(before.last_changepoint[0])
+            state, info = fn(state, Z[t], D[t], cfg)
+            assert bool(info.accepted)
+        # Later updates behave exactly as if the bad observation had never arrived.
+        _assert_same_state(state, clean)
+        assert np.isfinite(np.asarray(state.log_scores[0]))
+
+
+def test_a_skipped_observation_under_vmap_and_the_packed_step():
+    d, l, K = 2, 2, 3
+    theta0, Z, D = random_problem(22, d, l, 3)
+    cfg = A.AdaptationConfig(K=K, pi=0.2, beta=0.5, tau2=0.1, sigma2=0.1)
+    state = A.init(theta0, cfg)
+    state, _, _ = A.step(state, Z[0], D[0], cfg)
+    bad = D[1].copy()
+    bad[1] = np.nan
+    states = jax.tree.map(lambda x: jnp.stack([x, x]), state)
+    batched = jax.jit(jax.vmap(A.step, in_axes=(0, 0, 0, None)))
+    new, _, info = batched(states, np.stack([Z[1], Z[1]]), np.stack([D[1], bad]), cfg)
+    np.testing.assert_array_equal(info.accepted, [True, False])
+    good, _, _ = A.step(state, Z[1], D[1], cfg)
+    for x, y in zip(jax.tree.map(lambda x: x[0], new), good):
+        np.testing.assert_allclose(x, y, atol=1e-14)  # vmap may round differently
+    _assert_same_state(jax.tree.map(lambda x: x[1], new), state)
+    # The packed fast path reports the skip in its outputs.
+    fast = A.make_packed_step()
+    packed, out = fast(A.pack(state, cfg), jnp.concatenate([Z[1], bad, jnp.zeros(l)]))
+    _, info = A.unpack_outputs(np.asarray(out), d, K)
+    assert not bool(info.accepted)
+    _assert_same_state(A.unpack(packed)[0], state)
+
+
 # ----------------------------------------------------------------- Eq. 10 / Sec. IV
 
 
@@ -429,6 +505,7 @@ def test_packed_step_equals_step():
             np.testing.assert_allclose(getattr(got_info, name), getattr(info, name), atol=1e-14)
         assert bool(got_info.changepoint) == bool(info.changepoint)
         assert int(got_info.map_last_changepoint) == int(info.map_last_changepoint)
+        assert bool(got_info.accepted) and bool(info.accepted)
     unpacked, _ = A.unpack(packed)
     for a, b in zip(unpacked, state):
         np.testing.assert_allclose(a, b, atol=1e-14)

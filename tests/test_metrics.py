@@ -85,6 +85,36 @@ def test_settling_time_never_settles_is_flagged_inf():
     assert np.isinf(float(s.time))
 
 
+def test_settling_time_counts_non_finite_error_as_outside_the_band():
+    t, e = _drop_signal()
+    e[t >= 2.5] = 0.0
+    # A diverged sample after the drop is not inside the band: settled from the next one.
+    e_nan = e.copy()
+    e_nan[t == 2.0] = np.nan
+    s = metrics.settling_time(t, e_nan, 1.0)
+    assert bool(s.settled) and float(s.time) == pytest.approx(1.1, abs=1e-12)
+    # A record that ends diverged never settled.
+    e_inf = e.copy()
+    e_inf[-1] = np.inf
+    s = metrics.settling_time(t, e_inf, 1.0)
+    assert not bool(s.settled) and np.isinf(float(s.time))
+    e_nan[-1] = np.nan
+    assert not bool(metrics.settling_time(t, e_nan, 1.0).settled)
+
+
+def test_settling_time_without_samples_after_the_drop_is_undefined():
+    t, e = _drop_signal()
+    e[:] = 0.0
+    s = metrics.settling_time(t, e, 5.0)  # the record ends at 3.0 s
+    assert not bool(s.settled) and np.isnan(float(s.time))
+    assert np.isnan(float(metrics.shift_magnitude(t, e, 5.0)))  # the two agree
+    s = jax.jit(metrics.settling_time)(t, e, jnp.asarray(5.0))
+    assert not bool(s.settled) and np.isnan(float(s.time))
+    # The last sample exactly at the drop time still counts as "after".
+    s = metrics.settling_time(t, e, 3.0)
+    assert bool(s.settled) and float(s.time) == 0.0
+
+
 def test_drop_metrics_jit_with_traced_drop_time():
     t, e = _drop_signal()
     e[t >= 2.5] = 0.0

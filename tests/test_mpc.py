@@ -216,6 +216,32 @@ def test_diverging_warm_start_falls_back_to_the_input_reference():
     assert np.all(np.isfinite(np.asarray(sol.x_pred))) and np.isfinite(float(sol.cost))
 
 
+def test_non_finite_warm_start_is_never_handed_out():
+    """A NaN warm start with a model that makes every plan non-finite (both fallback costs
+    inf): the finite input reference is returned, not the NaN warm start."""
+    from arcade_core.mpc import MPCConfig
+
+    one = jnp.ones(1, jnp.float64)
+    cfg = MPCConfig(
+        Q=jnp.ones(2, jnp.float64), R=one, P=jnp.ones(2, jnp.float64), u_min=-one, u_max=one, N=3
+    )
+
+    def toy_step(x, u, bias):  # double integrator plus a learned term
+        return x + 0.1 * jnp.stack([x[1], u[0]]) + bias
+
+    ctrl = make_controller(toy_step, cfg)
+    x0, xr = jnp.array([1.0, 0.0]), jnp.zeros((4, 2))
+    ur = jnp.full((3, 1), 0.25)
+    nan_warm = jnp.full((3, 1), jnp.nan)
+    sol = ctrl.solve(x0, xr, ur, nan_warm, jnp.zeros(1), jnp.full(2, jnp.nan))
+    assert not bool(sol.converged)
+    np.testing.assert_array_equal(sol.u, ur)
+    # Both plans non-finite but the warm start finite: the warm start is kept.
+    warm = jnp.full((3, 1), -0.5)
+    sol = ctrl.solve(x0, xr, ur, warm, jnp.zeros(1), jnp.full(2, jnp.nan))
+    np.testing.assert_array_equal(sol.u, warm)
+
+
 def test_thrust_bound_follows_the_vehicle():
     assert float(quadrotor_mpc_config().u_max[0]) == 20.0  # Appendix D table
     assert float(quadrotor_mpc_config(max_thrust=16.0).u_max[0]) == 16.0

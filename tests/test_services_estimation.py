@@ -141,6 +141,34 @@ def test_out_of_order_frame_is_ignored():
     np.testing.assert_array_equal(np.asarray(later.p), np.asarray(state.p))
 
 
+def test_a_repeated_frame_is_not_fused_twice():
+    truth = Truth()
+    omega = jnp.array([0.0, 0.0, truth.yaw_rate])
+    update = jax.jit(est.update, static_argnames="config")
+    state = est.init()
+    for k in range(20):  # the first frame is stamped 0.0, the uninitialised filter's t
+        tc = k * MOCAP_DT
+        state, ok = update(state, tc, jnp.asarray(truth.pose(tc)[0]), truth.pose(tc)[1], omega, CFG)
+        assert bool(ok)
+    again, ok = update(state, tc, jnp.asarray(truth.pose(tc)[0]), truth.pose(tc)[1], omega, CFG)
+    assert not bool(ok)
+    assert int(again.accepted) == 20 and int(again.rejected) == 1
+    np.testing.assert_array_equal(np.asarray(again.cov), np.asarray(state.cov))
+    np.testing.assert_array_equal(np.asarray(again.p), np.asarray(state.p))
+    # Within one control period's batch too: the repeat is not counted as fused.
+    tn = 20 * MOCAP_DT
+    frames = est.empty_frames()
+    rows = [(tn, *truth.pose(tn)), (tn, *truth.pose(tn))]
+    frames = est.Frames(
+        frames.stamp.at[:2].set(jnp.array([r[0] for r in rows])),
+        frames.position.at[:2].set(jnp.array([r[1] for r in rows])),
+        frames.quaternion.at[:2].set(jnp.array([r[2] for r in rows])),
+        frames.valid.at[:2].set(True),
+    )
+    once, out = step(state, frames, tn + LATENCY, omega, CFG)
+    assert int(out.fused) == 1 and int(once.accepted) == 21
+
+
 def test_propagate_attitude_matches_closed_form():
     q0 = yaw_quat(0.3)
     q = est.propagate_attitude(jnp.asarray(q0), jnp.array([0.0, 0.0, 2.0]), 0.1)
