@@ -12,9 +12,13 @@ adapter's changepoint events give the detection delay. The run folder holds the 
 
 from __future__ import annotations
 
+import contextlib
 import json
+import signal
 import socket
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -91,6 +95,25 @@ def plot(
     plt.close(fig)
 
 
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """While inside, SIGTERM raises ``KeyboardInterrupt`` as Ctrl-C does, so the launcher's
+    context manager stops every service (as ``arcade up`` does); the previous handler is
+    restored on leaving. Only the main thread can install handlers: elsewhere, nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_term(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
 def run_demo(
     out: Path,
     *,
@@ -148,7 +171,8 @@ def run_demo(
             tqdm.write(msg, file=sys.stderr)
 
     try:
-        result = run_flight(cfg, progress=say, on_time=on_time if lockstep else None)
+        with sigterm_interrupts():
+            result = run_flight(cfg, progress=say, on_time=on_time if lockstep else None)
     finally:
         bar.close()
     sim_stats = json.loads((out / "stats" / "sim.json").read_text())
@@ -178,12 +202,15 @@ def run_demo(
             "x64": x64,
         },
     )
-    rejects = {}
+    rejects, failures = {}, {}
     for f in (out / "stats").glob("*.json"):
-        r = json.loads(f.read_text()).get("rejects", {})
-        if r:
+        stats = json.loads(f.read_text())
+        if r := stats.get("rejects", {}):
             rejects[f.stem] = r
+        if n := stats.get("callback_failures", {}):
+            failures[f.stem] = n
     summary["rejects"] = rejects
+    summary["callback_failures"] = failures
     plot(out / "flight.png", truth, t_release, cps)
     atomicfile.write_text(out / "metrics.json", jsonout.dumps(summary, indent=2))
     return summary
@@ -207,4 +234,6 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append("THE VEHICLE CRASHED")
     if s["rejects"]:
         lines.append(f"rejected messages: {s['rejects']}")
+    if s.get("callback_failures"):
+        lines.append(f"failures handling messages: {s['callback_failures']}")
     return "\n".join(lines)

@@ -100,11 +100,10 @@ def read_log(source: str | Path | io.TextIOBase, system: str) -> FlightLog:
     header = [h.strip() for h in rows[0]]
     need = columns(system)
     missing = [c for c in need if c not in header]
+    if len(missing) == len(need):  # not a flight log at all: say what one looks like
+        raise LogError(f"{name}: not a {system} flight log (columns {', '.join(need)})")
     if missing:
-        raise LogError(
-            f"{name}: missing column(s) {', '.join(missing)} for a {system} log "
-            f"(needs {', '.join(need)})"
-        )
+        raise LogError(f"{name}: missing column(s) {', '.join(missing)} for a {system} log")
     idx = [header.index(c) for c in need]
     body = rows[1:]
     if len(body) < MIN_ROWS:

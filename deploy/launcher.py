@@ -582,25 +582,27 @@ class Stack:
         return proc.pid
 
     def stop(self, grace: float = 20.0) -> dict[str, int | None]:
-        """SIGINT everything (data-flow order), then SIGTERM/SIGKILL stragglers."""
+        """SIGINT everything (data-flow order), then SIGTERM/SIGKILL stragglers.
+
+        Every service is signalled and reaped whatever happens meanwhile: a Ctrl-C or
+        SIGTERM that arrives during the stop only cuts the grace periods short (no more
+        waiting for a clean exit), and is delivered once every service has ended.
+        """
         self._stopping.set()
-        for name in getattr(self.config, "stop_order", STOP_ORDER):
-            p = self.procs.get(name)
-            if p is None or p.poll() is not None:
-                continue
-            p.send_signal(signal.SIGINT)
+        with _interrupts_deferred() as hurry:
             try:
-                p.wait(timeout=grace)
-            except subprocess.TimeoutExpired:
-                p.terminate()
-                try:
-                    p.wait(timeout=5.0)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
-        if self._bus is not None:
-            bus, self._bus = self._bus, None
-            bus.close()
+                for name in getattr(self.config, "stop_order", STOP_ORDER):
+                    p = self.procs.get(name)
+                    if p is None or p.poll() is not None:
+                        continue
+                    try:
+                        _end_process(p, grace, hurry)
+                    except Exception as err:  # the next services must be stopped still
+                        print(f"could not stop {name}: {err}", file=sys.stderr)
+            finally:
+                if self._bus is not None:
+                    bus, self._bus = self._bus, None
+                    bus.close()
         return {name: p.returncode for name, p in self.procs.items()}
 
     def __enter__(self) -> Stack:
@@ -608,6 +610,51 @@ class Stack:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def _end_process(p: subprocess.Popen, grace: float, hurry: threading.Event) -> None:
+    """SIGINT ``p`` and wait up to ``grace`` s (less once ``hurry`` is set), then SIGTERM
+    and 5 s, then SIGKILL; returns once it has been reaped."""
+    with contextlib.suppress(ProcessLookupError):
+        p.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + grace
+    # Polled, because a process's exit cannot be waited for together with ``hurry``.
+    while p.poll() is None and not hurry.is_set() and time.monotonic() < deadline:
+        hurry.wait(0.05)
+    if p.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            p.terminate()
+        try:
+            p.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+@contextlib.contextmanager
+def _interrupts_deferred() -> Any:
+    """While inside: SIGINT and SIGTERM set the yielded event instead of acting; on leaving,
+    the previous handlers are back and the signals that came are delivered to them.
+    Outside the main thread (no signal handlers there): only the event."""
+    hurry = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield hurry
+        return
+    came: list[int] = []
+
+    def defer(sig: int, _frame: object) -> None:
+        came.append(sig)
+        hurry.set()
+
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    previous = {sig: signal.signal(sig, defer) for sig in sigs}
+    try:
+        yield hurry
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        for sig in dict.fromkeys(came):
+            signal.raise_signal(sig)
 
 
 def run_flight(

@@ -17,8 +17,10 @@ steady controller setpoint stream, then sends the ``arm`` command; without ``--a
 ``arcade up`` asks on the terminal.
 
 Until offboard is engaged the controller's setpoints are not applied (PX4 flies the
-vehicle): the adapter learns only from the mission ``start`` on, which is sent when
-offboard is engaged, and pauses on a ``failsafe`` event.
+vehicle): the adapter learns only from the mission ``start`` on (sent by the bridge when
+offboard is engaged, or by ``px4sim`` with ``simulate``), pauses on a ``failsafe`` event
+(the bridge emits one on every exit from offboard, operator commands included) and
+resumes on ``failsafe_cleared`` (emitted by the bridge whenever offboard is engaged again).
 """
 
 from __future__ import annotations

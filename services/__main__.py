@@ -20,11 +20,35 @@ SERVICES = {
     "bridge": "services.px4_bridge",
 }
 
+#: One line per service for ``--help`` (without importing them: JAX, MuJoCo, MAVSDK).
+SUMMARIES = {
+    "sim": "MuJoCo quadrotor + motion capture on the bus",
+    "estimator": "mocap (+ gyro) -> state at the control rate",
+    "adapter": "ARCADE online adaptation (Algorithm 1) of the residual model",
+    "controller": "uncertainty-modulated MPC on the latest state and model",
+    "recorder": "MCAP log of the bus and the CSV flight log",
+    "px4sim": "the simulator as a PX4 vehicle on MAVLink + motion capture on the bus",
+    "bridge": "setpoints to PX4 offboard, mocap to PX4 vision, PX4 telemetry to the bus",
+}
+
+USAGE = f"usage: python -m services {{{','.join(SERVICES)}}} [--help]"
+
+
+def help_text() -> str:
+    width = max(map(len, SERVICES))
+    lines = [USAGE, "", "Run one service process of the stack.", "", "services:"]
+    lines += [f"  {name:<{width}}  {SUMMARIES[name]}" for name in SERVICES]
+    lines += ["", "python -m services NAME --help: the options of one service."]
+    return "\n".join(lines)
+
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] in (["-h"], ["--help"]):
+        print(help_text())
+        return 0
     if not argv or argv[0] not in SERVICES:
-        print(f"usage: python -m services {{{','.join(SERVICES)}}} [--help]", file=sys.stderr)
+        print(USAGE, file=sys.stderr)
         return 2
     module = importlib.import_module(SERVICES[argv[0]])
     return int(module.main(argv[1:]) or 0)

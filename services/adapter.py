@@ -4,8 +4,8 @@ Subscribes ``state`` and ``setpoint``; publishes ``residual`` and ``model`` for 
 and an ``event`` (kind ``changepoint``) whenever the MAP history gains a changepoint.
 
 Per state ``k`` (after the first): the transition ``(x_{k-1}, u_{k-1}, x_k)`` with
-``u_{k-1}`` the setpoint answering state ``k-1`` (lockstep: waited for; realtime: the
-latest setpoint, which is what the vehicle held) gives the residual
+``u_{k-1}`` the setpoint answering state ``k-1`` (lockstep: waited for; realtime: see
+below) gives the residual
 ``delta = x_k - f_nom(x_{k-1}, u_{k-1})``. At the default 20 Hz this is exactly the
 in-process evaluation's learning step (``benchmarks.quadrotor_closedloop``, method
 ``ours``: paper quadrotor preset, the VLD of the weights file, features clipped to their
@@ -19,9 +19,20 @@ newest state, in normalised units.
 Transitions that end in a state predicted through a mocap dropout are not learned from,
 nor transitions whose input the vehicle did not apply: in realtime the vehicle follows the
 controller only from the mission ``start`` command on (before it the simulator's pre-roll or
-PX4 holds the vehicle, while the controller already streams setpoints), and not while a
-``failsafe`` holds it (until ``failsafe_cleared`` or a new ``start``). In lockstep every
-setpoint is applied from the first state on.
+PX4 holds the vehicle, while the controller already streams setpoints), and not while the
+vehicle link does not fly them: from a ``failsafe`` event (the PX4 bridge emits one on every
+exit from offboard, operator commands included) until ``failsafe_cleared`` (the link flies
+the setpoints again: the bridge emits it whenever offboard is engaged) or a new ``start``.
+A ``start`` that repeats the mission's ``t0`` (the clock re-sent to a restarted controller)
+is no new mission and does not resume learning. A ``failsafe`` event of the controller is
+a request to the vehicle link, whose own event follows when it acts: it does not pause
+learning by itself. Steps not learned from for this reason are counted (``not_applied``).
+In lockstep every setpoint is applied from the first state on.
+The input of a transition is the setpoint answering its first state; in realtime, when that
+one is missing (the controller answers only the newest state, or the bus dropped it), the
+newest setpoint stamped at or before that state (what the vehicle's zero-order hold
+applied) if it is at most about one period older (``input_fallback``), else the transition
+is skipped (``input_missing``).
 Quaternions: ``q`` and ``-q`` are one attitude but far apart as the vectors the features
 and the residual use; each transition is taken with the first state's scalar part
 non-negative (as in training) and the second state in the same hemisphere.
@@ -57,6 +68,9 @@ from services.messages import MAX_VARIANCE, Event, Model, Residual, Setpoint, St
 
 #: The shipped quadrotor VLD (``arcade train --system quadrotor`` writes it).
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "deploy" / "weights" / "quadrotor_vld.eqx"
+#: Realtime: the newest earlier setpoint stands in for a missing one up to this many
+#: control periods before the transition's first state (one period, with jitter margin).
+FALLBACK_PERIODS = 1.5
 #: Tempering of the adapter's beam at the calibrated noise (see :func:`stack_knobs`).
 STACK_BETA = 0.05
 
@@ -231,12 +245,21 @@ class Adapter(runtime.Service):
                     )
         self._cond = threading.Condition()
         self._setpoints: dict[float, Setpoint] = {}
-        self._latest_sp: Setpoint | None = None
         self._prev: State | None = None
         self._lat: list[float] = []
-        self.stats.update(steps=0, learned=0, changepoints=0, skipped=0)
+        self.stats.update(
+            steps=0,
+            learned=0,
+            changepoints=0,
+            skipped=0,
+            not_applied=0,
+            input_fallback=0,
+            input_missing=0,
+            nonfinite_resets=0,
+        )
         # Whether the vehicle is flying the controller's setpoints (see the module docstring).
         self._applied = bool(a.lockstep)
+        self._mission_t0: float | None = None  # t0 of the newest mission start
         bus.subscribe("setpoint", self.on_setpoint)
         bus.subscribe("state", self.on_state)
         bus.subscribe("event", self.on_event, check_order=False)
@@ -270,23 +293,37 @@ class Adapter(runtime.Service):
             )
 
     def on_command(self, cmd) -> None:
-        if cmd.name == "start" and not self._applied:
-            self._applied = True
-            self.log.info("mission started: learning from the applied setpoints")
+        if cmd.name != "start":
+            return
+        t0 = cmd.args.get("t0", cmd.stamp)
+        if t0 == self._mission_t0:
+            return  # the mission clock re-sent to a (re)joining controller: no new mission
+        self._mission_t0 = t0
+        self._set_applied(True, f"mission started ({cmd.src})")
 
     def on_event(self, e: Event) -> None:
-        if e.kind == "failsafe" and self._applied:
-            self._applied = False
-            self.log.info("vehicle in failsafe (%s): not learning until it resumes", e.src)
-        elif e.kind == "failsafe_cleared" and not self._applied:
-            self._applied = True
-            self.log.info("failsafe cleared (%s): learning again", e.src)
+        if e.kind == "failsafe" and e.src.split("/")[0] != "controller":
+            self._set_applied(False, f"{e.src}: {e.text}")
+        elif e.kind == "failsafe_cleared":
+            self._set_applied(True, f"{e.src}: {e.text}")
+
+    def _set_applied(self, applied: bool, why: str) -> None:
+        """Learn (or not) from the steps to come; announced when it changes."""
+        if applied == self._applied:
+            return
+        self._applied = applied
+        if applied:
+            self.event("info", f"learning from the applied setpoints: {why}", learning=True)
+        else:
+            self.event(
+                "info",
+                f"vehicle not flying the setpoints, learning paused: {why}",
+                learning=False,
+            )
 
     def on_setpoint(self, sp: Setpoint) -> None:
         with self._cond:
             self._setpoints[sp.stamp] = sp
-            if self._latest_sp is None or sp.stamp >= self._latest_sp.stamp:
-                self._latest_sp = sp
             if len(self._setpoints) > 64:
                 for s in sorted(self._setpoints)[:-32]:
                     del self._setpoints[s]
@@ -307,7 +344,17 @@ class Adapter(runtime.Service):
                     self.args.step_timeout,
                 )
                 return self._setpoints.get(prev.stamp)
-            return self._setpoints.get(prev.stamp, self._latest_sp)
+            sp = self._setpoints.get(prev.stamp)
+            if sp is not None:
+                return sp
+            # The controller skipped that state (or the bus dropped its answer): the vehicle
+            # held the newest setpoint sent before it, if that one is recent enough.
+            held = [t for t in self._setpoints if t <= prev.stamp]
+            if held and prev.stamp - max(held) <= FALLBACK_PERIODS / self.args.rate:
+                self.stats["input_fallback"] += 1
+                return self._setpoints[max(held)]
+            self.stats["input_missing"] += 1
+            return None
 
     def on_state(self, s: State) -> None:
         if not self.args.lockstep and self._controller_alive():
@@ -340,7 +387,7 @@ class Adapter(runtime.Service):
             self.stats["skipped"] += prev is not None
         else:
             learn = self._applied and not s.predicted_through_dropout
-            self.stats["not_applied"] = self.stats.get("not_applied", 0) + (not self._applied)
+            self.stats["not_applied"] += not self._applied
             if abs(h - self.model_dt) < 1e-6:
                 h = self.model_dt  # bit-identical to the fixed-step nominal model
             zeros = np.zeros(13)
@@ -386,7 +433,15 @@ class Adapter(runtime.Service):
         if not (
             np.all(np.isfinite(theta)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(sig))
         ):
-            self.log.error("non-finite posterior: resetting the beam to the prior")
+            self.stats["nonfinite_resets"] += 1
+            self.event(
+                "fault",
+                "non-finite posterior: beam reset to the prior",
+                "error",
+                stamp=s.stamp,
+                state_seq=s.seq,
+                resets=self.stats["nonfinite_resets"],
+            )
             self.learner = self._prior
             return
         self.pub_model.put(

@@ -330,13 +330,15 @@ class Publisher(Generic[M]):
             raise TypeError(f"{self.topic} carries {self.type.__name__}, not {type(record)}")
         wire = record.to_wire()
         with self._lock:  # seq order == put order
-            self._seq += 1
-            wire["seq"], wire["src"] = self._seq, self._src
+            seq = self._seq + 1
+            wire["seq"], wire["src"] = seq, self._src
             payload = msgpack.packb(wire, use_bin_type=True)
             if len(payload) > self.type.MAX_BYTES:
+                # Not sent: the number stays free, so receivers count no lost message.
                 raise MessageError(Reason.OVERSIZE, f"{len(payload)} > {self.type.MAX_BYTES}")
             self._pub.put(payload, attachment=_PUT_TIME.pack(time.monotonic()))
-            return self._seq
+            self._seq = seq
+            return seq
 
     def close(self) -> None:
         self._pub.undeclare()
@@ -385,8 +387,8 @@ class Bus:
 
     Each subscription's callback runs on its own thread (Zenoh's default for Python
     callbacks), never on the caller's; every payload is validated and order-checked first,
-    and nothing a payload or a callback does escapes: failures are counted in
-    :attr:`rejects` and logged. Publishing from a callback is fine.
+    and nothing a payload or a callback does escapes: rejects and callback failures are
+    counted in :attr:`rejects` and logged. Publishing from a callback is fine.
     """
 
     def __init__(
@@ -400,11 +402,14 @@ class Bus:
         self.vehicle = _check_name("vehicle", vehicle)
         self.name = _check_name("service", name)
         self.config = config
-        self.rejects = rejects or RejectCounter(logger=logging.getLogger(f"arcade.bus.{name}"))
+        self.rejects = rejects or RejectCounter(
+            logger=logging.getLogger(f"arcade.bus.{name}"), service=name
+        )
         self._session: zenoh.Session | None = None
         self._src = ""
         self._publishers: dict[str, Publisher[Any]] = {}
         self._subscriptions: list[Subscription] = []
+        self._streams: list[tuple[str, Any]] = []  # (topic, order checker) per subscription
         self._tokens: dict[str, Any] = {}
         self._alive: set[str] = set()
         self._alive_listeners: list[Callable[[str, bool], None]] = []
@@ -490,8 +495,9 @@ class Bus:
     ) -> Subscription:
         """Call ``callback(record)`` for every valid, in-order message on ``topic``.
 
-        Invalid, out-of-order or stale (``max_age`` seconds on ``clock``) messages and
-        exceptions of ``callback`` are counted in :attr:`rejects` instead.
+        Invalid, out-of-order or stale (``max_age`` seconds on ``clock``) messages are
+        counted in :attr:`rejects` instead, exceptions of ``callback`` in its
+        :attr:`~services.messages.RejectCounter.failures`.
         """
         receiver = Receiver(topic, check_order=check_order, max_age=max_age, clock=clock)
         transit: deque[float] = deque(maxlen=TRANSIT_SAMPLES)
@@ -510,7 +516,27 @@ class Bus:
             transit,
         )
         self._subscriptions.append(sub)
+        if receiver.checker is not None:
+            self.track_stream(topic, receiver.checker)
         return sub
+
+    def track_stream(self, topic: str, checker: Any) -> None:
+        """Include ``checker`` (anything with a ``stats() -> {name: count}`` method, e.g. a
+        :class:`~services.messages.StreamChecker`) in :meth:`stream_stats`."""
+        with self._pub_lock:
+            self._streams.append((topic, checker))
+
+    def stream_stats(self) -> dict[str, dict[str, int]]:
+        """Per topic, the summed counts of its order checkers: messages ``accepted``,
+        sequence ``gaps`` (messages lost on the way), ``reanchored`` streams."""
+        with self._pub_lock:
+            streams = list(self._streams)
+        out: dict[str, dict[str, int]] = {}
+        for topic, checker in streams:
+            into = out.setdefault(topic, {})
+            for name, n in checker.stats().items():
+                into[name] = into.get(name, 0) + n
+        return out
 
     # -- liveliness
     def declare_alive(self, service: str | None = None) -> None:

@@ -39,7 +39,16 @@ announced by an event when entered:
   would chase): level hover (mode ``hover``) at the hover
   thrust learned while tracking (the mean of the recent tracking thrusts, corrected for
   tilt; the nominal one before any), tracking resumes with the next fresh state;
-- a non-finite or failed solve: hover for that step.
+- a non-finite or failed solve, or a control step that raised (``step_errors``; the first
+  traceback is logged in full, later ones as a count at most every ``STEP_ERROR_LOG_S``):
+  hover for that step.
+
+Hover has no position feedback, so it is bounded: after ``--max-hover-s`` (1 s) of
+uninterrupted hover, whatever its cause, a ``failsafe`` event (``reason: hover_timeout``)
+asks the vehicle link to fail safe (the PX4 bridge leaves offboard with its ``--failsafe``
+action, the simulator holds position); the controller keeps publishing hover setpoints,
+and the next tracking step ends the episode. Shorter hovers (e.g. a mocap dropout below
+1.2 s) only emit ``degraded``.
 
 A solve that ends after the next control instant (``1 / rate``) is a deadline miss.
 """
@@ -56,6 +65,9 @@ import numpy as np
 
 from services import runtime
 from services.messages import MAX_STAMP_S, Model, Setpoint, State
+
+#: Shortest interval between two log lines about failing control steps [s].
+STEP_ERROR_LOG_S = 5.0
 
 
 def one_hypothesis_beam(beam, theta, cov):
@@ -178,11 +190,22 @@ class Controller(runtime.Service):
         self._cond = threading.Condition()
         self._queue: queue.Queue[tuple[State, float]] = queue.Queue()
         self._mode = "track"
+        self._hover_since: float | None = None  # stamp of the first state of this hover
+        self._hover_failsafe = False  # the hover bound was reported in this episode
+        self._step_error_logged = -math.inf  # when a failing step was last logged
+        self._step_errors_unlogged = 0
         self._stale_model = False
         self._thrust_hover = float(self.u_hover[0])  # learned while tracking
         self._solve_s: list[float] = []
         self.stats.update(
-            setpoints=0, deadline_misses=0, hover=0, nominal_model=0, solver_failures=0
+            setpoints=0,
+            deadline_misses=0,
+            hover=0,
+            nominal_model=0,
+            solver_failures=0,
+            step_errors=0,
+            fallback_errors=0,
+            hover_failsafes=0,
         )
         bus.subscribe("model", self.on_model)
         self._state_sub = bus.subscribe("state", self.on_state)
@@ -253,12 +276,43 @@ class Controller(runtime.Service):
                         s, t_in = self._queue.get_nowait()
                     except queue.Empty:
                         break
+            self.step(s, t_in)
+
+    def step(self, s: State, t_in: float) -> None:
+        """One control step on ``s``; a step that raises gives a hover setpoint instead."""
+        try:
+            self.handle(s)
+            self._react_s.append(time.perf_counter() - t_in)
+        except Exception as err:
+            self.stats["step_errors"] += 1
+            self._log_step_error(err)
             try:
-                self.handle(s)
-                self._react_s.append(time.perf_counter() - t_in)
-            except Exception:
-                self.log.exception("control step failed: hover setpoint")
+                self._set_mode("hover", f"control step failed: {err!r}", s.stamp)
                 self.publish(s, self.hover(s), "hover", 0.0)
+            except Exception as err2:  # the loop must go on: the next state may be fine
+                self.stats["fallback_errors"] += 1
+                self._log_step_error(err2)
+
+    def _log_step_error(self, err: Exception) -> None:
+        """The first failure with its traceback, then a count at most every
+        ``STEP_ERROR_LOG_S`` (a persistent error fails every step, 20-50 per second)."""
+        now = self.now()
+        if self._step_error_logged == -math.inf:
+            self.log.exception("control step failed: hover setpoint")
+        elif now - self._step_error_logged >= STEP_ERROR_LOG_S:
+            self.log.error(
+                "control step failed again: %r (%d more failures since the last report; "
+                "step_errors %d, fallback_errors %d)",
+                err,
+                self._step_errors_unlogged + 1,
+                self.stats["step_errors"],
+                self.stats["fallback_errors"],
+            )
+        else:
+            self._step_errors_unlogged += 1
+            return
+        self._step_error_logged = now
+        self._step_errors_unlogged = 0
 
     def _set_mode(self, mode: str, why: str, stamp: float) -> None:
         if mode != self._mode:
@@ -267,6 +321,26 @@ class Controller(runtime.Service):
             else:
                 self.event("degraded", f"{mode}: {why}", "warning", stamp=stamp, mode=mode)
             self._mode = mode
+            self._hover_since = stamp if mode == "hover" else None
+            self._hover_failsafe = False
+        elif (
+            mode == "hover"
+            and not self._hover_failsafe
+            and self._hover_since is not None
+            and stamp - self._hover_since >= self.args.max_hover_s
+        ):
+            # Open-loop hover drifts: past the bound the vehicle link must fail safe.
+            self._hover_failsafe = True
+            self.stats["hover_failsafes"] += 1
+            self.event(
+                "failsafe",
+                f"hovering for {stamp - self._hover_since:.2f} s ({why}): "
+                "the vehicle link must fail safe",
+                "error",
+                stamp=stamp,
+                reason="hover_timeout",
+                hover_s=float(stamp - self._hover_since),
+            )
 
     def model_for(self, s: State) -> Model | None:
         a = self.args
@@ -432,6 +506,14 @@ def _extra(p) -> None:
         type=float,
         default=0.2,
         help="states whose newest mocap frame is older give a hover setpoint [s]",
+    )
+    p.add_argument(
+        "--max-hover-s",
+        type=float,
+        default=1.0,
+        help="longest uninterrupted hover (no position feedback) before a failsafe event "
+        "asks the vehicle link to fail safe (the PX4 bridge leaves offboard, the "
+        "simulator holds position) [s]",
     )
 
 

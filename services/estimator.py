@@ -31,6 +31,12 @@ when it ends; counts in the statistics):
   most once per second while they occur;
 - dropouts: the filter predicts (``degraded`` event); the controller hovers when the
   newest fused frame is older than its ``--max-meas-age``.
+
+Frames wait for the next ``imu`` sample in a bounded buffer (:data:`MAX_PENDING`; the
+oldest are dropped and counted, ``pending_dropped``, when ``imu`` stops). An estimate that
+is not finite or not a valid :class:`~services.messages.State` (a diverged filter)
+re-initialises the filter (``fault`` event, ``filter_resets``); the next frame starts it
+again.
 """
 
 from __future__ import annotations
@@ -42,7 +48,10 @@ from typing import Any
 import numpy as np
 
 from services import runtime
-from services.messages import MAX_VARIANCE, Imu, Mocap, State
+from services.messages import MAX_VARIANCE, Imu, MessageError, Mocap, State
+
+#: Frames kept while waiting for the next ``imu`` sample (~2 s of 120 Hz mocap).
+MAX_PENDING = 256
 
 
 def _packed_step(filt, frames, t, gyro, config):
@@ -69,6 +78,13 @@ class Unpacked:
         self.age, self.t = float(v[30]), float(v[31])
 
 
+def _shifted(m: Mocap, offset: float) -> Mocap:
+    """``m`` with both stamps moved back by ``offset`` (never below 0, never sent before
+    it was captured)."""
+    capture = max(m.capture_stamp - offset, 0.0)
+    return dataclasses.replace(m, capture_stamp=capture, stamp=max(m.stamp - offset, capture))
+
+
 class Estimator(runtime.Service):
     """Estimator: mocap (+ gyro) -> state at the control rate."""
 
@@ -87,6 +103,9 @@ class Estimator(runtime.Service):
         self.filter = est.init(self.dtype)
         self._step = jax.jit(_packed_step, static_argnames="config")
         self._pending: list[Mocap] = []
+        # Frames captured after the previous control instant, screened already: fused at
+        # the next one (this thread only).
+        self._requeued: list[Mocap] = []
         self._lock = threading.Lock()
         self._transit: dict[str, Any] = {}  # bus transit times per topic
         self._proc: list[float] = []  # time spent per control instant [s]
@@ -97,7 +116,15 @@ class Estimator(runtime.Service):
         self._lag: float | None = None  # usual lag of the newest frame behind the control instant
         self._rejected_seen = 0
         self._outlier_event_t = -np.inf
-        self.stats.update(states=0, frames=0, dropped_frames=0, frozen_frames=0, restamped_frames=0)
+        self.stats.update(
+            states=0,
+            frames=0,
+            dropped_frames=0,
+            frozen_frames=0,
+            restamped_frames=0,
+            pending_dropped=0,
+            filter_resets=0,
+        )
         # One ordered stream: the frames of a period arrive before its imu sample.
         self._subs = runtime.subscribe_ordered(
             bus,
@@ -114,6 +141,13 @@ class Estimator(runtime.Service):
 
     def on_mocap(self, m: Mocap) -> None:
         with self._lock:
+            if len(self._pending) >= MAX_PENDING:  # no imu for a while: keep the newest
+                del self._pending[0]
+                self.stats["pending_dropped"] += 1
+                if self.stats["pending_dropped"] == 1:
+                    self.log.warning(
+                        "no imu sample for %d mocap frames: dropping the oldest", MAX_PENDING
+                    )
             self._pending.append(m)
 
     def _frames(self, batch: list[Mocap]) -> Any:
@@ -176,9 +210,7 @@ class Estimator(runtime.Service):
             # (of this process or of the publisher). Late frames keep their true stamps (the
             # filter fuses what is still in order); early ones belong to a later instant.
             early = [m for m in bad if m.capture_stamp > t]
-            if early:
-                with self._lock:
-                    self._pending = early + self._pending
+            self._requeued = early
             self.stats["late_frames"] = self.stats.get("late_frames", 0) + len(bad) - len(early)
             return good + [m for m in bad if m.capture_stamp <= t]
         if bad:
@@ -195,10 +227,7 @@ class Estimator(runtime.Service):
                     offset_s=float(offset),
                 )
             self._jump = offset
-            bad = [
-                dataclasses.replace(m, capture_stamp=max(m.capture_stamp - offset, 0.0))
-                for m in bad
-            ]
+            bad = [_shifted(m, offset) for m in bad]
         elif batch and self._jump is not None:
             self.event("info", "mocap clock consistent again", stamp=t, fault="mocap_clock_jump")
             self._jump = None
@@ -215,7 +244,9 @@ class Estimator(runtime.Service):
         with self._lock:
             batch, self._pending = self._pending, []
         self.stats["frames"] += len(batch)
-        batch = self._restamp(self._drop_frozen(batch, imu.stamp), imu.stamp)
+        # Frames held back from the previous instant were screened for repeats then.
+        held, self._requeued = self._requeued, []
+        batch = self._restamp(held + self._drop_frozen(batch, imu.stamp), imu.stamp)
         self.filter, packed = self._step(
             self.filter, self._frames(batch), imu.stamp, imu.gyro, self.config
         )
@@ -236,8 +267,7 @@ class Estimator(runtime.Service):
         self._rejected_seen = rejected
         x = out.x
         if not np.all(np.isfinite(x)):
-            self.log.error("non-finite estimate at %.3f: filter re-initialised", imu.stamp)
-            self.filter = self.est.init(self.dtype)
+            self._reset_filter(imu.stamp, "non-finite estimate")
             return
         dropout = out.dropout
         if dropout and not self._dropout_reported:
@@ -247,18 +277,37 @@ class Estimator(runtime.Service):
         elif not dropout and self._dropout_reported:
             self.event("info", "mocap recovered", stamp=imu.stamp)
         self._dropout_reported = dropout
-        x[6:10] /= np.linalg.norm(x[6:10])
-        self.pub.put(
-            State(
+        with np.errstate(divide="ignore", invalid="ignore"):  # a zero quaternion: below
+            x[6:10] /= np.linalg.norm(x[6:10])
+        try:
+            state = State(
                 x=x,
                 cov_diag=np.clip(out.var, 0.0, MAX_VARIANCE),
                 mocap_stale=out.fused == 0,
                 predicted_through_dropout=dropout,
-                meas_stamp=out.t,
+                # A frame up to --stamp-tolerance ahead of the instant is fused as on
+                # time: its age is zero, not negative.
+                meas_stamp=min(out.t, imu.stamp),
                 stamp=imu.stamp,
             )
-        )
+        except MessageError as err:  # finite but out of range: a diverged filter
+            self._reset_filter(imu.stamp, f"invalid estimate ({err})")
+            return
+        self.pub.put(state)
         self.stats["states"] += 1
+
+    def _reset_filter(self, stamp: float, why: str) -> None:
+        """Start the filter again from the next frame (nothing is published meanwhile)."""
+        self.stats["filter_resets"] += 1
+        self.filter = self.est.init(self.dtype)
+        self._requeued = []
+        self.event(
+            "fault",
+            f"{why} at {stamp:.3f}: filter re-initialised",
+            "error",
+            stamp=stamp,
+            fault="estimator_reset",
+        )
 
     def teardown(self) -> None:
         # One bus hop, simulator -> estimator: put to callback of the control-instant

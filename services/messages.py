@@ -94,7 +94,12 @@ QUAT_NORM_TOL = 1e-3  # |‖q‖ - 1|; producers normalise, float32 round-off is
 MAX_ABS_VALUE = 1e6  # residuals and decoder weights (normalised units)
 MAX_VARIANCE = 1e12
 MAX_SOLVE_MS = 1e6
-MAX_DIMS: Mapping[str, int] = types.MappingProxyType({"d": 64, "l": 256})
+#: Bounds of the dimension symbols of array shapes (``d`` outputs, ``l`` latents). A
+#: full-covariance :class:`Model` grows as ``d l^2``; its ``MAX_BYTES`` is derived from
+#: these, so every legal shape can be sent.
+MAX_DIMS: Mapping[str, int] = types.MappingProxyType({"d": 64, "l": 64})
+#: Relative round-off tolerated by the covariance checks (float32 producers: ~(l + beam) eps).
+COV_TOL = 1e-5
 MAX_UINT64 = 2**64 - 1
 MAX_MAP_ITEMS = 32
 MAX_MAP_STR = 256
@@ -539,6 +544,14 @@ class Mocap(Message):
     frame: str = field(default="world", metadata=_m(_Str(pattern=_IDENT)))
     capture_stamp: float = field(metadata=_m(_Float(0.0, MAX_STAMP_S)))
 
+    def _check(self) -> None:
+        if self.capture_stamp > self.stamp:  # a frame is sent after it is captured
+            raise MessageError(
+                Reason.OUT_OF_RANGE,
+                f"capture_stamp {self.capture_stamp} after stamp {self.stamp}",
+                field="capture_stamp",
+            )
+
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
 class Imu(Message):
@@ -577,6 +590,16 @@ class State(Message):
     meas_stamp: float | None = field(
         default=None, metadata=_m(_Float(0.0, MAX_STAMP_S, optional=True))
     )
+
+    def _check(self) -> None:
+        # A measurement from the future would make its age negative and pass every
+        # staleness check downstream.
+        if self.meas_stamp is not None and self.meas_stamp > self.stamp:
+            raise MessageError(
+                Reason.OUT_OF_RANGE,
+                f"meas_stamp {self.meas_stamp} after stamp {self.stamp}",
+                field="meas_stamp",
+            )
 
     @classmethod
     def from_parts(cls, *, p: Any, v: Any, q: Any, omega: Any, **kw: Any) -> State:
@@ -638,9 +661,18 @@ class Setpoint(Message):
 _VAR = (0.0, MAX_VARIANCE)
 
 
+def _model_max_bytes(d: int, l: int) -> int:
+    """Encoded size bound of a :class:`Model` of dimensions ``d, l``: every float as a
+    msgpack float64 (9 bytes), every (nested) array header at most 5 bytes, and 1 KiB for
+    the header fields and names."""
+    floats = 2 * d * l + d * l * l + d
+    arrays = (1 + d) * 2 + (1 + d + d * l) + 1
+    return 9 * floats + 5 * arrays + 1024
+
+
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
 class Residual(Message):
-    """One adaptation step: observed residual and its beam-marginal prediction (Eq. 9).
+    """One adaptation step: observed residual and its beam-marginal prediction (Eq. 10).
 
     All arrays are ``(d,)``. The predictive variance splits as in Sec. IV:
     ``var_param + var_between + var_noise + var_encoder``.
@@ -649,7 +681,7 @@ class Residual(Message):
         delta: observed residual ``x_{k+1} - f_nom(x_k, u_k)`` (units of the adapter).
         mean: predicted residual before the update.
         var_param, var_between, var_noise, var_encoder: variance parts.
-        cp_prob: beam-weighted changepoint posterior (Eq. 8), in ``[0, 1]``.
+        cp_prob: beam-weighted changepoint posterior (Eq. 9), in ``[0, 1]``.
         changepoint: the MAP history gained a changepoint at this step (Algorithm 1).
         state_seq: ``seq`` of the newest :class:`State` used, if known.
     """
@@ -689,13 +721,13 @@ class Residual(Message):
 
     @property
     def variance(self) -> np.ndarray:
-        """Full predictive variance of the Eq. 9 mixture (``sigma_tot2`` plus noise)."""
+        """Full predictive variance of the Eq. 10 mixture (``sigma_tot2`` plus noise)."""
         return self.sigma_tot2 + self.var_noise
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
 class Model(Message):
-    """Beam-marginal decoder posterior for the controller (Eq. 9 moment-matched mixture).
+    """Beam-marginal decoder posterior for the controller (Eq. 10 moment-matched mixture).
 
     Attributes:
         theta: ``(d, l)`` posterior mean of the decoder.
@@ -709,7 +741,7 @@ class Model(Message):
 
     SCHEMA: ClassVar[str] = "arcade.Model"
     TOPIC: ClassVar[str] = "model"
-    MAX_BYTES: ClassVar[int] = 4 * 2**20
+    MAX_BYTES: ClassVar[int] = _model_max_bytes(MAX_DIMS["d"], MAX_DIMS["l"])
 
     theta: np.ndarray = field(metadata=_arr(("d", "l"), -MAX_ABS_VALUE, MAX_ABS_VALUE))
     theta_var: np.ndarray | None = field(
@@ -724,8 +756,23 @@ class Model(Message):
     state_seq: int | None = field(default=None, metadata=_m(_Int(optional=True)))
 
     def _check(self) -> None:
-        if self.theta_cov is not None and (np.diagonal(self.theta_cov, 0, 1, 2) < 0).any():
+        cov = self.theta_cov
+        if cov is None:
+            return
+        diag = np.diagonal(cov, 0, 1, 2)
+        if (diag < 0).any():
             raise MessageError(Reason.OUT_OF_RANGE, "negative variance", field="theta_cov")
+        # Symmetric, and every 2x2 principal minor non-negative (|C_ij| <= sqrt(C_ii C_jj)):
+        # cheap necessary conditions of positive semi-definiteness (a full eigenvalue check
+        # costs ~0.1 s at the largest legal shape). Anything else makes the controller's
+        # Cholesky factor non-finite.
+        root = np.sqrt(diag)
+        scale = root[:, :, None] * root[:, None, :]  # no underflow of tiny variances
+        tol = COV_TOL * (scale + diag.max(axis=1)[:, None, None]) + 1e-300
+        if (np.abs(cov - np.swapaxes(cov, 1, 2)) > tol).any():
+            raise MessageError(Reason.OUT_OF_RANGE, "not symmetric", field="theta_cov")
+        if (np.abs(cov) > scale + tol).any():
+            raise MessageError(Reason.OUT_OF_RANGE, "not positive semi-definite", field="theta_cov")
 
     @classmethod
     def from_marginal(
@@ -871,6 +918,13 @@ class StreamChecker:
     ``max_age`` and a ``clock`` on the stamps' time base, messages older than ``max_age``
     seconds are stale too. A restarted publisher has a new ``src`` (the bus appends its
     session id), so it starts a new stream. Thread-safe.
+
+    One message stamped in the future would otherwise make every later one of its
+    publisher stale: after ``reanchor_after`` consecutive stale stamps from one publisher
+    (its ``seq`` still increasing), the next one is accepted and becomes the reference
+    (counted in :attr:`reanchored`, logged). This needs no clock shared with the
+    publisher: realtime stamps are ``time.monotonic()`` of the publisher's host, lockstep
+    stamps simulated time.
     """
 
     def __init__(
@@ -879,15 +933,27 @@ class StreamChecker:
         max_age: float | None = None,
         clock: Callable[[], float] | None = None,
         max_publishers: int = 64,
+        reanchor_after: int = 10,
     ):
         if (max_age is None) != (clock is None):
             raise ValueError("max_age and clock go together")
+        if reanchor_after < 1:
+            raise ValueError(f"reanchor_after must be >= 1, not {reanchor_after}")
         self.max_age, self.clock, self.max_publishers = max_age, clock, max_publishers
+        self.reanchor_after = reanchor_after
         self._last: OrderedDict[str, tuple[int, float]] = OrderedDict()
+        self._stale_run: dict[str, int] = {}  # consecutive stale stamps per publisher
         self._lock = threading.Lock()
         self.accepted = 0
         #: Sequence numbers skipped by accepted messages (messages lost on the way).
         self.gaps = 0
+        #: Streams whose stamp reference was reset after ``reanchor_after`` stale stamps.
+        self.reanchored = 0
+
+    def stats(self) -> dict[str, int]:
+        """``accepted``, ``gaps`` and ``reanchored`` counts (for the statistics files)."""
+        with self._lock:
+            return {"accepted": self.accepted, "gaps": self.gaps, "reanchored": self.reanchored}
 
     def check(self, record: Message) -> None:
         """Accept ``record`` (and remember it) or raise :class:`MessageError`."""
@@ -904,14 +970,29 @@ class StreamChecker:
                         Reason.OUT_OF_ORDER, f"seq {record.seq} after {seq} from {record.src!r}"
                     )
                 if record.stamp < stamp:
-                    raise MessageError(
-                        Reason.STALE, f"stamp {record.stamp} after {stamp} from {record.src!r}"
+                    run = self._stale_run.get(record.src, 0)
+                    if run < self.reanchor_after:
+                        self._stale_run[record.src] = run + 1
+                        raise MessageError(
+                            Reason.STALE,
+                            f"stamp {record.stamp} after {stamp} from {record.src!r}",
+                        )
+                    self.reanchored += 1
+                    log.warning(
+                        "stamps from %r re-anchored at %s after %d stale ones (reference %s "
+                        "was from the future or the publisher's clock went back)",
+                        record.src,
+                        record.stamp,
+                        run,
+                        stamp,
                     )
                 self.gaps += record.seq - seq - 1
+            self._stale_run.pop(record.src, None)
             self._last[record.src] = (record.seq, record.stamp)
             self._last.move_to_end(record.src)
             if len(self._last) > self.max_publishers:
-                self._last.popitem(last=False)
+                src, _ = self._last.popitem(last=False)
+                self._stale_run.pop(src, None)
             self.accepted += 1
 
     def reset(self, src: str | None = None) -> None:
@@ -919,8 +1000,10 @@ class StreamChecker:
         with self._lock:
             if src is None:
                 self._last.clear()
+                self._stale_run.clear()
             else:
                 self._last.pop(src, None)
+                self._stale_run.pop(src, None)
 
 
 class Receiver:
@@ -957,6 +1040,10 @@ class RejectCounter:
     Each ``(topic, reason)`` pair logs at most one line per ``log_interval`` seconds; the
     next line says how many were suppressed meanwhile. Thread-safe; :meth:`wait_total`
     lets a caller block until a number of rejects has been counted.
+
+    A callback that fails on a valid message is the receiving ``service``'s own failure,
+    not a rejected input: :meth:`failure` counts it apart (:attr:`failures`, per topic)
+    and logs "<service> failed handling a <topic> message", rate limited the same way.
     """
 
     def __init__(
@@ -965,14 +1052,27 @@ class RejectCounter:
         logger: logging.Logger | None = None,
         log_interval: float = 1.0,
         clock: Callable[[], float] = time.monotonic,
+        service: str = "",
     ):
         self.logger = logger or log
         self.log_interval = log_interval
         self.clock = clock
+        self.service = service
         self._counts: Counter[tuple[str, Reason]] = Counter()
-        self._last_log: dict[tuple[str, Reason], float] = {}
-        self._suppressed: Counter[tuple[str, Reason]] = Counter()
+        self._failures: Counter[str] = Counter()
+        self._last_log: dict[tuple[str, Reason | None], float] = {}
+        self._suppressed: Counter[tuple[str, Reason | None]] = Counter()
         self._cond = threading.Condition()
+
+    def _due(self, key: tuple[str, Reason | None]) -> tuple[bool, int]:
+        """Whether ``key`` logs now, and how many of its lines were suppressed (locked)."""
+        now = self.clock()
+        last = self._last_log.get(key)
+        if last is None or now - last >= self.log_interval:
+            self._last_log[key] = now
+            return True, self._suppressed.pop(key, 0)
+        self._suppressed[key] += 1
+        return False, 0
 
     def reject(
         self, error: MessageError, *, topic: str = "", exc: BaseException | None = None
@@ -981,14 +1081,7 @@ class RejectCounter:
         key = (topic, error.reason)
         with self._cond:
             self._counts[key] += 1
-            now = self.clock()
-            last = self._last_log.get(key)
-            emit = last is None or now - last >= self.log_interval
-            if emit:
-                self._last_log[key] = now
-                suppressed = self._suppressed.pop(key, 0)
-            else:
-                self._suppressed[key] += 1
+            emit, suppressed = self._due(key)
             self._cond.notify_all()
         if emit:
             more = f" ({suppressed} more suppressed)" if suppressed else ""
@@ -996,6 +1089,30 @@ class RejectCounter:
             self.logger.log(
                 level, "rejected %s message: %s%s", topic or "a", error, more, exc_info=exc
             )
+
+    def failure(self, exc: BaseException, *, topic: str = "") -> None:
+        """Count one failure of this service's own callback on a valid ``topic`` message
+        and log it with its traceback unless that topic's failures logged recently."""
+        with self._cond:
+            self._failures[topic] += 1
+            emit, suppressed = self._due((topic, None))
+            self._cond.notify_all()
+        if emit:
+            more = f" ({suppressed} more suppressed)" if suppressed else ""
+            self.logger.error(
+                "%s failed handling a %s message: %r%s",
+                self.service or "service",
+                topic or "",
+                exc,
+                more,
+                exc_info=exc,
+            )
+
+    @property
+    def failures(self) -> dict[str, int]:
+        """Callback failures by topic (see :meth:`failure`)."""
+        with self._cond:
+            return dict(self._failures)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -1022,6 +1139,11 @@ class RejectCounter:
         with self._cond:
             return self._cond.wait_for(lambda: sum(self._counts.values()) >= n, timeout)
 
+    def wait_failures(self, n: int, timeout: float) -> bool:
+        """Block until at least ``n`` callback failures were counted; ``False`` on timeout."""
+        with self._cond:
+            return self._cond.wait_for(lambda: sum(self._failures.values()) >= n, timeout)
+
 
 def safe_handler(
     decoder: Callable[[Any], M],
@@ -1032,8 +1154,9 @@ def safe_handler(
 ) -> Callable[[Any], None]:
     """``payload -> None`` that decodes, calls ``callback`` and never raises.
 
-    A :class:`MessageError` from ``decoder`` is counted under its reason; any other
-    exception of the decoder as ``internal`` and of the callback as ``callback_error``
+    A :class:`MessageError` from ``decoder`` is counted under its reason and any other
+    exception of the decoder as ``internal`` (rejected input); an exception of the
+    callback is the service's own failure, counted by :meth:`RejectCounter.failure`
     (logged with its traceback).
     """
 
@@ -1049,6 +1172,6 @@ def safe_handler(
         try:
             callback(record)
         except Exception as e:
-            counter.reject(MessageError(Reason.CALLBACK_ERROR, repr(e)), topic=topic, exc=e)
+            counter.failure(e, topic=topic)
 
     return handle

@@ -18,19 +18,31 @@ any MAVSDK URL: ``udpin://0.0.0.0:14540`` for SITL or a telemetry radio bridge,
 
 Engaging. Never automatic: an ``arm`` command (``arcade up --profile px4 --arm``) checks
 that controller setpoints stream steadily (``--min-stream``), the vehicle is armable and
-inside the geofence, sends the newest setpoint, arms and starts offboard; then it puts a
-``start`` command (mission clock of the controller). With ``args.takeoff_m`` and the
-vehicle on the ground, PX4 first takes off by itself to that height (Takeoff mode, then
-Hold) and offboard starts from the hover. ``hold`` / ``stop`` leave offboard to Hold,
-``land`` to Land, ``disarm`` is refused unless PX4 reports the vehicle on the ground.
+inside the geofence, and no controller failsafe since it last tracked; then it sends the
+newest setpoint, arms and starts offboard, emits ``failsafe_cleared`` (the vehicle flies
+the stack's setpoints again: the adapter learns from here on) and puts a ``start`` command
+(mission clock of the controller; not with ``--no-start-mission``). With
+``args.takeoff_m`` and the vehicle on the ground, PX4 first takes off by itself to that
+height (Takeoff mode, then Hold) and offboard starts from the hover. ``hold`` / ``stop``
+leave offboard to Hold, ``land`` to Land, ``disarm`` is refused unless PX4 reports the
+vehicle on the ground.
 
-Failsafes, each announced by a ``failsafe`` event:
+Every exit from offboard is announced by a ``failsafe`` event with its ``reason`` (the
+vehicle no longer flies the stack's setpoints: the adapter stops learning); an operator's
+``hold``/``land``/``stop`` (``reason: command``) and the shutdown (``shutdown``) have
+severity ``info`` and are not counted as failsafes. The failsafes (``stats.failsafes``):
 
 - setpoints stop for more than ``--setpoint-timeout`` (0.3 s) or the controller's
   liveliness token disappears: leave offboard (``--failsafe hold|land``);
+- the controller reports a ``failsafe`` (it hovered without position feedback for longer
+  than its ``--max-hover-s``): leave offboard (``--failsafe``);
+- ``--max-send-errors`` consecutive ``set_attitude_rate`` failures (MAVSDK would keep
+  re-sending the last accepted setpoint): leave offboard (``--failsafe``);
 - the vehicle (mocap or PX4 position) leaves the ``--geofence`` box: leave offboard
   (``--geofence-action hold|land``);
 - PX4 leaves offboard by itself (RC override, its own failsafe): stop streaming.
+
+The setpoint watchdog thread survives its own errors (``fault`` event, ``watchdog_errors``).
 
 MAVSDK's offboard plugin re-sends the last setpoint every 50 ms on its own thread (it
 keeps PX4's 2 Hz offboard requirement met) for as long as offboard is "active" in MAVSDK,
@@ -55,7 +67,7 @@ import numpy as np
 
 from services import px4_frames as fr
 from services import runtime
-from services.messages import Command, Imu, Mocap, Setpoint
+from services.messages import Command, Event, Imu, Mocap, Setpoint
 
 DEFAULT_URL = "udpin://0.0.0.0:14540"
 MAX_GYRO = 99.0  # the Imu message accepts |w| <= 100 rad/s
@@ -138,6 +150,18 @@ class Px4Bridge(runtime.Service):
 
     # -- set-up
     def setup(self, bus) -> None:
+        self._init_state()
+        self._connect()
+        bus.subscribe("setpoint", self.on_setpoint)
+        bus.subscribe("event", self.on_event, check_order=False)
+        if self.args.vision != "off":
+            bus.subscribe("mocap", self.on_mocap)
+        bus.on_alive_change(self._on_alive_change)
+        self.pub_imu = bus.publisher("imu")
+        self._wait_healthy()
+
+    def _init_state(self) -> None:
+        """Limits, offboard state and counters (everything but the MAVLink link)."""
         from arcade.vehicle import load_vehicle
 
         a = self.args
@@ -150,6 +174,8 @@ class Px4Bridge(runtime.Service):
         self._last_rx = -math.inf  # arrival time of the newest valid setpoint
         self._stream_since = math.inf  # arrival of the first setpoint without a gap since
         self._latest: tuple[np.ndarray, float] | None = None
+        self._controller_failsafe = False  # the controller's failsafe, until it tracks again
+        self._send_error_run = 0  # consecutive set_attitude_rate failures
         self._telemetry: dict[str, Any] = {}
         self._tel_cond = threading.Condition()
         self._commands: list[Command] = []
@@ -162,18 +188,13 @@ class Px4Bridge(runtime.Service):
             mocap_forwarded=0,
             imu=0,
             failsafes=0,
+            offboard_exits=0,
+            watchdog_errors=0,
             engagements=0,
             mode_changes=0,
             connect=a.connect,
         )
         self._fwd: list[float] = []
-        self._connect()
-        bus.subscribe("setpoint", self.on_setpoint)
-        if a.vision != "off":
-            bus.subscribe("mocap", self.on_mocap)
-        bus.on_alive_change(self._on_alive_change)
-        self.pub_imu = bus.publisher("imu")
-        self._wait_healthy()
 
     def _connect(self) -> None:
         from mavsdk import ComponentType, Configuration, ConnectionResult, Mavsdk
@@ -299,6 +320,7 @@ class Px4Bridge(runtime.Service):
             if engaged:
                 # Not on this (MAVSDK's) thread: the plugin's destructor may wait for it.
                 threading.Thread(target=self._silence_offboard, name="silence", daemon=True).start()
+                self.stats["offboard_exits"] += 1
                 self.stats["failsafes"] += 1
                 self.event(
                     "failsafe",
@@ -364,6 +386,8 @@ class Px4Bridge(runtime.Service):
             self.stats["setpoints"] += 1
             self.stats["clamped"] += int(clamped)
             self._latest = (deg_s, throttle)
+            if sp.mode != "hover":
+                self._controller_failsafe = False
             if rx - self._last_rx > self.args.setpoint_timeout:
                 self._stream_since = rx  # a new stream starts after a gap
             self._last_rx = rx
@@ -373,7 +397,9 @@ class Px4Bridge(runtime.Service):
             self._cond.notify_all()
 
     def _send(self, deg_s: np.ndarray, throttle: float) -> None:
-        """One ``set_attitude_rate`` (caller holds the lock)."""
+        """One ``set_attitude_rate`` (caller holds the lock). After ``--max-send-errors``
+        failures in a row offboard is left: MAVSDK keeps re-sending the last setpoint it
+        accepted, so PX4 would fly a stale one."""
         from mavsdk.plugins.offboard import AttitudeRate
 
         try:
@@ -381,9 +407,17 @@ class Px4Bridge(runtime.Service):
                 AttitudeRate(float(deg_s[0]), float(deg_s[1]), float(deg_s[2]), float(throttle))
             )
             self.stats["sent"] += 1
+            self._send_error_run = 0
         except Exception as err:
             self.stats["send_errors"] += 1
+            self._send_error_run += 1
             self.log.warning("set_attitude_rate failed: %s", err)
+            if self._send_error_run >= self.args.max_send_errors:
+                self.leave_offboard(
+                    f"{self._send_error_run} setpoints in a row not sent ({err})",
+                    self.args.failsafe,
+                    reason="send_errors",
+                )
 
     def on_mocap(self, m: Mocap) -> None:
         if self._closed:
@@ -430,6 +464,17 @@ class Px4Bridge(runtime.Service):
                 self._commands.append(cmd)
                 self._cmd_cond.notify_all()
 
+    def on_event(self, e: Event) -> None:
+        # The controller's failsafe: it hovered without position feedback for too long.
+        if e.kind == "failsafe" and e.src.split("/")[0] == "controller" and not self._closed:
+            self._controller_failsafe = True
+            self.leave_offboard(
+                f"controller failsafe: {e.text}",
+                self.args.failsafe,
+                reason="controller_failsafe",
+                controller_reason=str(e.data.get("reason", "")),
+            )
+
     def _on_alive_change(self, service: str, up: bool) -> None:
         if service == "controller" and not up:
             self.leave_offboard(
@@ -445,8 +490,13 @@ class Px4Bridge(runtime.Service):
         with self._lock:
             if self._engaged:  # engaged again meanwhile: the stream is wanted
                 return
-            old, self.offboard = self.offboard, self._offboard_cls(self.system)
-            old.destroy()
+            self._drop_offboard()
+
+    def _drop_offboard(self) -> None:
+        """Replace the offboard plugin instance (caller holds the lock): its destructor
+        removes MAVSDK's re-send timer."""
+        old, self.offboard = self.offboard, self._offboard_cls(self.system)
+        old.destroy()
 
     def leave_offboard(
         self,
@@ -462,7 +512,10 @@ class Px4Bridge(runtime.Service):
 
         The stream ends before this returns; the mode commands' answers are awaited on a
         worker thread (``wait``: here), so that this is safe on MAVSDK's callback thread.
-        Returns False when offboard was not engaged by this bridge (nothing done).
+        Announced by a ``failsafe`` event (severity ``info`` when not ``failsafe``: an
+        operator's command or the shutdown), whatever the reason: the vehicle no longer
+        flies the stack's setpoints. Returns False when offboard was not engaged by this
+        bridge (nothing done).
         """
         done = threading.Event()
         result: list[str] = []
@@ -477,12 +530,24 @@ class Px4Bridge(runtime.Service):
             self._engaged = False
             # stop_async removes MAVSDK's re-send timer before it returns, then commands
             # Hold; under the lock, so no setpoint can restart the stream after it.
-            self.offboard.stop_async(on_result)
+            try:
+                self.offboard.stop_async(on_result)
+            except Exception as err:
+                # The re-send timer may still run: drop the plugin (PX4's offboard-loss
+                # failsafe then acts), and report the Hold as failed.
+                result.append(f"not sent ({err})")
+                done.set()
+                try:
+                    self._drop_offboard()
+                except Exception as err2:
+                    self.log.exception("could not drop the offboard plugin")
+                    result[0] += f"; offboard stream not stopped ({err2})"
             self._cond.notify_all()
+        self.stats["offboard_exits"] += 1
         if failsafe:
             self.stats["failsafes"] += 1
         self.event(
-            "failsafe" if failsafe else "info",
+            "failsafe",
             f"leaving offboard: {why} -> {action}",
             "warning" if failsafe else "info",
             reason=reason,
@@ -517,24 +582,40 @@ class Px4Bridge(runtime.Service):
             )
 
     def _watchdog_loop(self) -> None:
-        """Leave offboard once setpoints are older than ``--setpoint-timeout``."""
-        timeout = self.args.setpoint_timeout
+        """Leave offboard once setpoints are older than ``--setpoint-timeout``; an error
+        is reported (``fault`` event) and the watch goes on."""
         while not self.stop.is_set():
-            with self._lock:
-                if not self._engaged:
-                    self._cond.wait(0.1)
-                    continue
-                left = self._last_rx + timeout - time.monotonic()
-                if left > 0:
-                    self._cond.wait(left)
-                    continue
-                age = time.monotonic() - self._last_rx
-            self.leave_offboard(
-                f"no controller setpoint for {age:.3f} s",
-                self.args.failsafe,
-                reason="setpoint_timeout",
-                age_s=age,
-            )
+            try:
+                self._watchdog_check()
+            except Exception as err:
+                self.stats["watchdog_errors"] += 1
+                if self.stats["watchdog_errors"] == 1:
+                    self.log.exception("setpoint watchdog failed")
+                self.event(
+                    "fault",
+                    f"setpoint watchdog failed: {err!r}",
+                    "error",
+                    errors=self.stats["watchdog_errors"],
+                )
+                self.stop.wait(0.1)  # back off: a persistent error must not spin
+
+    def _watchdog_check(self) -> None:
+        """One round of the setpoint watchdog (waits at most until the next deadline)."""
+        with self._lock:
+            if not self._engaged:
+                self._cond.wait(0.1)
+                return
+            left = self._last_rx + self.args.setpoint_timeout - time.monotonic()
+            if left > 0:
+                self._cond.wait(left)
+                return
+            age = time.monotonic() - self._last_rx
+        self.leave_offboard(
+            f"no controller setpoint for {age:.3f} s",
+            self.args.failsafe,
+            reason="setpoint_timeout",
+            age_s=age,
+        )
 
     def _command_worker(self) -> None:
         while not self.stop.is_set():
@@ -593,6 +674,7 @@ class Px4Bridge(runtime.Service):
                 return
         with self._lock:
             self._engaged = True  # setpoints stream to PX4 from now on; the watchdog runs
+            self._send_error_run = 0
             self._send(*self._latest)
             self._cond.notify_all()
         try:
@@ -612,6 +694,8 @@ class Px4Bridge(runtime.Service):
         self.stats["engagements"] += 1
         stamp = time.monotonic()
         self.event("offboard", "offboard control engaged: mission clock starts", t0=stamp)
+        # Whether or not this bridge starts the mission: the setpoints are flown again.
+        self.event("failsafe_cleared", "offboard control engaged: setpoints flown", stamp=stamp)
         if self.args.start_mission:
             self.bus.put(Command(name="start", args={"t0": stamp}, stamp=stamp))
 
@@ -629,6 +713,11 @@ class Px4Bridge(runtime.Service):
                 f"controller setpoints are not streaming steadily yet "
                 f"({steady:.2f} of {self.args.min_stream:g} s without a gap)"
             )
+        watchdog = getattr(self, "_watchdog", None)
+        if watchdog is not None and not watchdog.is_alive():
+            problems.append("setpoint watchdog not running")
+        if self._controller_failsafe:
+            problems.append("the controller reported a failsafe and has not tracked since")
         p = self._telemetry.get("p_enu")
         if p is not None and not self.geofence.contains(p):
             problems.append("vehicle outside the geofence")
@@ -692,8 +781,15 @@ class Px4Bridge(runtime.Service):
         next_tick = time.monotonic()
         next_status = next_tick
         status_period = 1.0 / self.args.status_rate if self.args.status_rate > 0 else math.inf
+        watchdog_lost = False
         while not self.stop.is_set():
             now = time.monotonic()
+            if not watchdog_lost and not self._watchdog.is_alive():
+                watchdog_lost = True
+                self.event("fault", "setpoint watchdog thread ended", "critical")
+                self.leave_offboard(
+                    "setpoint watchdog thread ended", self.args.failsafe, reason="watchdog_lost"
+                )
             tick = min(next_tick, now)  # the scheduled instant: periodic stamps, no jitter
             t = self._telemetry
             gyro = t.get("gyro_flu")
@@ -789,6 +885,13 @@ def _extra(p) -> None:
         choices=("hold", "land"),
         default="hold",
         help="what PX4 does when setpoints stop",
+    )
+    p.add_argument(
+        "--max-send-errors",
+        type=int,
+        default=3,
+        help="leave offboard (--failsafe) after this many setpoints in a row failed to "
+        "reach MAVSDK",
     )
     p.add_argument(
         "--geofence",

@@ -95,6 +95,12 @@ class Px4SimNode(SimNode):
     def on_setpoint(self, sp: Setpoint) -> None:
         self.stats["ignored_setpoints"] += 1
 
+    def _on_alive(self, service: str, up: bool) -> None:
+        # With --no-start-command the bridge owns the mission's start: not even a rejoining
+        # controller gets it from here.
+        if not self.args.no_start_command:
+            super()._on_alive(service, up)
+
     def _on_text(self, severity: int, text: str) -> None:
         v = self.px4.vehicle
         if text.startswith("Failsafe"):

@@ -7,7 +7,11 @@ the receive time (``time.time_ns()``), ``publish_time`` the message ``stamp`` in
 
 ``<out>/flight_log.csv``: the design §5 flight log, one row per setpoint: the estimated
 state it answers and the setpoint (``t, px, ..., wz, u0..u3``; ``t`` relative to the first
-state), plus the setpoint's ``mode``.
+state), plus the setpoint's ``mode``. Rows are written while flying, in stamp order, once
+:data:`REORDER_S` of newer pairs exist (flushed every second of stamps), so a crash loses
+only the last moments; a pair that completes later than that is dropped and counted
+(``late_rows``), as are setpoints whose state never arrived (``unpaired_setpoints``,
+the oldest go first once :data:`MAX_UNPAIRED` wait).
 
 Messages are recorded as received (no order check: a recorder wants everything, including
 what a consumer would reject as stale); invalid payloads are still rejected and counted.
@@ -17,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import heapq
 import json
 import threading
 import time
@@ -26,6 +31,12 @@ from typing import Any
 from arcade import flightlog
 from services import runtime
 from services.messages import MESSAGE_TYPES, Message, Setpoint, State
+
+#: A state-setpoint pair is written once a pair this much newer [s] exists (they complete
+#: out of order only by a few periods).
+REORDER_S = 1.0
+#: Setpoints kept while waiting for their state.
+MAX_UNPAIRED = 256
 
 _JSON_TYPES = {"float": "number", "int": "integer", "bool": "boolean", "str": "string"}
 
@@ -77,10 +88,15 @@ class Recorder(runtime.Service):
         self.csv = csv.writer(self._csv_file)
         self.csv.writerow([*flightlog.columns("quadrotor"), "mode"])
         self._states: dict[int, State] = {}
-        self._unpaired: dict[int, Setpoint] = {}
-        self._rows: list[list[Any]] = []
+        self._unpaired: dict[float, Setpoint] = {}
+        self._rows: list[tuple[float, int, list[Any]]] = []  # heap by stamp, not yet written
+        self._n_rows = 0
+        self._newest = -float("inf")  # stamp of the newest pair
+        self._written = -float("inf")  # stamp of the newest row written
+        self._flushed = -float("inf")  # ... when the file was last flushed
         self._t0: float | None = None
         self.stats["messages"] = dict.fromkeys(MESSAGE_TYPES, 0)
+        self.stats.update(rows=0, late_rows=0, unpaired_setpoints=0)
         for topic in MESSAGE_TYPES:
             bus.subscribe(topic, lambda m, topic=topic: self.record(topic, m), check_order=False)
 
@@ -114,21 +130,44 @@ class Recorder(runtime.Service):
                 s = self._states.pop(m.stamp, None)
                 if s is not None:
                     self._row(s, m)
-                elif len(self._unpaired) < 256:
+                else:
+                    if len(self._unpaired) >= MAX_UNPAIRED:  # their states never came
+                        del self._unpaired[min(self._unpaired)]
+                        self.stats["unpaired_setpoints"] += 1
                     self._unpaired[m.stamp] = m
 
     def _row(self, s: State, sp: Setpoint) -> None:
-        self._rows.append([s.stamp, *s.x, *sp.u, sp.mode])
+        """Queue the row of a pair; write the rows that no later pair can precede."""
+        self._n_rows += 1  # tie-breaker: rows of equal stamps keep their order
+        heapq.heappush(self._rows, (s.stamp, self._n_rows, [*s.x, *sp.u, sp.mode]))
+        self._newest = max(self._newest, s.stamp)
+        self._write_rows(self._newest - REORDER_S)
+
+    def _write_rows(self, until: float) -> None:
+        t0 = self._t0 or 0.0
+        while self._rows and self._rows[0][0] <= until:
+            stamp, _, row = heapq.heappop(self._rows)
+            if stamp < self._written:  # its rows are out already: time must increase
+                self.stats["late_rows"] += 1
+                if self.stats["late_rows"] == 1:
+                    self.log.warning("a state-setpoint pair completed too late for the log")
+                continue
+            self.csv.writerow([stamp - t0, *row])
+            self.stats["rows"] += 1
+            self._written = stamp
+        if self._written - self._flushed >= 1.0:
+            self._csv_file.flush()
+            self._flushed = self._written
 
     def teardown(self) -> None:
         with self._lock:
-            self.writer.finish()
-            self.writer = None
-            self._file.close()
-            t0 = self._t0 or 0.0
-            for row in sorted(self._rows, key=lambda r: r[0]):
-                self.csv.writerow([row[0] - t0, *row[1:]])
-            self._csv_file.close()
+            try:
+                self.writer.finish()
+            finally:  # the flight log even when the MCAP file cannot be finished
+                self.writer = None
+                self._file.close()
+                self._write_rows(float("inf"))
+                self._csv_file.close()
 
 
 def main(argv: list[str] | None = None) -> int:

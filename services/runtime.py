@@ -19,6 +19,7 @@ import argparse
 import gc
 import logging
 import os
+import re
 import signal
 import struct
 import sys
@@ -35,9 +36,30 @@ from services.bus import DEFAULT_HUB, Bus, peer_config, read_config, zenoh_reaso
 log = logging.getLogger("arcade.service")
 
 
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Help that ends every option's text with its default (``none`` for ``None``, ``off``
+    for a flag), unless the text already speaks of its default."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if (
+            re.search(r"\bdefault\b", text)
+            or action.default is argparse.SUPPRESS
+            or not action.option_strings
+        ):
+            return text
+        if action.nargs == 0:  # a flag: its default is not giving it
+            return f"{text} (default: off)"
+        return f"{text} (default: {'none' if action.default is None else '%(default)s'})"
+
+
 def common_parser(name: str, description: str) -> argparse.ArgumentParser:
-    """Options every service takes."""
-    p = argparse.ArgumentParser(prog=f"python -m services {name}", description=description)
+    """Options every service takes (``--help`` shows each option's default)."""
+    p = argparse.ArgumentParser(
+        prog=f"python -m services {name}",
+        description=description,
+        formatter_class=DefaultsHelpFormatter,
+    )
     p.add_argument("--vehicle", default="default", help="vehicle name on the bus (key prefix)")
     p.add_argument(
         "--hub",
@@ -153,27 +175,39 @@ def percentiles_ms(samples_s: list[float]) -> dict[str, float]:
     }
 
 
-def _seq_only(receiver: Any) -> Any:
-    """``receiver`` (without order checks) plus a per-publisher increasing-``seq`` check."""
-    from services.messages import MessageError, Reason
+class _SeqOnly:
+    """``receiver`` (without order checks) plus a per-publisher increasing-``seq`` check,
+    counting what it accepts and the sequence numbers skipped (messages lost)."""
 
-    last: dict[str, int] = {}
-    lock = threading.Lock()
+    def __init__(self, receiver: Any, max_publishers: int = 64):
+        self.receiver, self.max_publishers = receiver, max_publishers
+        self._last: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self.accepted = 0
+        self.gaps = 0
 
-    def decode(payload: bytes) -> Any:
-        record = receiver(payload)
-        with lock:
-            prev = last.get(record.src)
+    def __call__(self, payload: bytes) -> Any:
+        from services.messages import MessageError, Reason
+
+        record = self.receiver(payload)
+        with self._lock:
+            prev = self._last.pop(record.src, None)  # re-inserted below: least recently used
             if prev is not None and record.seq <= prev:
+                self._last[record.src] = prev
                 raise MessageError(
                     Reason.OUT_OF_ORDER, f"seq {record.seq} after {prev} from {record.src!r}"
                 )
-            last[record.src] = record.seq
-            if len(last) > 64:
-                last.pop(next(iter(last)))
+            if prev is not None:
+                self.gaps += record.seq - prev - 1
+            self._last[record.src] = record.seq
+            if len(self._last) > self.max_publishers:
+                self._last.pop(next(iter(self._last)))
+            self.accepted += 1
         return record
 
-    return decode
+    def stats(self) -> dict[str, int]:
+        with self._lock:
+            return {"accepted": self.accepted, "gaps": self.gaps}
 
 
 def subscribe_ordered(
@@ -201,11 +235,17 @@ def subscribe_ordered(
     from services.bus import TRANSIT_SAMPLES, transit_time
     from services.messages import Receiver, safe_handler
 
+    # In-process stand-ins of a bus (tests) may keep no stream statistics.
+    track = getattr(bus, "track_stream", lambda topic, checker: None)
     subs = []
     for topic, callback in topics.items():
-        receiver = (
-            _seq_only(Receiver(topic, check_order=False)) if topic in seq_only else Receiver(topic)
-        )
+        receiver: Any
+        if topic in seq_only:
+            receiver = _SeqOnly(Receiver(topic, check_order=False))
+            track(topic, receiver)
+        else:
+            receiver = Receiver(topic)
+            track(topic, receiver.checker)
         hops = None
         if transit is not None:
             hops = transit.setdefault(topic, deque(maxlen=TRANSIT_SAMPLES))
@@ -326,13 +366,24 @@ class Service:
         """Commands other than ``shutdown`` (default: ignored)."""
 
     def write_stats(self) -> None:
+        """``<out>/stats/<name>.json``: :attr:`stats` plus the bus counts: ``rejects`` (by
+        reason), ``rejects_by_topic`` (topic -> reason -> n), ``callback_failures`` (topic
+        -> n: this service failed on a valid message) and ``streams`` (topic ->
+        ``accepted``, ``gaps``: messages lost on the way, ``reanchored``)."""
         if self.out is None:
             return
         if self._gc is not None:
             self.stats["gc_pauses"] = self._gc.summary()
         stats = dict(self.stats)
         if self.bus is not None:
-            stats["rejects"] = self.bus.rejects.counts
+            rejects = self.bus.rejects
+            stats["rejects"] = rejects.counts
+            by_topic: dict[str, dict[str, int]] = {}
+            for (topic, reason), n in sorted(rejects.by_topic.items()):
+                by_topic.setdefault(topic, {})[reason] = n
+            stats["rejects_by_topic"] = by_topic
+            stats["callback_failures"] = rejects.failures
+            stats["streams"] = self.bus.stream_stats()
         path = Path(self.out) / "stats" / f"{self.name}.json"
         atomicfile.write_text(path, jsonout.dumps(stats, indent=1, default=float))
 
@@ -357,6 +408,7 @@ class Service:
         """Set up, warm up, announce liveliness, run, shut down cleanly. Returns an exit code."""
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stop.set())
+        watch_parent(self.stop, self.log)
         t0 = time.perf_counter()
         code = 0
         try:
@@ -365,37 +417,11 @@ class Service:
                 bus.subscribe("command", self._on_command)
                 bus.publisher("event")  # declared now, not on the first (timed) event
                 self.setup(bus)
-                self.warmup()
-                # Everything imported and compiled so far (JAX, Zenoh, MuJoCo: millions of
-                # objects) lives as long as the process: out of the collector's sight, a
-                # full collection takes a few milliseconds instead of ~100 ms (a stall of
-                # five control periods at 50 Hz).
-                gc.collect()
-                gc.freeze()
-                self._gc = GcPauses()  # the pauses while serving
-                if getattr(self.args, "realtime_priority", 0):
-                    self.stats["scheduling"] = realtime_scheduling(
-                        self.args.realtime_priority, self.log
-                    )
-                if getattr(self.args, "cpu_wakeup_latency_us", None) is not None:
-                    self._pm_qos, self.stats["cpu_wakeup_latency"] = cpu_wakeup_latency(
-                        self.args.cpu_wakeup_latency_us, self.log
-                    )
-                bus.declare_alive()
-                self.log.info("ready after %.1f s", time.perf_counter() - t0)
-                self.ready()
                 try:
-                    self.main()
+                    self._serve(bus, t0)
                 finally:
                     self.stop.set()
-                    self.teardown()
-                    self.write_stats()
-                    if self._gc is not None:
-                        self._gc.close()
-                    if self._pm_qos is not None:
-                        os.close(self._pm_qos)  # withdraws the request
-                        self._pm_qos = None
-                    self.log.info("stopped; rejects %s", bus.rejects.counts)
+                    self._shut_down(bus)
         except BusOpenError as err:
             self.log.error("%s", err)
             code = 1
@@ -405,6 +431,78 @@ class Service:
         finally:
             logging.shutdown()
         return code
+
+    def _serve(self, bus: Bus, t0: float) -> None:
+        """Warm up, announce liveliness (unless a stop came meanwhile) and run."""
+        self.warmup()
+        if self.stop.is_set():  # a signal or shutdown during warm-up: never ready
+            self.log.info("stop requested during warm-up: not announcing ready")
+            return
+        # Everything imported and compiled so far (JAX, Zenoh, MuJoCo: millions of
+        # objects) lives as long as the process: out of the collector's sight, a
+        # full collection takes a few milliseconds instead of ~100 ms (a stall of
+        # five control periods at 50 Hz).
+        gc.collect()
+        gc.freeze()
+        self._gc = GcPauses()  # the pauses while serving
+        if getattr(self.args, "realtime_priority", 0):
+            self.stats["scheduling"] = realtime_scheduling(self.args.realtime_priority, self.log)
+        if getattr(self.args, "cpu_wakeup_latency_us", None) is not None:
+            self._pm_qos, self.stats["cpu_wakeup_latency"] = cpu_wakeup_latency(
+                self.args.cpu_wakeup_latency_us, self.log
+            )
+        self._serving = True
+        bus.declare_alive()
+        self.log.info("ready after %.1f s", time.perf_counter() - t0)
+        self.ready()
+        self.main()
+
+    _serving = False  # warm-up done, liveliness declared
+
+    def _shut_down(self, bus: Bus) -> None:
+        """Teardown (if the service got to serve), statistics, then the process-wide
+        requests: each step runs even when an earlier one raised (the first error
+        propagates afterwards)."""
+        try:
+            if self._serving:
+                self.teardown()
+        finally:
+            try:
+                self.write_stats()
+            finally:
+                if self._gc is not None:
+                    self._gc.close()
+                if self._pm_qos is not None:
+                    os.close(self._pm_qos)  # withdraws the request
+                    self._pm_qos = None
+                self.log.info(
+                    "stopped; rejects %s, callback failures %s",
+                    bus.rejects.counts,
+                    bus.rejects.failures,
+                )
+
+
+def watch_parent(
+    stop: threading.Event, log: logging.Logger = log, interval: float = 0.5
+) -> threading.Thread:
+    """Set ``stop`` when this process's parent (the launcher) exits.
+
+    Services run in their own session (a Ctrl-C reaches only the launcher), so a launcher
+    killed without its shutdown would leave them running. A parent-pid watch rather than
+    ``PR_SET_PDEATHSIG``: that signal follows the parent *thread* that forked, and the
+    launcher restarts services from short-lived watcher threads.
+    """
+    parent = os.getppid()
+
+    def watch() -> None:
+        while not stop.wait(interval):
+            if os.getppid() != parent:
+                log.warning("parent process %d exited: stopping", parent)
+                stop.set()
+
+    thread = threading.Thread(target=watch, daemon=True, name="parent-watch")
+    thread.start()
+    return thread
 
 
 def realtime_scheduling(priority: int, log: logging.Logger = log) -> dict[str, Any]:

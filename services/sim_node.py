@@ -37,8 +37,16 @@ that long), the vehicle holds its position (a PD position loop on its own state,
 role of PX4's position controller, with the hover thrust of the mass it carries) and a
 ``failsafe`` event says so, with the measured delay. When setpoints answer
 ``--failsafe-resume`` consecutive control instants again, offboard control resumes
-(``info`` event). A (re)joining controller in realtime is sent the mission's ``start``
-command again, so that it picks up the mission clock.
+(``failsafe_cleared`` event). A (re)joining controller in realtime is sent the mission's
+``start`` command again, so that it picks up the mission clock.
+
+The controller's failsafe (an ``event`` of kind ``failsafe`` from ``controller/...``: it
+hovered open loop, without position feedback, for too long) engages the same position
+hold while the mission runs, as a flight controller leaves offboard on it (lockstep: at
+the first control instant after the event's stamp, so that the flight stays
+deterministic; realtime: on the next physics chunk). That hold ends only after
+``--failsafe-resume`` consecutive control instants answered by setpoints not in ``hover``
+mode (the controller keeps answering while it hovers, and those answers fly open loop).
 
 Mocap fault injection (``--mocap-fault``, repeatable; times are mission time in seconds):
 ``dropout@T+D`` (no frames captured in ``[T, T+D)``), ``freeze@T+D`` (the last pose before
@@ -58,6 +66,7 @@ columns of design §5 plus ``ref_px, ref_py, ref_pz``, ``released`` and ``failsa
 
 from __future__ import annotations
 
+import argparse
 import csv
 import math
 import re
@@ -111,7 +120,15 @@ class MocapFault:
         unknown = set(kw) - {"p", "m", "offset"}
         if unknown:
             raise ValueError(f"bad mocap fault {spec!r}: unknown {sorted(unknown)}")
-        return cls(m[1], float(m[2]), float(m[3]) if m[3] else math.inf, **kw)
+        start = float(m[2])
+        # Stamps count from the clock's origin (lockstep: the mission start): a backward
+        # jump larger than the time since then would stamp frames before it.
+        if kw.get("offset", 0.0) < -start:
+            raise ValueError(
+                f"bad mocap fault {spec!r}: offset {kw['offset']:g} s goes back past the "
+                f"start of the mission (at least -{start:g} s for a jump at {start:g} s)"
+            )
+        return cls(m[1], start, float(m[3]) if m[3] else math.inf, **kw)
 
     def active(self, t: float) -> bool:
         return self.start <= t < self.start + self.duration
@@ -191,6 +208,9 @@ class SimNode(runtime.Service):
 
     name = "sim"
 
+    _hold_by_controller = False  # the position hold answers the controller's failsafe
+    _controller_failsafe: Event | None = None  # received, not yet acted on
+
     def setup(self, bus) -> None:
         from benchmarks.quadrotor_closedloop import DT, reference
         from simulator import QuadrotorSim
@@ -232,7 +252,8 @@ class SimNode(runtime.Service):
         self._answered_run = 0
         self._mission0 = 0.0 if a.lockstep else math.inf  # sim time of the mission start
         self.faults = MocapFaults(
-            [MocapFault.parse(f) for f in a.mocap_fault or []], self.trial.sim_seed
+            [f if isinstance(f, MocapFault) else MocapFault.parse(f) for f in a.mocap_fault or []],
+            self.trial.sim_seed,
         )
         self.stats.update(
             steps=0,
@@ -243,11 +264,15 @@ class SimNode(runtime.Service):
             mode="lockstep" if a.lockstep else "realtime",
             rate_hz=a.rate,
             failsafes=[],
+            controller_failsafes=0,
+            controller_failsafes_ignored=0,
             mocap_faults=self.faults.counts,
         )
         self.pub_mocap = bus.publisher("mocap")
         self.pub_imu = bus.publisher("imu")
         self._sp_sub = bus.subscribe("setpoint", self.on_setpoint)
+        # Events come from several publishers, each with its own clock: no order check.
+        bus.subscribe("event", self.on_event, check_order=False)
         self._publish_lag: list[float] = []  # sample instant -> imu put (realtime)
         bus.on_alive_change(self._on_alive)
 
@@ -265,6 +290,13 @@ class SimNode(runtime.Service):
                 self._s2a.append((sp.stamp, now - wall))
             self._cond.notify_all()
 
+    def on_event(self, e: Event) -> None:
+        # Noted only: the loop acts on it (this runs on the bus's thread, where the physics
+        # must not be read nor a blocking event published).
+        if e.kind == "failsafe" and e.src.startswith("controller/"):
+            with self._cond:
+                self._controller_failsafe = e
+
     def on_command(self, cmd: Command) -> None:
         if cmd.name == "release_payload" and cmd.target in ("", self.name):
             self.log.info("release_payload command received (stamp %.3f)", cmd.stamp)
@@ -276,15 +308,24 @@ class SimNode(runtime.Service):
             self.bus.put(Command(name="start", args={"t0": self._flight_stamp}, stamp=self.now()))
 
     # -- failsafe
-    def _engage_failsafe(self, stamp: float, since: float) -> None:
+    def _engage_failsafe(self, stamp: float, since: float, controller: Event | None = None) -> None:
+        """Hold position: no setpoint for ``since`` s, or the ``controller``'s failsafe."""
         x = self.sim.state()
         self._hold = x[:3].copy()
+        self._hold_by_controller = controller is not None
         self._answered_run = 0
         rec = {"t": self.sim.time - self._mission0, "since_last_setpoint_s": since}
+        text, data = f"no setpoint for {since:.3f} s: holding position", {}
+        if controller is not None:
+            reason = str(controller.data.get("reason", ""))
+            rec["controller_reason"] = reason
+            text = f"controller failsafe: {reason or controller.text}: holding position"
+            data = {"reason": "controller_failsafe", "controller_reason": reason}
+            self.stats["controller_failsafes"] += 1
         self.stats["failsafes"].append(rec)
         self.event(
             "failsafe",
-            f"no setpoint for {since:.3f} s: holding position",
+            text,
             "error",
             stamp=stamp,
             mode="hold",
@@ -293,10 +334,42 @@ class SimNode(runtime.Service):
             px=float(x[0]),
             py=float(x[1]),
             pz=float(x[2]),
+            **data,
         )
+
+    def _take_controller_failsafe(self, before: float = math.inf) -> Event | None:
+        """The controller's failsafe received and stamped before ``before``, if any."""
+        with self._cond:
+            e = self._controller_failsafe
+            if e is None or e.stamp >= before:
+                return None
+            self._controller_failsafe = None
+            return e
+
+    def _on_controller_failsafe(self, e: Event, stamp: float, since: float, flying: bool) -> None:
+        """Act on the controller's failsafe at the control instant or chunk ``stamp``."""
+        if not flying:
+            self.stats["controller_failsafes_ignored"] += 1
+            self.log.warning("controller failsafe before the mission started: ignored")
+        elif self._hold is None:
+            self._engage_failsafe(stamp, since, controller=e)
+        elif not self._hold_by_controller:
+            # Holding already (no setpoints for a while): that hold now also waits for
+            # answers out of hover, or it would hand the vehicle to open-loop hover.
+            self._hold_by_controller = True
+            self._answered_run = 0
+            self.stats["controller_failsafes"] += 1
+            self.stats["failsafes"][-1]["controller_reason"] = str(e.data.get("reason", ""))
+            self.log.warning("controller failsafe while holding: resume waits for tracking")
+
+    def _resumes(self, sp: Setpoint | None) -> bool:
+        """Whether the answer ``sp`` (None: none) counts towards ending the hold: a hold
+        for the controller's failsafe ignores its (open-loop) hover answers."""
+        return sp is not None and not (self._hold_by_controller and sp.mode == "hover")
 
     def _clear_failsafe(self, stamp: float) -> None:
         self._hold = None
+        self._hold_by_controller = False
         self.stats["failsafes"][-1]["cleared_t"] = self.sim.time - self._mission0
         self.event(
             "failsafe_cleared",
@@ -372,15 +445,33 @@ class SimNode(runtime.Service):
             or not np.all(np.isfinite(x))
         )
         if crashed:
-            self.stats["crashed"] = True
-            self.event(
-                "fault",
-                "vehicle crashed or left the flight envelope: stopping",
-                "error",
-                stamp=max(t, 0.0),
-                sim_time=t,
-            )
+            self._crashed(t)
         return not crashed
+
+    def _crashed(self, t: float) -> None:
+        self.stats["crashed"] = True
+        self.event(
+            "fault",
+            "vehicle crashed or left the flight envelope: stopping",
+            "error",
+            stamp=max(t, 0.0),
+            sim_time=t,
+        )
+
+    def _stepped_finite(self, t: float) -> bool:
+        """After a physics step: a non-finite state is a crash (reported at flight time
+        ``t``), caught before the next frame or sample is built from it."""
+        if np.all(np.isfinite(self.sim.state())):
+            return True
+        self._crashed(t)
+        return False
+
+    def _prune(self, before: float) -> None:
+        """Forget the per-tick bookkeeping of control instants older than ``before``."""
+        with self._cond:
+            self._setpoints = {s: v for s, v in self._setpoints.items() if s >= before}
+            self._tick_wall = {s: v for s, v in self._tick_wall.items() if s >= before}
+            self._answered = {s for s in self._answered if s >= before}
 
     def _wait_consumers(self) -> None:
         wanted = [s for s in self.args.wait_for.split(",") if s]
@@ -428,7 +519,7 @@ class SimNode(runtime.Service):
             if sp is not None:
                 u = sp.u
                 self._t_last_sp = t
-                self._answered_run += 1
+                self._answered_run = self._answered_run + 1 if self._resumes(sp) else 0
                 if self._hold is not None and self._answered_run >= self.args.failsafe_resume:
                     self._clear_failsafe(t)
             elif not self.stop.is_set():
@@ -447,6 +538,11 @@ class SimNode(runtime.Service):
                         step=k,
                         ok=bool(ok),
                     )
+            # Stamped before this instant: whether it arrived before or after the answer
+            # to its own instant (another priority on the bus) changes nothing.
+            e = self._take_controller_failsafe(before=t)
+            if e is not None and not self.stop.is_set():
+                self._on_controller_failsafe(e, t, t - self._t_last_sp, flying=True)
             u_applied = self._hold_u() if self._hold is not None else sim.set_setpoint(u)
             if not self._record(u_applied):
                 break
@@ -457,6 +553,8 @@ class SimNode(runtime.Service):
                     self._hold_u()
                     sim.step(self.period / max(1, round(self.period / self.args.substep)))
             self.stats["steps"] += 1
+            if not self._stepped_finite(sim.time):
+                break
 
     def _realtime(self) -> None:
         sim = self.sim
@@ -478,6 +576,7 @@ class SimNode(runtime.Service):
                 with self._cond:
                     engaged = self._latest is not None
                     missed = prev_tick is not None and prev_tick not in self._answered
+                    answer = None if missed else self._setpoints.get(prev_tick)
                 if k >= 0 and missed:
                     self.stats["missed_deadlines"] += 1
                 elif missed:
@@ -499,7 +598,7 @@ class SimNode(runtime.Service):
                 if k >= 0:
                     self._maybe_release(k, stamp)
                 if self._hold is not None and prev_tick is not None:
-                    self._answered_run = 0 if missed else self._answered_run + 1
+                    self._answered_run = self._answered_run + 1 if self._resumes(answer) else 0
                     if self._answered_run >= self.args.failsafe_resume:
                         self._clear_failsafe(stamp)
                         applied = None  # apply the newest setpoint again
@@ -508,6 +607,8 @@ class SimNode(runtime.Service):
                 )
                 self._last_stamp = stamp
                 prev_tick = stamp
+                # Late answers still count (sense-to-actuate) for a while, then go.
+                self._prune(stamp - max(1.0, 10 * self.period))
                 if k >= 0:
                     if not self._record(u, t_sim - t_start):
                         break
@@ -517,6 +618,9 @@ class SimNode(runtime.Service):
             with self._cond:
                 latest, sp_wall = self._latest, self._sp_wall
             now = self.now()
+            e = self._take_controller_failsafe()
+            if e is not None:
+                self._on_controller_failsafe(e, now, now - sp_wall, flying=k >= 0)
             if self._hold is None and k >= 0 and now - sp_wall > self.args.failsafe_after:
                 self._engage_failsafe(now, now - sp_wall)
             if self._hold is not None:
@@ -525,6 +629,8 @@ class SimNode(runtime.Service):
                 u = sim.set_setpoint(latest.u)
                 applied = latest
             sim.step(sub)
+            if not self._stepped_finite(sim.time - t_start if k >= 0 else 0.0):
+                break
             delay = mono(sim.time) - self.now()
             if delay > 0:
                 self.stop.wait(delay)  # pacing to the wall clock, not synchronisation
@@ -597,11 +703,19 @@ def _extra(p) -> None:
     p.add_argument(
         "--mocap-fault",
         action="append",
+        type=_mocap_fault,
         default=None,
         metavar="SPEC",
         help="inject a mocap fault: dropout@T+D, freeze@T+D, "
         "outliers@T+D,p=P,m=M, clockjump@T[+D],offset=S (mission time)",
     )
+
+
+def _mocap_fault(spec: str) -> MocapFault:
+    try:
+        return MocapFault.parse(spec)
+    except ValueError as err:  # argparse prints this message, not a generic one
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -47,6 +47,13 @@ def test_missing_columns_are_named():
         read_log(_csv(head, rows), "quadrotor")
 
 
+def test_a_file_with_none_of_the_columns_is_not_a_flight_log():
+    rows = [[str(k), "x"] for k in range(30)]
+    with pytest.raises(LogError, match=r"not a quadrotor flight log \(columns t, px, ") as e:
+        read_log(_csv(["name", "value"], rows), "quadrotor")
+    assert "missing" not in str(e.value)  # the columns are named once
+
+
 def test_non_constant_rate_is_rejected():
     t = np.arange(40) * 0.01
     t[20:] += 0.004  # one 14 ms step
@@ -97,3 +104,70 @@ def test_quaternion_sign_flips_are_removed():
         log = from_arrays("quadrotor", np.arange(n) * 0.01, X, U)
         np.testing.assert_allclose(log.X[:, 6:10], q, atol=1e-15)
         assert np.all(np.sum(log.X[1:, 6:10] * log.X[:-1, 6:10], axis=1) > 0)
+
+
+# ------------------------------------------------------------- the recorder service
+
+
+class _RecorderBus:
+    """What the recorder needs of a bus (its subscriptions are called directly)."""
+
+    def key(self, topic):
+        return f"arcade/test/{topic}"
+
+    def subscribe(self, topic, callback, check_order=True):
+        return None
+
+
+def _recorder(tmp_path):
+    import argparse
+
+    from services.recorder import Recorder
+
+    rec = Recorder(argparse.Namespace(out=tmp_path, incarnation=0))
+    rec.setup(_RecorderBus())
+    return rec
+
+
+def _pair(stamp):
+    from services.messages import Setpoint, State
+
+    x = np.r_[0.0, 0.0, 1.0 + stamp, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    return State(x=x, stamp=stamp), Setpoint(u=[5.0, 0, 0, 0], state_seq=0, stamp=stamp)
+
+
+def test_recorder_writes_the_flight_log_while_flying(tmp_path):
+    """Rows reach the file during the flight (a crash keeps them), in stamp order, and the
+    finished log reads back whole."""
+    rec = _recorder(tmp_path)
+    stamps = 100.0 + np.arange(60) * 0.05
+    for k, t in enumerate(stamps):
+        s, sp = _pair(float(t))
+        if k == 10:  # a setpoint before its state: paired when the state comes
+            rec.record("setpoint", sp)
+            rec.record("state", s)
+        else:
+            rec.record("state", s)
+            rec.record("setpoint", sp)
+    written = read_log(tmp_path / "flight_log.csv", "quadrotor")  # before any teardown
+    assert len(written.t) >= 20 and written.t[0] == 0.0  # flushed once a second (stamps)
+    rec.teardown()
+    log = read_log(tmp_path / "flight_log.csv", "quadrotor")
+    np.testing.assert_allclose(log.t, stamps - stamps[0], atol=1e-9)
+    np.testing.assert_allclose(log.X[:, 2], 1.0 + stamps)
+    assert rec.stats["rows"] == 60 and rec.stats["late_rows"] == 0
+
+
+def test_recorder_keeps_the_newest_unpaired_setpoints_and_counts_the_rest(tmp_path):
+    from services.recorder import MAX_UNPAIRED
+
+    rec = _recorder(tmp_path)
+    stamps = 100.0 + np.arange(MAX_UNPAIRED + 20) * 0.05
+    for t in stamps:  # setpoints whose states are not (yet) there
+        rec.record("setpoint", _pair(float(t))[1])
+    assert rec.stats["unpaired_setpoints"] == 20
+    for t in stamps[-30:]:  # the newest states come after all
+        rec.record("state", _pair(float(t))[0])
+    rec.teardown()
+    assert rec.stats["rows"] == 30  # their setpoints were still waiting
+    assert len(read_log(tmp_path / "flight_log.csv", "quadrotor").t) == 30

@@ -208,6 +208,7 @@ class Fuzzer:
         assert self.cases >= cases
         by_reason = self.service.bus.rejects.counts
         assert Reason.CALLBACK_ERROR.value not in by_reason, by_reason
+        assert self.service.bus.rejects.failures == {}
         assert Reason.INTERNAL.value not in by_reason, by_reason
         for topic in set(self.topics):
             assert self.delivered[topic] > 0, topic  # the core was reached

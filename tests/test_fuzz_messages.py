@@ -168,6 +168,8 @@ def valid_record(
     """A valid record of ``cls``; a field that breaks a cross-field check is dropped if it
     is optional (``None`` where the specs alone cannot make a valid record)."""
     fields = valid_fields(cls, rng, dims)
+    if cls is wm.Mocap:  # a frame is captured before it is stamped
+        fields["capture_stamp"] = min(fields["capture_stamp"], fields["stamp"])
     specs = wm.field_specs(cls)
     for _ in range(len(fields)):
         try:

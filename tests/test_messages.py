@@ -122,6 +122,19 @@ def _model(draw: st.DrawFn) -> Model:
 
 
 @st.composite
+def _mocap(draw: st.DrawFn) -> Mocap:
+    head = {k: draw(v) for k, v in _header().items()}
+    return Mocap(
+        position=draw(_vec(3, -1e4, 1e4)),
+        quaternion=draw(_quat()),
+        body=draw(_ident),
+        frame=draw(_ident),
+        capture_stamp=draw(_floats(0.0, head["stamp"])),  # captured before it is sent
+        **head,
+    )
+
+
+@st.composite
 def _state(draw: st.DrawFn) -> State:
     x = np.concatenate(
         [
@@ -131,6 +144,7 @@ def _state(draw: st.DrawFn) -> State:
             draw(_vec(3, -100.0, 100.0)),
         ]
     )
+    head = {k: draw(v) for k, v in _header().items()}
     return draw(
         st.builds(
             State,
@@ -138,8 +152,8 @@ def _state(draw: st.DrawFn) -> State:
             cov_diag=st.none() | _vec(13, 0.0, 1e6),
             mocap_stale=st.booleans(),
             predicted_through_dropout=st.booleans(),
-            meas_stamp=st.none() | _stamp,
-            **_header(),
+            meas_stamp=st.none() | _floats(0.0, head["stamp"]),
+            **{k: st.just(v) for k, v in head.items()},
         )
     )
 
@@ -160,15 +174,7 @@ def _setpoint(draw: st.DrawFn) -> Setpoint:
 
 
 STRATEGIES: dict[type, st.SearchStrategy] = {
-    Mocap: st.builds(
-        Mocap,
-        position=_vec(3, -1e4, 1e4),
-        quaternion=_quat(),
-        body=_ident,
-        frame=_ident,
-        capture_stamp=_stamp,
-        **_header(),
-    ),
+    Mocap: _mocap(),
     Imu: st.builds(
         Imu, gyro=_vec(3, -100.0, 100.0), accel=st.none() | _vec(3, -1e3, 1e3), **_header()
     ),
@@ -447,13 +453,44 @@ def test_reject_huge_arrays():
     w = wire(Model)
     w["theta"] = [[0.0] * 10] * 10**5
     assert_rejected(Model, pack(w), Reason.OVERSIZE)
-    d, l = 64, 90  # a legal shape whose full covariance exceeds Model.MAX_BYTES
-    big = Model(
-        theta=np.zeros((d, l)), theta_cov=np.zeros((d, l, l)), sigma_tot2=np.zeros(d), stamp=0
-    )
+    d, l = wm.MAX_DIMS["d"], wm.MAX_DIMS["l"] + 1
     with pytest.raises(MessageError) as info:
-        encode(big)
-    assert info.value.reason is Reason.OVERSIZE
+        Model(theta=np.zeros((d, l)), sigma_tot2=np.zeros(d), stamp=0)
+    assert info.value.reason is Reason.BAD_SHAPE
+
+
+def test_largest_legal_model_fits_its_byte_cap():
+    """Every shape MAX_DIMS allows can be sent: the byte cap follows from the dimensions."""
+    d, l = wm.MAX_DIMS["d"], wm.MAX_DIMS["l"]
+    big = Model(
+        theta=np.full((d, l), -MAX_F),
+        theta_var=np.full((d, l), 0.5),
+        theta_cov=np.broadcast_to(np.eye(l) * 0.5, (d, l, l)),
+        sigma_tot2=np.full(d, 0.5),
+        step=2**63,
+        changepoints=2**63,
+        state_seq=2**63,
+        seq=2**64 - 1,
+        stamp=wm.MAX_STAMP_S,
+        src="s" * 128,
+    )
+    payload = encode(big)  # raised OVERSIZE when l could reach 256
+    assert len(payload) <= Model.MAX_BYTES
+    assert decode("model", payload) == big
+
+
+MAX_F = -1.2345678901234567e5  # a float64 that needs all 9 bytes of msgpack
+
+
+def test_covariance_checks_accept_a_float32_posterior():
+    """The adapter computes in float32: its (symmetrised) covariances pass the checks."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(13, 8, 8)).astype(np.float32)
+    a[:, :, 0] = a[:, :, 1] * 1.0001  # nearly singular: correlations close to 1
+    cov = np.einsum("dij,dkj->dik", a, a)
+    cov = (0.5 * (cov + np.swapaxes(cov, 1, 2))).astype(np.float64)
+    m = Model(theta=np.zeros((13, 8)), theta_cov=cov, sigma_tot2=np.zeros(13), stamp=0.0)
+    assert decode("model", encode(m)) == m
 
 
 @pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)
@@ -592,6 +629,7 @@ OUT_OF_RANGE = {
         {"body": ""},
         {"body": "a/b"},
         {"capture_stamp": -1.0},
+        {"capture_stamp": 12.6},  # captured after it was sent (stamp 12.5)
     ],
     Imu: [{"gyro": [0.0, 500.0, 0.0]}, {"accel": [0.0, 0.0, -1e4]}],
     State: [
@@ -602,6 +640,7 @@ OUT_OF_RANGE = {
         {"x": [0.0] * 6 + _q(1.0) + [0.0, 0.0, 1e3]},
         {"cov_diag": [-1.0] + [0.0] * 12},
         {"meas_stamp": -0.5},
+        {"meas_stamp": 12.6},  # measured after the state's instant (stamp 12.5)
     ],
     Setpoint: [
         {"u": [-0.1, 0.0, 0.0, 0.0]},
@@ -620,6 +659,8 @@ OUT_OF_RANGE = {
     ],
     Model: [
         {"theta_cov": [[[-1.0, 0.0], [0.0, 1.0]]] * 3},
+        {"theta_cov": [[[1.0, 0.5], [0.4, 1.0]]] * 3},  # not symmetric
+        {"theta_cov": [[[1.0, 2.0], [2.0, 1.0]]] * 3},  # eigenvalue -1: not PSD
         {"theta_var": [[0.0, -1.0]] * 3},
         {"sigma_tot2": [0.0, -1e-3, 0.0]},
         {"theta": [[1e9, 0.0]] * 3},
@@ -700,6 +741,33 @@ def test_stream_checker_orders_per_publisher():
     c.check(_state(1, 0.0))  # e.g. after a known restart
 
 
+def test_one_stamp_from_the_future_does_not_block_its_stream(caplog):
+    """After ``reanchor_after`` consecutive stale stamps from one publisher, its next
+    message becomes the reference again: counted and logged, never silent."""
+    c = StreamChecker(reanchor_after=3)
+    c.check(_state(1, 100.0))
+    c.check(_state(2, 1e9))  # a stamp from the future (or a clock that went back)
+    for seq in (3, 4, 5):
+        with pytest.raises(MessageError) as info:
+            c.check(_state(seq, 100.0 + seq))
+        assert info.value.reason is Reason.STALE
+    with caplog.at_level(logging.WARNING, logger="arcade.messages"):
+        c.check(_state(6, 106.0))  # re-anchored
+    assert c.reanchored == 1 and any("re-anchored" in r.getMessage() for r in caplog.records)
+    c.check(_state(7, 107.0))
+    with pytest.raises(MessageError):
+        c.check(_state(8, 100.0))  # order checks hold again from the new reference
+    # Gaps: seq 3-5 never reached the stream (rejected), as lost ones would not.
+    assert c.stats() == {"accepted": 4, "gaps": 3, "reanchored": 1}
+    # An isolated stale stamp between good ones does not count towards re-anchoring.
+    c = StreamChecker(reanchor_after=2)
+    c.check(_state(1, 10.0))
+    for seq, stamp in ((2, 5.0), (3, 11.0), (4, 5.0), (5, 12.0)):
+        with contextlib.suppress(MessageError):
+            c.check(_state(seq, stamp))
+    assert c.reanchored == 0 and c.accepted == 3
+
+
 def test_stream_checker_max_age():
     now = [10.0]
     c = StreamChecker(max_age=0.5, clock=lambda: now[0])
@@ -752,16 +820,21 @@ def test_safe_handler_contains_callback_and_decoder_failures(caplog):
         if m.seq == 2:
             raise RuntimeError("bug in service")
 
+    counter = RejectCounter(service="controller")
     handler = safe_handler(Receiver("state"), callback, counter, topic="state")
     with caplog.at_level(logging.ERROR, logger="arcade.messages"):
         for seq in (1, 2, 3):
             handler(encode(_state(seq, float(seq))))
     assert seen == [1, 2, 3]  # the failing callback did not stop the stream
-    assert counter.counts == {"callback_error": 1}
-    assert any(r.exc_info and "bug in service" in r.getMessage() for r in caplog.records)
+    # The service's own failure, not a rejected input: counted and worded apart.
+    assert counter.counts == {} and counter.failures == {"state": 1} and counter.total == 0
+    lines = [r.getMessage() for r in caplog.records if r.exc_info]
+    assert len(lines) == 1 and "bug in service" in lines[0]
+    assert lines[0].startswith("controller failed handling a state message")
+    assert not any("rejected" in r.getMessage() for r in caplog.records)
 
     def broken(payload):
         raise KeyError("decoder bug")
 
     safe_handler(broken, callback, counter, topic="state")(b"")
-    assert counter.counts == {"callback_error": 1, "internal": 1}
+    assert counter.counts == {"internal": 1} and counter.failures == {"state": 1}

@@ -1,15 +1,23 @@
 """Pieces of the simulated PX4: the default vehicle's thrust curve, mode encoding, parameter
 encoding, and the commander's rules (arming, offboard entry, offboard loss) on simulated
-time. The frame and thrust-curve conversions themselves are tested in test_px4_frames."""
+time. The frame and thrust-curve conversions themselves are tested in test_px4_frames.
+Then the PX4 bridge's offboard logic (engaging, every exit, watchdog, send errors) with
+MAVSDK's plugins and the bus replaced by recording fakes, and px4sim's mission start."""
 
 from __future__ import annotations
 
+import argparse
 import math
+import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from arcade.vehicle import load_vehicle
+from services import px4_bridge, runtime
+from services.messages import Command, Event, Setpoint
+from services.px4_bridge import Px4Bridge
 from services.px4_frames import (
     ThrustCurve,
     enu_to_ned,
@@ -164,3 +172,217 @@ def test_offboard_attitude_setpoint_is_tracked_in_px4_frames(airframe):
     rpy = quat_to_euler_zyx(quat_enu_flu_to_ned_frd(v.state()[6:10]))
     assert rpy[0] == pytest.approx(roll, abs=math.radians(2.0))
     assert rpy[2] == pytest.approx(yaw_ned, abs=math.radians(2.0))
+
+
+# ------------------------------------------------------------------ bridge (no MAVLink)
+
+
+class FakeBus:
+    """What the services use of :class:`services.bus.Bus`: everything put is kept."""
+
+    def __init__(self) -> None:
+        self.alive: set[str] = set()
+        self.sent: list = []
+
+    def put(self, record) -> None:
+        self.sent.append(record)
+
+    def events(self, kind: str | None = None) -> list:
+        return [e for e in self.sent if isinstance(e, Event) and kind in (None, e.kind)]
+
+
+class FakeOffboard:
+    """MAVSDK's offboard plugin: records what the bridge asks for."""
+
+    def __init__(self) -> None:
+        self.sent: list = []
+        self.started = self.stopped = 0
+        self.destroyed = False
+        self.fail_send = self.fail_stop = False
+
+    def set_attitude_rate(self, sp) -> None:
+        if self.fail_send:
+            raise RuntimeError("plugin destroyed")
+        self.sent.append(sp)
+
+    def start(self) -> None:
+        self.started += 1
+
+    def stop_async(self, callback) -> None:
+        if self.fail_stop:
+            raise RuntimeError("plugin destroyed")
+        self.stopped += 1
+        callback(SimpleNamespace(name="SUCCESS"), None)
+
+    def destroy(self) -> None:
+        self.destroyed = True
+
+
+class FakeAction:
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def __getattr__(self, name: str):
+        return lambda *args: self.calls.append(name)
+
+
+def bridge(*argv: str) -> Px4Bridge:
+    """A bridge as ``setup`` leaves it, on a healthy vehicle armed in Hold, with the MAVSDK
+    plugins and the bus replaced by recording fakes."""
+    parser = runtime.common_parser("bridge", "test")
+    px4_bridge._extra(parser)
+    b = Px4Bridge(parser.parse_args(list(argv)))
+    b.bus = FakeBus()
+    b._init_state()
+    b.system = None
+    b._offboard_cls = lambda system: FakeOffboard()
+    b.offboard = FakeOffboard()
+    b.action = FakeAction()
+    health = ("is_gyrometer_calibration_ok", "is_local_position_ok", "is_armable")
+    b._telemetry.update(
+        connected=True,
+        armed=True,
+        mode="HOLD",
+        landed="IN_AIR",
+        gyro_flu=np.zeros(3),
+        health=dict.fromkeys(health, True),
+    )
+    return b
+
+
+def stream(b: Px4Bridge, mode: str = "track", thrust: float = 6.0) -> None:
+    """One controller setpoint, after a steady stream."""
+    b.on_setpoint(Setpoint(u=[thrust, 0.0, 0.0, 0.0], state_seq=1, stamp=1.0, mode=mode))
+    b._stream_since = time.monotonic() - 10.0
+
+
+def engaged_bridge(*argv: str) -> Px4Bridge:
+    """A bridge flying the vehicle in offboard (its events so far dropped)."""
+    b = bridge(*argv)
+    stream(b)
+    b.engage()
+    assert b._engaged, [e.text for e in b.bus.events()]
+    b.bus.sent.clear()
+    return b
+
+
+def commands(b: Px4Bridge) -> list[str]:
+    return [c.name for c in b.bus.sent if isinstance(c, Command)]
+
+
+@pytest.mark.parametrize("start_mission", [True, False])
+def test_engaging_offboard_clears_the_failsafe_whoever_starts_the_mission(start_mission):
+    b = bridge(*(() if start_mission else ("--no-start-mission",)))
+    stream(b)
+    b.engage()
+    assert b._engaged and b.offboard.started == 1
+    assert [e.kind for e in b.bus.events()] == ["offboard", "failsafe_cleared"]
+    assert commands(b) == (["start"] if start_mission else [])
+
+
+@pytest.mark.parametrize("name", ["hold", "land", "stop"])
+def test_an_operator_exit_from_offboard_is_announced_as_a_failsafe(name):
+    b = engaged_bridge()
+    b._do_command(Command(name=name, stamp=1.0))
+    assert not b._engaged and b.offboard.stopped == 1
+    (e,) = b.bus.events("failsafe")
+    assert e.severity == "info" and e.data["reason"] == "command"
+    assert e.data["action"] == ("land" if name == "land" else "hold")
+    assert b.stats["failsafes"] == 0 and b.stats["offboard_exits"] == 1
+
+
+def test_a_controller_failsafe_makes_the_bridge_leave_offboard():
+    b = engaged_bridge("--failsafe", "land")
+    b.on_event(Event(kind="failsafe", text="hover", stamp=1.0, src="px4sim/1"))
+    assert b._engaged  # not the controller's
+    b.on_event(
+        Event(kind="failsafe", text="hover", stamp=1.0, src="controller/1", data={"reason": "x"})
+    )
+    assert not b._engaged
+    (e,) = b.bus.events("failsafe")
+    assert e.severity == "warning" and e.data["reason"] == "controller_failsafe"
+    assert e.data["action"] == "land" and b.stats["failsafes"] == 1
+
+
+def test_arming_is_refused_after_a_controller_failsafe_until_it_tracks_again():
+    b = bridge()
+    b.on_event(Event(kind="failsafe", text="hover", stamp=1.0, src="controller/1"))
+    stream(b, mode="hover")
+    b.engage()
+    assert not b._engaged and b.offboard.started == 0
+    (e,) = b.bus.events("info")
+    assert "controller reported a failsafe" in e.text
+    stream(b, mode="track")
+    b.engage()
+    assert b._engaged
+
+
+def test_consecutive_send_errors_leave_offboard():
+    b = engaged_bridge("--max-send-errors", "3")
+    b.offboard.fail_send = True
+    stream(b)
+    stream(b)
+    assert b._engaged and b.stats["send_errors"] == 2
+    b.offboard.fail_send = False
+    stream(b)  # a success resets the run
+    b.offboard.fail_send = True
+    stream(b)
+    stream(b)
+    assert b._engaged
+    stream(b)
+    assert not b._engaged
+    (e,) = b.bus.events("failsafe")
+    assert e.data["reason"] == "send_errors" and b.stats["failsafes"] == 1
+
+
+def test_a_failing_offboard_stop_drops_the_plugin_and_is_reported():
+    b = engaged_bridge()
+    old = b.offboard
+    old.fail_stop = True
+    assert b.leave_offboard("test", "hold", reason="test", wait=True)
+    assert not b._engaged
+    assert old.destroyed and b.offboard is not old  # MAVSDK's re-send timer is gone
+    assert [e.kind for e in b.bus.events()] == ["failsafe", "fault"]
+    assert "not sent" in b.bus.events("fault")[0].text
+
+
+def test_the_watchdog_survives_its_own_errors():
+    b = engaged_bridge()
+    b._last_rx = time.monotonic() - 1.0  # setpoints stopped: the watchdog acts at once
+    calls = []
+
+    def leave(*args, **kw) -> bool:  # e.g. stop_async on a destroyed plugin
+        calls.append(kw["reason"])
+        if len(calls) == 1:
+            raise RuntimeError("boom")
+        b.stop.set()
+        return True
+
+    b.leave_offboard = leave
+    b._watchdog_loop()
+    assert calls == ["setpoint_timeout"] * 2 and b.stats["watchdog_errors"] == 1
+    (e,) = b.bus.events("fault")
+    assert "boom" in e.text
+
+
+def test_the_watchdog_leaves_offboard_when_setpoints_stop():
+    b = engaged_bridge("--setpoint-timeout", "0.05")
+    b._last_rx = time.monotonic() - 1.0
+    b._watchdog_check()
+    assert not b._engaged
+    (e,) = b.bus.events("failsafe")
+    assert e.data["reason"] == "setpoint_timeout" and e.severity == "warning"
+
+
+# ------------------------------------------------------------------ px4sim
+
+
+@pytest.mark.parametrize("no_start", [True, False])
+def test_px4sim_resends_start_to_a_rejoining_controller_only_when_it_owns_it(no_start):
+    from services.px4_sim import Px4SimNode
+
+    node = Px4SimNode(argparse.Namespace(out=None, no_start_command=no_start))
+    node.bus = FakeBus()
+    node._flight_stamp = 12.5
+    node._on_alive("controller", True)
+    assert commands(node) == ([] if no_start else ["start"])

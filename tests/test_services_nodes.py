@@ -179,11 +179,12 @@ def test_adapter_checkpoint_round_trip(tmp_path):
         proc = start("adapter", hub, tmp_path, *args)
         try:
             bus.wait_alive(["adapter"], timeout=TIMEOUT)
+            now = time.monotonic()
             seq = bus.put(
                 State(
                     x=np.r_[0, 0, 1.5, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0],
-                    stamp=time.monotonic(),
-                    meas_stamp=time.monotonic(),
+                    stamp=now,
+                    meas_stamp=now,
                 )
             )
             restored = get(models, "model", lambda m: m.state_seq == seq)

@@ -1,0 +1,201 @@
+"""Adapter, in-process on a stand-in bus: whether a step is learned from (the vehicle flies
+the stack's setpoints), which setpoint is a transition's input in realtime, and the
+non-finite reset. The learning update itself is replaced by a recording stub (the update
+is tested in test_adaptation and through the stack)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import namedtuple
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from services import adapter as mod
+from services import runtime
+from services.messages import Command, Event, Setpoint, State
+
+X_HOVER = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
+Pred = namedtuple("Pred", "mean var")
+
+
+class FakeBus:
+    """What the adapter uses of :class:`services.bus.Bus`: everything put is kept."""
+
+    def __init__(self) -> None:
+        self.alive: set[str] = set()  # no controller token: no waiting for its setpoints
+        self.sent: list[Any] = []
+
+    def subscribe(self, topic: str, callback: Any, **_: Any) -> None:
+        pass
+
+    def publisher(self, topic: str) -> FakeBus:
+        return self
+
+    def put(self, record: Any) -> None:
+        self.sent.append(record)
+
+    def events(self, kind: str | None = None) -> list[Event]:
+        return [e for e in self.sent if isinstance(e, Event) and kind in (None, e.kind)]
+
+
+def make_adapter(*argv: str) -> mod.Adapter:
+    """An adapter set up as its process sets it up (no weights file: nothing compiled),
+    then given a recording stand-in for the learning update."""
+    parser = runtime.common_parser("adapter", "test")
+    mod._extra(parser)
+    svc = mod.Adapter(parser.parse_args(["--weights", "/nonexistent/vld.eqx", *argv]))
+    svc.bus = FakeBus()
+    svc.setup(svc.bus)
+    svc.calls = []
+    svc.learner = svc._prior = SimpleNamespace(beam=SimpleNamespace(step=0))
+    svc.theta = np.zeros((13, 1))
+
+    def adapt(learner, xp, up, x, h, learn, var_p, var_x):
+        svc.calls.append(SimpleNamespace(up=np.asarray(up), learn=bool(learn), h=h))
+        nan = np.full(13, math.nan)  # no residual published: not needed here
+        return learner, nan, Pred(nan, nan), 0.0, False, svc.theta, np.zeros((13, 1, 1)), nan * 0
+
+    svc._adapt = adapt
+    svc._marginal = lambda learner, x, u: (np.zeros((13, 1)), np.zeros((13, 1, 1)), np.zeros(13))
+    return svc
+
+
+def state(stamp: float, seq: int) -> State:
+    return State(x=X_HOVER, stamp=stamp, seq=seq, src="estimator/1")
+
+
+def setpoint(stamp: float, thrust: float, seq: int = 1) -> Setpoint:
+    return Setpoint(
+        u=[thrust, 0.0, 0.0, 0.0], state_seq=seq, stamp=stamp, seq=seq, src="controller/1"
+    )
+
+
+def event(kind: str, src: str) -> Event:
+    return Event(kind=kind, text=kind, stamp=1.0, src=src)
+
+
+def start(t0: float) -> Command:
+    return Command(name="start", args={"t0": t0}, stamp=t0, src="px4sim/1")
+
+
+# ------------------------------------------------------------------ learning gate
+
+
+def test_learning_follows_the_vehicle_link_not_the_controller_nor_a_resent_clock():
+    svc = make_adapter()
+    assert not svc._applied  # realtime: nothing applied before the mission starts
+    svc.on_command(start(5.0))
+    assert svc._applied
+    svc.on_event(event("failsafe", "controller/1"))  # a request to the link: not yet held
+    assert svc._applied
+    svc.on_event(event("failsafe", "bridge/1"))
+    assert not svc._applied
+    # A restarted controller gets the mission clock again: the vehicle is still held.
+    svc.on_command(start(5.0))
+    assert not svc._applied
+    svc.on_event(event("failsafe_cleared", "bridge/1"))
+    assert svc._applied
+    svc.on_event(event("failsafe", "px4sim/1"))
+    svc.on_command(start(9.0))  # a new mission
+    assert svc._applied
+    # Each change of the gate is announced.
+    assert [e.data["learning"] for e in svc.bus.events("info")] == [True, False, True, False, True]
+
+
+def test_steps_not_applied_are_counted_and_not_learned():
+    svc = make_adapter()
+    for k, t in enumerate((10.0, 10.05, 10.1)):
+        svc.on_setpoint(setpoint(t, 5.0, seq=k + 1))
+        svc.on_state(state(t, k + 1))
+    assert [c.learn for c in svc.calls] == [False, False]
+    assert svc.stats["not_applied"] == 2 and svc.stats["learned"] == 0
+    svc.on_command(start(10.1))
+    svc.on_setpoint(setpoint(10.15, 5.0, seq=4))
+    svc.on_state(state(10.15, 4))
+    assert svc.calls[-1].learn and svc.stats["not_applied"] == 2
+
+
+# ------------------------------------------------------------------ input of a transition
+
+
+def test_missing_setpoint_falls_back_to_the_one_the_vehicle_held():
+    svc = make_adapter()
+    svc.on_command(start(9.0))
+    svc.on_setpoint(setpoint(10.0, 5.0, seq=1))
+    svc.on_state(state(10.0, 1))
+    svc.on_state(state(10.05, 2))  # the controller skipped this state
+    svc.on_setpoint(setpoint(10.1, 9.0, seq=2))
+    svc.on_state(state(10.1, 3))
+    # 10.05 -> 10.1 was flown with the setpoint of 10.0 (zero-order hold), not 10.1's.
+    assert svc.calls[-1].up[0] == pytest.approx(5.0)
+    assert svc.stats["input_fallback"] == 1 and svc.stats["input_missing"] == 0
+
+
+def test_transition_without_a_recent_setpoint_is_skipped():
+    svc = make_adapter()
+    svc.on_command(start(9.0))
+    svc.on_setpoint(setpoint(9.9, 5.0, seq=1))
+    svc.on_state(state(10.0, 1))
+    svc.on_state(state(10.05, 2))
+    svc.on_setpoint(setpoint(10.1, 9.0, seq=2))
+    svc.on_state(state(10.1, 3))
+    assert svc.calls == []  # 9.9 is three periods before 10.05: nothing known to be held
+    assert svc.stats["input_missing"] == 2 and svc.stats["skipped"] == 2
+    assert svc.stats["input_fallback"] == 0
+    assert len([m for m in svc.bus.sent if type(m).__name__ == "Model"]) == 3
+
+
+def test_lockstep_waits_for_the_exact_setpoint_only():
+    svc = make_adapter("--lockstep", "--step-timeout", "0")
+    svc.on_setpoint(setpoint(1.0, 5.0))
+    assert svc._input_for(state(1.05, 1)) is None
+    assert svc.stats["input_fallback"] == 0
+
+
+# ------------------------------------------------------------------ non-finite reset
+
+
+def test_non_finite_posterior_resets_with_a_fault_event():
+    svc = make_adapter()
+    prior = svc._prior
+    svc.learner = SimpleNamespace(beam=SimpleNamespace(step=7))
+    svc.theta = np.full((13, 1), math.nan)
+    svc.on_setpoint(setpoint(1.0, 5.0))
+    svc.on_state(state(1.0, 1))
+    svc.on_state(state(1.05, 2))
+    assert svc.learner is prior
+    assert svc.stats["nonfinite_resets"] == 1
+    (fault,) = svc.bus.events("fault")
+    assert fault.severity == "error" and fault.data["state_seq"] == 2
+
+
+# ------------------------------------------------------------------ with the PX4 bridge
+
+
+def test_bridge_exits_and_engagements_drive_the_gate():
+    """An operator's hold pauses learning like a failsafe; engaging offboard again resumes
+    it, also when the bridge does not start the mission (--no-start-mission)."""
+    from test_px4_units import engaged_bridge
+
+    bridge = engaged_bridge("--no-start-mission")
+    svc = make_adapter()
+    svc.on_command(start(5.0))
+
+    def forward() -> None:
+        for e in bridge.bus.events():
+            svc.on_event(dataclasses.replace(e, src="bridge/1"))
+        bridge.bus.sent.clear()
+
+    bridge._do_command(Command(name="hold", stamp=6.0, src="operator/1"))
+    forward()
+    assert not svc._applied
+    assert bridge.stats["failsafes"] == 0 and bridge.stats["offboard_exits"] == 1
+    bridge.engage()
+    assert bridge._engaged
+    forward()
+    assert svc._applied
+    assert not [c for c in bridge.bus.sent if isinstance(c, Command)]  # no start: not ours

@@ -1,0 +1,140 @@
+"""The estimator service's screening and fallbacks, in process: a frame held back to the
+next control instant, a diverged or non-finite filter, the bounded frame buffer."""
+
+from __future__ import annotations
+
+import argparse
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from services import estimator as est_service
+from services.estimator import Estimator
+from services.messages import Imu, Mocap, RejectCounter
+
+T0 = 100.0
+MOCAP_DT = 1.0 / 120.0
+CONTROL_DT = 0.05
+
+
+class FakeBus:
+    """What the estimator needs of a bus: publishers and events land in lists."""
+
+    def __init__(self):
+        self.rejects = RejectCounter()
+        self.session = SimpleNamespace(declare_subscriber=lambda *a, **k: None)
+        self.states, self.events = [], []
+
+    def key(self, topic):
+        return f"arcade/test/{topic}"
+
+    def publisher(self, topic):
+        return self
+
+    def put(self, record):
+        (self.events if record.TOPIC == "event" else self.states).append(record)
+        return len(self.states)
+
+
+@pytest.fixture(scope="module")
+def make():
+    def build() -> tuple[Estimator, FakeBus]:
+        a = argparse.Namespace(
+            lockstep=True, out=None, max_frame_lag=0.25, stamp_tolerance=0.005, vehicle="test"
+        )
+        est = Estimator(a)
+        bus = FakeBus()
+        est.setup(bus)
+        est.bus = bus
+        return est, bus
+
+    est, _ = build()
+    est.warmup()  # compile once for the module
+    return build
+
+
+def frame(t: float) -> Mocap:
+    """A vehicle moving at 1 m/s along x, captured at ``t`` (after ``T0``)."""
+    return Mocap(
+        position=[t, 0.0, 1.0], quaternion=[1.0, 0, 0, 0], capture_stamp=T0 + t, stamp=T0 + t
+    )
+
+
+def fly_to(est: Estimator, t_end: float) -> None:
+    """Frames every 1/120 s and control instants every 50 ms up to ``t_end``."""
+    captures = iter(np.arange(0.0, t_end, MOCAP_DT))
+    c = next(captures)
+    for k in range(round(t_end / CONTROL_DT) + 1):
+        t = k * CONTROL_DT
+        while c is not None and c <= t:
+            est.on_mocap(frame(c))
+            c = next(captures, None)
+        est.on_imu(Imu(gyro=np.zeros(3), stamp=T0 + t))
+
+
+def test_a_frame_held_back_to_the_next_instant_is_fused_not_frozen(make):
+    est, bus = make()
+    fly_to(est, 0.95)
+    frames_before, n_states = est.stats["frames"], len(bus.states)
+    # 0.99 is on time for the instant 1.00; 1.02 was captured after it (a stalled
+    # process delivers it early): it waits for the next instant.
+    est.on_mocap(frame(0.99))
+    est.on_mocap(frame(1.02))
+    est.on_imu(Imu(gyro=np.zeros(3), stamp=T0 + 1.00))
+    assert bus.states[-1].meas_stamp == pytest.approx(T0 + 0.99)
+    est.on_imu(Imu(gyro=np.zeros(3), stamp=T0 + 1.05))  # no new frame this period
+    state = bus.states[-1]
+    assert len(bus.states) == n_states + 2
+    assert state.meas_stamp == pytest.approx(T0 + 1.02)  # fused, not dropped as a repeat
+    assert not state.mocap_stale
+    assert est.stats["frozen_frames"] == 0
+    assert not [e for e in bus.events if e.data.get("fault") == "mocap_frozen"]
+    assert est.stats["frames"] == frames_before + 2  # each frame counted once
+
+
+def _fake_step(x: np.ndarray):
+    """A filter step whose output is ``x`` (initialised, one frame fused at the instant)."""
+
+    def step(filt, frames, t, gyro, config):
+        flags = [1.0, 0.0, 1.0, 0.0, 0.0, float(t)]
+        return filt, np.concatenate([x, np.full(13, 1e-4), flags])
+
+    return step
+
+
+@pytest.mark.parametrize(
+    "why, x",
+    [
+        # finite but no valid State: 20 km away (out of range)
+        ("invalid estimate", np.r_[2e4, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0, 0, 0]),
+        ("invalid estimate", np.r_[0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, 0]),
+        ("non-finite estimate", np.r_[np.nan, np.zeros(12)]),
+    ],
+    ids=["out-of-range", "zero-quaternion", "non-finite"],
+)
+def test_a_diverged_filter_is_reset_with_a_fault_event(make, why, x):
+    est, bus = make()
+    fly_to(est, 0.5)
+    n_states = len(bus.states)
+    good = est._step
+    est._step = _fake_step(x)
+    est.on_imu(Imu(gyro=np.zeros(3), stamp=T0 + 0.55))  # never raises
+    assert len(bus.states) == n_states  # nothing published
+    assert est.stats["filter_resets"] == 1
+    assert not bool(est.filter.initialised)  # starts again from the next frame
+    (event,) = [e for e in bus.events if e.data.get("fault") == "estimator_reset"]
+    assert event.kind == "fault" and event.text.startswith(why)
+    est._step = good
+    est.on_mocap(frame(0.56))
+    est.on_imu(Imu(gyro=np.zeros(3), stamp=T0 + 0.60))
+    assert len(bus.states) == n_states + 1  # running again
+
+
+def test_frames_waiting_for_imu_are_bounded_and_counted(make):
+    est, _ = make()
+    for i in range(est_service.MAX_PENDING + 5):
+        est.on_mocap(frame(i * MOCAP_DT))
+    assert len(est._pending) == est_service.MAX_PENDING
+    assert est.stats["pending_dropped"] == 5
+    assert est._pending[0].capture_stamp == pytest.approx(T0 + 5 * MOCAP_DT)  # newest kept

@@ -1,0 +1,291 @@
+"""The simulator service acts on the controller's failsafe (hover without position feedback
+for too long) as a flight controller does: it holds position, and resumes offboard control
+only once the controller answers out of ``hover`` again.
+
+In process: the service is wired as ``Service.run`` wires it, on a loopback session; a
+scripted controller answers each ``imu`` control instant synchronously (setpoint modes and
+the failsafe event per instant), and the physics is a vehicle at rest.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from services import runtime, sim_node
+from services.bus import Bus
+from services.messages import Event, Setpoint, decode, encode
+
+PERIOD = 0.05
+START = np.array([0.0, 0.0, 1.0])
+
+
+class _Payload:
+    def __init__(self, data: bytes):
+        self._data = data
+
+    def to_bytes(self) -> bytes:
+        return self._data
+
+
+class _Sample:
+    def __init__(self, key: str, data: bytes):
+        self.key_expr = key
+        self.payload = _Payload(data)
+
+
+class _Declared:
+    def __init__(self, on_put: Callable[[bytes], None] | None = None):
+        self._on_put = on_put
+
+    def put(self, payload: bytes, attachment: Any = None) -> None:
+        self._on_put(bytes(payload))
+
+    def undeclare(self) -> None:
+        pass
+
+
+class LoopbackSession:
+    """The part of ``zenoh.Session`` the bus uses, in process: a put reaches the
+    subscribers of its key (as Zenoh delivers a session's own samples), then ``on_put``."""
+
+    def __init__(self) -> None:
+        self.handlers: dict[str, list[Callable[[Any], None]]] = defaultdict(list)
+        self.published: dict[str, list[bytes]] = defaultdict(list)
+        self.on_put: dict[str, Callable[[bytes], None]] = {}
+
+    def zid(self) -> str:
+        return "f0220000"
+
+    def liveliness(self) -> Any:
+        return SimpleNamespace(
+            declare_subscriber=lambda *a, **k: _Declared(),
+            declare_token=lambda *a, **k: _Declared(),
+        )
+
+    def declare_subscriber(self, key: str, handler: Any, **_: Any) -> _Declared:
+        self.handlers[key].append(getattr(handler, "callback", handler))
+        return _Declared()
+
+    def declare_publisher(self, key: str, **_: Any) -> _Declared:
+        def put(payload: bytes) -> None:
+            self.published[key].append(payload)
+            self.deliver(key, payload)
+            if key in self.on_put:
+                self.on_put[key](payload)
+
+        return _Declared(put)
+
+    def deliver(self, key: str, payload: bytes) -> None:
+        for handler in self.handlers[key]:
+            handler(_Sample(key, payload))
+
+    def close(self) -> None:
+        pass
+
+
+class RestingSim:
+    """A vehicle that stays where it is: the physics is not under test here."""
+
+    setpoint = np.zeros(4)
+    payload_attached = False
+    max_thrust = 10.0
+
+    def __init__(self) -> None:
+        self.time = 0.0
+        self.x = np.r_[START, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+        self.mocap = SimpleNamespace(read=lambda _until: [])
+        self.gyro = SimpleNamespace(read=lambda _until: [])
+
+    def state(self) -> np.ndarray:
+        return self.x.copy()
+
+    def read_mocap(self) -> list:
+        return []
+
+    def read_gyro(self) -> list:
+        return []
+
+    def set_setpoint(self, u: np.ndarray) -> np.ndarray:
+        return np.asarray(u, dtype=float)
+
+    def step(self, dt: float) -> None:
+        self.time += dt
+
+    def hover_thrust(self) -> float:
+        return 0.5 * 9.81
+
+    def carried_mass(self) -> float:
+        return 0.5
+
+
+class ScriptedController:
+    """Answers the ``i``-th control instant in ``mode(i)``; with the answers to the
+    instants in ``failsafe_at``, publishes the controller's failsafe event (the controller
+    publishes it first; on the bus it has a lower priority than setpoints, so it may
+    arrive after: ``event_last``)."""
+
+    def __init__(
+        self, session, mode: Callable[[int], str], failsafe_at=(), src="controller/c0",
+        event_last=False,
+    ):  # fmt: skip
+        self.session, self.mode, self.failsafe_at, self.src = session, mode, failsafe_at, src
+        self.event_last = event_last
+        self.seq = {"setpoint": 0, "event": 0}
+        self.instants: list[float] = []
+        session.on_put["arcade/test/imu"] = self.answer
+
+    def send(self, topic: str, record) -> None:
+        self.seq[topic] += 1
+        record = record.replace(seq=self.seq[topic], src=self.src)
+        self.session.deliver(f"arcade/test/{topic}", encode(record))
+
+    def answer(self, payload: bytes) -> None:
+        i, stamp = len(self.instants), decode("imu", payload).stamp
+        self.instants.append(stamp)
+        mode = self.mode(i)
+        if mode != "silent" and self.event_last:
+            self.send("setpoint", self.setpoint(i, stamp, mode))
+        if i in self.failsafe_at:
+            self.send(
+                "event",
+                Event(
+                    kind="failsafe",
+                    severity="error",
+                    text="hovering for 1.00 s: the vehicle link must fail safe",
+                    data={"reason": "hover_timeout", "hover_s": 1.0},
+                    stamp=stamp,
+                ),
+            )
+        if mode != "silent" and not self.event_last:
+            self.send("setpoint", self.setpoint(i, stamp, mode))
+
+    @staticmethod
+    def setpoint(i: int, stamp: float, mode: str) -> Setpoint:
+        return Setpoint(u=[4.9, 0.0, 0.0, 0.0], state_seq=i, stamp=stamp, mode=mode)
+
+
+def make_node(*argv: str, n_steps: int = 30) -> tuple[sim_node.SimNode, LoopbackSession]:
+    parser = runtime.common_parser("sim", "test")
+    sim_node._extra(parser)
+    node = sim_node.SimNode(parser.parse_args(["--vehicle", "test", "--wait-for", "", *argv]))
+    session = LoopbackSession()
+    node.bus = Bus("test", "sim").open(session=session)
+    node.bus.subscribe("command", node._on_command)
+    node.bus.publisher("event")
+    node.setup(node.bus)
+    node.sim = RestingSim()
+    node.n_steps, node.k_release = n_steps, -1
+    node._ref_t, node._ref_p = np.array([0.0, 1e3]), np.array([START, START])
+    return node, session
+
+
+def sim_events(session: LoopbackSession) -> list[Event]:
+    return [
+        e
+        for e in (decode("event", p) for p in session.published["arcade/test/event"])
+        if e.kind in ("failsafe", "failsafe_cleared")
+    ]
+
+
+def hover_between(first: int, last: int) -> Callable[[int], str]:
+    return lambda i: "hover" if first <= i <= last else "track"
+
+
+LOCKSTEP = ("--lockstep", "--rate", str(1 / PERIOD), "--failsafe-resume", "3")
+
+
+@pytest.mark.parametrize("event_last", [False, True], ids=["event_first", "event_last"])
+def test_lockstep_the_controllers_failsafe_holds_until_it_tracks_again(event_last):
+    node, session = make_node(*LOCKSTEP)
+    # Hover from instant 5; the failsafe comes with the answer to instant 10; tracking
+    # from 15, interrupted once by a hover answer at 17.
+    ScriptedController(
+        session,
+        lambda i: "hover" if 5 <= i <= 14 or i == 17 else "track",
+        failsafe_at=(10,),
+        event_last=event_last,
+    )
+    node._lockstep()
+    engaged, cleared = sim_events(session)
+    # At the first instant after the event's stamp, whatever the arrival order.
+    assert engaged.kind == "failsafe" and engaged.stamp == pytest.approx(11 * PERIOD)
+    assert engaged.src.startswith("sim/") and engaged.severity == "error"
+    assert engaged.text.startswith("controller failsafe: hover_timeout")
+    assert engaged.data["reason"] == "controller_failsafe"
+    assert engaged.data["controller_reason"] == "hover_timeout"
+    # Hover answers (11-14, 17) do not count; 18, 19, 20 are the three in a row.
+    assert cleared.kind == "failsafe_cleared" and cleared.stamp == pytest.approx(20 * PERIOD)
+    assert node.stats["controller_failsafes"] == 1 and len(node.stats["failsafes"]) == 1
+    assert node.stats["failsafes"][0]["controller_reason"] == "hover_timeout"
+    assert node.stats["steps"] == 30 and not node.stats["crashed"]
+    held = [row[-1] for row in node.rows]  # the truth log's failsafe column
+    assert held == [float(11 <= i < 20) for i in range(30)]
+
+
+def test_lockstep_failsafe_events_of_other_services_are_not_the_controllers():
+    node, session = make_node(*LOCKSTEP, n_steps=15)
+    ScriptedController(session, hover_between(5, 14), failsafe_at=(8,), src="bridge/b0")
+    node._lockstep()
+    assert sim_events(session) == [] and node.stats["controller_failsafes"] == 0
+    assert node._controller_failsafe is None
+
+
+def test_lockstep_setpoint_watchdog_still_resumes_on_any_answer():
+    """The watchdog's hold is about the link: answers in hover end it (the controller's
+    own hover bound then asks for the failsafe again)."""
+    node, session = make_node(
+        *LOCKSTEP, "--step-timeout", "0.001", "--failsafe-after", "0.2", n_steps=20
+    )
+    ScriptedController(session, lambda i: "silent" if 3 <= i <= 6 else "hover")
+    node._lockstep()
+    engaged, cleared = sim_events(session)
+    assert engaged.text.startswith("no setpoint for") and "reason" not in engaged.data
+    assert engaged.stamp == pytest.approx(6 * PERIOD)
+    assert cleared.stamp == pytest.approx(9 * PERIOD)  # 7, 8, 9 answered in hover
+    assert node.stats["controller_failsafes"] == 0
+
+
+def test_lockstep_the_controllers_failsafe_during_a_watchdog_hold_waits_for_tracking():
+    node, session = make_node(
+        *LOCKSTEP, "--step-timeout", "0.001", "--failsafe-after", "0.2", n_steps=25
+    )
+    ScriptedController(
+        session,
+        lambda i: "silent" if 3 <= i <= 6 else ("hover" if i <= 12 else "track"),
+        failsafe_at=(7,),
+    )
+    node._lockstep()
+    engaged, cleared = sim_events(session)  # one hold: the watchdog's, then both causes
+    assert engaged.stamp == pytest.approx(6 * PERIOD) and "reason" not in engaged.data
+    assert cleared.stamp == pytest.approx(15 * PERIOD)  # 13, 14, 15 track
+    assert node.stats["controller_failsafes"] == 1
+
+
+def test_realtime_the_controllers_failsafe_holds_until_it_tracks_again():
+    rate = 100.0
+    node, session = make_node(
+        "--rate", str(rate), "--preroll", "0", "--substep", "0.005", "--failsafe-after", "30",
+        n_steps=25,
+    )  # fmt: skip
+    ctrl = ScriptedController(session, hover_between(5, 14), failsafe_at=(0, 10))
+    node._realtime()
+    engaged, cleared = sim_events(session)
+    # The failsafe at instant 0 came before the mission started (at instant 1): ignored.
+    assert node.stats["controller_failsafes_ignored"] == 1
+    assert node.stats["controller_failsafes"] == 1
+    # Engaged in the physics chunk after instant 10 was answered (mission time 0.09 s).
+    assert engaged.data["controller_reason"] == "hover_timeout"
+    assert engaged.stamp >= ctrl.instants[10] and cleared.stamp >= ctrl.instants[18]
+    (record,) = node.stats["failsafes"]
+    # Instant i counts the answer to i - 1: 15, 16, 17 track -> cleared at instant 18.
+    assert record["t"] == pytest.approx(9 / rate)
+    assert record["cleared_t"] == pytest.approx(17 / rate)
+    held = [row[-1] for row in node.rows]  # row j: instant j + 1
+    assert held == [float(11 <= j + 1 < 18) for j in range(len(held))]
+    assert node.stats["missed_deadlines"] == 0
