@@ -91,6 +91,17 @@ def _fmt(v) -> str:
     return f"{v:.4g}"
 
 
+def format_params(params: dict[str, Any], units: dict[str, str] | None = None) -> str:
+    """``name = value`` per parameter, 4 significant digits, each followed by its unit
+    from ``units`` where it has one (none for dimensionless ``1``)."""
+
+    def unit(k: str) -> str:
+        u = (units or {}).get(k, "1")
+        return "" if u == "1" else f" {u}"
+
+    return "; ".join(f"{k} = {_fmt(v)}{unit(k)}" for k, v in params.items())
+
+
 def render_report(result: dict[str, Any], plots: list[Path]) -> str:
     """Markdown report: verdict, effects, gap before/after, where the gap was."""
     lines = [
@@ -111,7 +122,7 @@ def render_report(result: dict[str, Any], plots: list[Path]) -> str:
             "|---|---|---|---|---|---|",
         ]
         for e in result["effects"]:
-            params = "; ".join(f"{k} = {_fmt(v)}" for k, v in e["params"].items())
+            params = format_params(e["params"])
             interval = "; ".join(f"{k} in {_fmt(v)}" for k, v in e["interval"].items()) or "-"
             lines.append(
                 f"| {e['name']} | {params} | {interval} | {e['confidence']:.2f} | "

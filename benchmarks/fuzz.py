@@ -16,6 +16,7 @@ import re
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,27 +26,43 @@ from benchmarks.common import machine
 TESTS = ("tests/test_fuzz_messages.py", "tests/test_fuzz_handlers.py")
 
 
-def run(quick: bool = False, cases: int | None = None) -> dict[str, Any]:
-    """Run the fuzz tests with ``cases`` payloads per type/handler (``quick``: 1 000)."""
+def run(
+    quick: bool = False,
+    cases: int | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Run the fuzz tests with ``cases`` payloads per type/handler (``quick``: 1 000);
+    ``progress`` gets a start line and pytest's output line by line as it runs."""
     n = cases if cases is not None else (1_000 if quick else 10_000)
     root = Path(__file__).resolve().parents[1]
     missing = [t for t in TESTS if not (root / t).is_file()]
     if missing:
         raise FileNotFoundError(f"fuzz tests not found (source tree needed): {missing}")
     env = dict(os.environ, ARCADE_FUZZ_CASES=str(n), ARCADE_FUZZ_HANDLER_CASES=str(n))
+    if progress is not None:
+        progress(f"[fuzz] pytest {' '.join(TESTS)}, {n} cases per type and handler")
     t0 = time.perf_counter()
-    proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *TESTS],
+    # -v: a line per test as it ends (the progress); pytest's errors (e.g. no hypothesis
+    # installed) go into the output too, so that the summary names them.
+    with subprocess.Popen(
+        [sys.executable, "-m", "pytest", "-v", "-p", "no:cacheprovider", *TESTS],
         cwd=root,
         env=env,
-        capture_output=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
         text=True,
-        check=False,
-    )
+    ) as proc:
+        assert proc.stdout is not None
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            if progress is not None and line.strip():
+                progress(f"[fuzz] {line.rstrip()}")
     wall = time.perf_counter() - t0
-    summary = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
+    stdout = "".join(lines)
+    summary = stdout.strip().splitlines()[-1].strip("= ") if stdout.strip() else ""
     counts = {k: int(v) for v, k in re.findall(r"(\d+) (passed|failed|error)", summary)}
-    failed = re.findall(r"^FAILED (\S+)", proc.stdout, flags=re.M)
+    failed = re.findall(r"^FAILED (\S+)", stdout, flags=re.M)
     return {
         "machine": machine(),
         "cases_per_type_and_handler": n,

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -43,12 +44,27 @@ def _wakeup(stats: dict[str, Any]) -> int | None:
     return req.get("requested_us") if req.get("applied") else None
 
 
+def _every(period: float, show: Callable[[float], None]) -> Callable[[float], None]:
+    """An ``on_time`` hook that shows the flight time once per ``period`` seconds of it."""
+    last = [-period]
+
+    def on_time(t: float) -> None:
+        if t - last[0] >= period:
+            last[0] = t
+            show(t)
+
+    return on_time
+
+
 def run(
     quick: bool = False,
     out: Path | None = None,
     rate: float = RATE_HZ,
     duration: float | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
+    """Fly the stack in real time and measure (see the module docstring); ``progress``
+    gets the stack's start-up lines and the simulated time every 10 s."""
     from arcade.demo_stack import free_hub
     from benchmarks.common import machine
     from deploy.launcher import StackConfig, run_flight
@@ -57,7 +73,15 @@ def run(
     with tempfile.TemporaryDirectory(prefix="arcade-loop-") as tmp:
         folder = Path(out) if out is not None else Path(tmp)
         cfg = StackConfig(out=folder, lockstep=False, hub=free_hub(), rate=rate, duration=duration)
-        result = run_flight(cfg)
+        if progress is None:
+            result = run_flight(cfg)
+        else:
+            progress(f"[loop] {duration:g} s real-time flight at {rate:g} Hz")
+            result = run_flight(
+                cfg,
+                progress=lambda m: progress(f"[loop] {m}"),
+                on_time=_every(10.0, lambda t: progress(f"[loop] t = {t:.0f} s")),
+            )
         stats = {
             name: json.loads((folder / "stats" / f"{name}.json").read_text())
             for name in ("sim", "estimator", "controller", "adapter")

@@ -44,6 +44,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 from arcade import jsonout
@@ -227,11 +228,13 @@ def soak(
     seed: int = 0,
     config: Any = None,
     prior_floor: float | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Run the soak in this process; returns the statistics (see the module docstring).
 
     ``config``: the adaptation hyperparameters (default: the quadrotor preset);
-    ``prior_floor`` overrides its precision floor at changepoints (``0``: Eq. 5 as written).
+    ``prior_floor`` overrides its precision floor at changepoints (``0``: Eq. 5 as written);
+    ``progress`` gets a line at the start and after every tenth of the chunks.
     """
     import jax
     import jax.numpy as jnp
@@ -257,12 +260,19 @@ def soak(
     check(packed, jnp.zeros((chunk, L), dt), jnp.int32(0))[0].block_until_ready()
     compile_s = time.perf_counter() - t0
     min_eig, max_cond, data_max = math.inf, 0.0, 0.0
+    label = f"[soak] {dtype}, prior floor {_floor(cfg):g}"
+    if progress is not None:
+        progress(f"{label}: {n_chunks * chunk} steps (compiled in {compile_s:.1f} s)")
+    every = max(1, n_chunks // 10)
     t0 = time.perf_counter()
     for c in range(n_chunks):
         k0 = jnp.int32(c * chunk)
         packed, theta, st, zs = run(packed, theta, st, key, k0)
         e, cond, data = (float(v) for v in check(packed, zs, k0))
         min_eig, max_cond, data_max = min(min_eig, e), max(max_cond, cond), max(data_max, data)
+        if progress is not None and ((c + 1) % every == 0 or c + 1 == n_chunks):
+            done = (c + 1) * chunk
+            progress(f"{label}: {done} steps, {time.perf_counter() - t0:.0f} s")
     jax.block_until_ready(packed)
     wall = time.perf_counter() - t0
     s = {k: v.item() for k, v in st._asdict().items()}
@@ -317,10 +327,14 @@ def soak(
 
 
 def run(
-    quick: bool = False, steps: int | None = None, dtypes: tuple[str, ...] = ("float32", "float64")
+    quick: bool = False,
+    steps: int | None = None,
+    dtypes: tuple[str, ...] = ("float32", "float64"),
+    progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """``arcade bench soak``: 10^6 steps per dtype (``quick``: 2 x 10^4) with the quadrotor
-    preset, and with Eq. 5 as written (no prior floor) if the preset has a floor."""
+    preset, and with Eq. 5 as written (no prior floor) if the preset has a floor;
+    ``progress``: see :func:`soak`."""
     from arcade import jaxsetup
     from arcade_core import adaptation as A
 
@@ -331,7 +345,11 @@ def run(
     if _floor(A.quadrotor_config()) > 0:
         floors.append(0.0)
     with jaxsetup.x64():  # float64 runs need it; float32 arrays stay float32
-        results = [soak(n, dt, chunk=chunk, prior_floor=f) for f in floors for dt in dtypes]
+        results = [
+            soak(n, dt, chunk=chunk, prior_floor=f, progress=progress)
+            for f in floors
+            for dt in dtypes
+        ]
     return {
         "machine": machine(),
         "steps": n,

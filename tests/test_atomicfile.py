@@ -68,6 +68,14 @@ def test_only_write_modes_are_accepted(tmp_path):
         pass
 
 
+def test_a_bad_open_argument_closes_the_descriptor_and_removes_the_temporary(tmp_path):
+    opened = len(os.listdir("/proc/self/fd"))
+    with pytest.raises(LookupError), atomicfile.atomic_open(tmp_path / "x", encoding="nope"):
+        pass
+    assert len(os.listdir("/proc/self/fd")) == opened
+    assert _leftovers(tmp_path) == []
+
+
 def test_a_flight_log_that_fails_mid_write_keeps_the_previous_log(tmp_path, monkeypatch):
     path = tmp_path / "flight.csv"
     log = flightlog.FlightLog(

@@ -219,3 +219,25 @@ def test_variants_section_keeps_the_run_s_method_order_and_marks_the_best(tmp_pa
     assert "in 11 min" in text and "test machine" in text
     missing = "\n".join(report._variants_section(tmp_path / "none.json"))
     assert "No results yet" in missing and "arcade bench variants" in missing
+
+
+def test_discrepancy_section_names_what_was_found_and_what_was_not():
+    result = {
+        "minutes_of_data": 10.0,
+        "samples": 60001,
+        "cold_s": 20.4,
+        "warm_s": 14.2,
+        "target_s": 60.0,
+        "within_target": True,
+        "named": ["rotor_drag"],
+        "confidence": {"rotor_drag": 0.97},
+        "parameter_rel_error": {"rotor_drag": 0.012},
+        "heldout_rmse_before": 0.04,
+        "heldout_rmse_after": 0.01,
+        "heldout_components": ["vx", "vy"],
+    }
+    text = "\n".join(report._discrepancy_section(result))
+    assert "| 20.4 | 14.2 | True | rotor_drag | 0.0400 | 0.0100 | 75 % |" in text
+    assert "| rotor_drag | 0.97 | 1.2 % |" in text
+    assert "| motor_lag | — | not found |" in text  # hidden but not identified
+    assert "time_constant_s = 0.06" in text

@@ -92,3 +92,84 @@ def test_bench_adapt_json_contract():
         assert ks == [5, 10, 15, 20, 30], (floor, ks)
     for r in result["results"]:
         assert 0 < r["median_us"] <= r["p99_us"]
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--solver", "dogleg"], "belong to `arcade bench mpc`"),
+        (["--residual", "held", "--max-steps", "0"], "belong to `arcade bench mpc`"),
+        (["--json"], "--json: `arcade bench report` writes a markdown file"),
+    ],
+)
+def test_bench_report_refuses_options_of_other_benchmarks(
+    tmp_path, monkeypatch, capsys, options, message
+):
+    def reached(*args, **kwargs):
+        raise AssertionError("the report started despite a usage error")
+
+    monkeypatch.setattr("benchmarks.report.write_report", reached)
+    assert main(["bench", "report", "--out", str(tmp_path / "B.md"), *options]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("which", ["soak", "fuzz"])
+@pytest.mark.parametrize("ok", [True, False])
+def test_bench_checks_exit_1_when_they_fail_and_show_progress(monkeypatch, capsys, which, ok):
+    def run(quick, progress):
+        progress(f"{which} halfway")
+        return {"ok": ok}
+
+    monkeypatch.setattr(f"benchmarks.{which}.run", run)
+    assert main(["bench", which, "--quick", "--json"]) == (0 if ok else 1)
+    captured = capsys.readouterr()
+    assert json.loads(captured.out) == {"ok": ok}  # stdout stays the result
+    assert captured.err == f"{which} halfway\n"
+
+
+def test_bench_fuzz_without_the_tests_is_one_line(monkeypatch, capsys):
+    def run(quick, progress):
+        raise FileNotFoundError("fuzz tests not found (source tree needed): ['tests/x.py']")
+
+    monkeypatch.setattr("benchmarks.fuzz.run", run)
+    assert main(["bench", "fuzz"]) == 1
+    err = capsys.readouterr().err
+    assert err == "error: fuzz tests not found (source tree needed): ['tests/x.py']\n"
+
+
+def test_bench_help_gives_the_durations(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    for phrase in ("loop ~2.5 min", "soak ~3 min", "variants ~13 min", "report 6-8 min"):
+        assert phrase in out
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "variants alone ~13 min" in out and "~25 min" in out
+
+
+def test_soak_reports_progress_per_tenth_of_its_chunks():
+    from arcade import jaxsetup
+
+    jaxsetup.configure()
+    from benchmarks import soak
+
+    lines: list[str] = []
+    result = soak.soak(steps=200, chunk=10, progress=lines.append)
+    assert result["steps"] == 200
+    assert lines[0].startswith("[soak] float32, prior floor ") and "200 steps" in lines[0]
+    assert [ln.split(": ")[1].split(" steps")[0] for ln in lines[1:]] == [
+        str(k) for k in range(20, 201, 20)
+    ]
+
+
+def test_loop_shows_the_flight_time_every_period():
+    from benchmarks.loop import _every
+
+    shown: list[float] = []
+    on_time = _every(10.0, shown.append)
+    for t in (0.0, 4.0, 9.9, 10.0, 15.0, 20.5, 29.0, 31.0):
+        on_time(t)
+    assert shown == [0.0, 10.0, 20.5, 31.0]

@@ -4,7 +4,11 @@ starts and before a run folder is made. The work itself is replaced by functions
 fail the test if they are reached, so these tests take seconds."""
 
 import json
+import shutil
 import socket
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -92,6 +96,12 @@ def test_sim_usage_errors_exit_2_before_the_vehicle_starts(
     code = _exit_code(["sim", "--px4", "udpout://127.0.0.1:14540", *extra])
     assert code == 2
     assert expect in _error_line(capsys)
+
+
+def test_sim_help_states_the_vision_timeout_default(capsys):
+    assert _exit_code(["sim", "--help"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "no longer gives a valid position [s] (default: 0.5)" in out
 
 
 def test_sim_bad_url_is_a_usage_error(workdir, monkeypatch, capsys):
@@ -215,6 +225,49 @@ def test_discrepancy_names_the_system_a_log_belongs_to(quad_log, cartpole_log, m
     assert "missing column(s)" in _error_line(capsys)
 
 
+def test_discrepancy_log_that_is_a_folder_says_so(workdir, monkeypatch, capsys):
+    _forbid(monkeypatch, "arcade.commands.discrepancy.run_workflow")
+    (workdir / "flights").mkdir()
+    assert _exit_code(["discrepancy", "flights"]) == 2
+    assert _error_line(capsys) == "error: flight log flights is a directory, not a CSV file"
+
+
+def test_discrepancy_text_output_formats_the_parameters(quad_log, monkeypatch, capsys):
+    from arcade.commands.discrepancy import Outcome
+
+    drag = {"d": [0.5998447167674859, 0.601546438477104, 0.10928580501224755]}
+    result = {
+        "summary": "missing effect: rotor_drag",
+        "effects": [
+            {"name": "rotor_drag", "params": drag, "confidence": 1.0, "added": True},
+            {"name": "thrust_scale", "params": {"scale": 1.0123456}, "confidence": 0.6,
+             "added": False},
+        ],
+        "heldout_components": ["vx", "vy"],
+        "heldout_rmse_before": 0.2,
+        "heldout_rmse_after": 0.1,
+        "model_file": "vehicle.toml",
+    }  # fmt: skip
+    monkeypatch.setattr(
+        "arcade.commands.discrepancy.run_workflow", lambda *a, **k: Outcome(result=result)
+    )
+    assert _exit_code(["discrepancy", quad_log.name, "--out", "d"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "  rotor_drag: d = [0.5998, 0.6015, 0.1093] 1/s, confidence 1.00" in out
+    assert "  thrust_scale: scale = 1.012, confidence 0.60 (not added)" in out
+
+
+def test_effects_name_the_quantity_and_unit_of_the_detection_limit(capsys):
+    from arcade_core.discrepancy.catalog import DETECTABLE
+
+    assert _exit_code(["effects", "--system", "quadrotor"]) == 0
+    out = capsys.readouterr().out
+    assert "detectable on the standard trajectory from largest |d| = 0.35 1/s" in out
+    assert "from rotor radius = 0.15 m" in out
+    assert "from |scale - 1| = 0.06\n" in out
+    assert out.count("detectable on the standard trajectory from") == len(DETECTABLE)
+
+
 def test_discrepancy_help_lists_columns_ranges_and_defaults(capsys):
     assert _exit_code(["discrepancy", "--help"]) == 0
     out = " ".join(capsys.readouterr().out.split())
@@ -283,3 +336,25 @@ def test_invalid_toml_errors_name_the_file(workdir):
     (workdir / "partial.toml").write_text("[body]\nmass_kg = 0.5\n[rotors]\n[rate_loop]\n")
     with pytest.raises(ValueError, match=r"partial\.toml: \[body\] inertia_kgm2 must be"):
         load_vehicle(workdir / "partial.toml")
+
+
+# --------------------------------------------------------------------------- Makefile
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
+def test_make_refuses_a_python_older_than_3_11(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    for name in ("Makefile", "pyproject.toml"):
+        shutil.copy(root / name, tmp_path / name)
+    old = tmp_path / "python3.10"
+    old.write_text(f"#!/bin/sh\nexec {sys.executable} -c 'import sys; sys.exit(1)' \"$@\"\n")
+    old.chmod(0o755)
+    proc = subprocess.run(
+        ["make", f"PYTHON={old}", "install"], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert proc.returncode != 0
+    assert f"error: {old} is not Python 3.11 or newer" in proc.stderr
+    assert not (tmp_path / ".venv").exists()
+    # An unknown target is an error, not a silent success.
+    bench = subprocess.run(["make", "bench"], cwd=tmp_path, capture_output=True, text=True)
+    assert bench.returncode != 0

@@ -36,6 +36,16 @@ def elsewhere(tmp_path, monkeypatch):
     return tmp_path
 
 
+def _forbid_flight(monkeypatch) -> None:
+    """Fail the test if `arcade up` or `arcade demo` start flying."""
+
+    def reached(*args, **kwargs):
+        raise AssertionError("the flight started despite a usage error")
+
+    monkeypatch.setattr("deploy.launcher.run_flight", reached)
+    monkeypatch.setattr("arcade.demo_stack.run_demo", reached)
+
+
 def _value(args: list[str], option: str) -> str:
     return args[args.index(option) + 1]
 
@@ -135,9 +145,44 @@ def test_bad_numbers_are_argument_errors(elsewhere, capsys, argv, message):
         (["up", "--profile", "px4", "--on-ground"], "--on-ground is for the simulated PX4"),
         (["up", "--profile", "px4", "--takeoff-m", "-1"], "--takeoff-m must be a positive"),
         (["demo", "--cartpole", "--speed", "3", "--x64"], "--speed, --x64: not with --cartpole"),
+        (
+            ["up", "--lockstep", "--hub", "not-an-endpoint"],
+            "--hub not-an-endpoint: Endpoints must be of the form <protocol>/<address>",
+        ),
+        (
+            ["up", "--lockstep", "--vehicle", "deploy/vehicles/default.toml"],
+            "--vehicle is the vehicle's name on the bus, not a vehicle file: invalid vehicle name",
+        ),
+        (
+            ["up", "--vehicle", "my_quad.toml"],
+            "--vehicle is the vehicle's name on the bus, not a vehicle file: 'my_quad.toml'",
+        ),
+        (
+            ["up", "--profile", "px4", "--bridge-arg=--geofence=abc"],
+            "--bridge-arg: --geofence abc: could not convert",
+        ),
+        (
+            ["up", "--profile", "px4", "--bridge-arg=--geofence=-1,1,-1,1,0"],
+            "--bridge-arg: --geofence -1,1,-1,1,0: geofence needs 6 finite numbers",
+        ),
+        (
+            ["up", "--profile", "px4", "--bridge-arg=--max-throttle=high"],
+            "--bridge-arg: argument --max-throttle: invalid float value: 'high'",
+        ),
+        (
+            ["up", "--profile", "px4", "--bridge-arg=--geofense=-1,1,-1,1,0,2"],
+            "--bridge-arg: unrecognized arguments: --geofense=-1,1,-1,1,0,2",
+        ),
+        (
+            ["up", "--profile", "px4", "--bridge-arg=--vehicle-file=missing.toml"],
+            "--bridge-arg: vehicle file not found: missing.toml",
+        ),
+        (["up", "--lockstep", "--payload-g", "5000"], "--payload-g must be below 1059 g"),
+        (["demo", "--payload-g", "1059"], "--payload-g must be below 1059 g"),
     ],
 )
-def test_options_that_do_not_fit_together(elsewhere, capsys, argv, message):
+def test_options_that_do_not_fit_together(elsewhere, capsys, monkeypatch, argv, message):
+    _forbid_flight(monkeypatch)
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {message}") and err.count("\n") == 1
@@ -147,10 +192,78 @@ def test_options_that_do_not_fit_together(elsewhere, capsys, argv, message):
 # ------------------------------------------------------------------ weights
 
 
+def test_bridge_args_are_parsed_as_the_bridge_parses_them():
+    from arcade.commands.up import parse_bridge_args
+
+    bridge = parse_bridge_args(["--geofence=-3,3,-3,3,0,3", "--max-throttle", "0.8"])
+    assert (bridge.geofence, bridge.max_throttle) == ("-3,3,-3,3,0,3", 0.8)
+    assert parse_bridge_args([]).geofence == "-5,5,-5,5,-0.5,4"  # the bridge's default
+
+
+def test_payload_heavier_than_the_bridges_vehicle_file_lifts_is_refused(
+    elsewhere, capsys, monkeypatch
+):
+    """With --profile px4 the payload is checked against the bridge's --vehicle-file."""
+    from arcade.vehicle import DEFAULT_VEHICLE
+
+    _forbid_flight(monkeypatch)
+
+    light = DEFAULT_VEHICLE.read_text().replace("max_thrust_n = 4.0", "max_thrust_n = 2.0")
+    assert light != DEFAULT_VEHICLE.read_text()
+    Path("light.toml").write_text(light)
+    argv = [
+        "up",
+        "--profile",
+        "px4",
+        "--payload-g",
+        "300",
+        "--bridge-arg=--vehicle-file=light.toml",
+    ]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.startswith("error: --payload-g must be below 243 g")
+    assert not (elsewhere / "runs").exists()
+
+
+def test_a_bus_error_while_flying_is_one_line(elsewhere, capsys, monkeypatch):
+    import zenoh
+
+    def fail(*args, **kwargs):
+        raise zenoh.ZError(
+            "Can not create a new TCP listener bound to tcp/127.0.0.1:7450 at x.rs:5."
+        )
+
+    monkeypatch.setattr("deploy.launcher.run_flight", fail)
+    assert main(["up", "--lockstep", "--out", "r"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: bus: Can not create a new TCP listener bound to tcp/127.0.0.1:7450"]
+
+
+def test_up_help_states_defaults_and_units(capsys):
+    with pytest.raises(SystemExit):
+        main(["up", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "a PX4 vehicle link (default: sim)" in out
+    assert "not a vehicle file (default: default)" in out
+    assert "(default: <run folder>/adapter_checkpoint.npz, removed at start" in out
+    assert "takes off to this height above the ground [m]" in out
+    assert "$ARCADE_RUNS" in out
+    assert "(default: real time)" in out
+
+
+def test_train_help_states_the_epochs_of_each_system(capsys):
+    from arcade_core import encoder
+
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    cartpole, quadrotor = encoder.cartpole_config().epochs, encoder.quadrotor_config().epochs
+    assert f"{cartpole} for the cartpole, {quadrotor} for the quadrotor" in out
+
+
 @pytest.mark.parametrize("command", [["up", "--lockstep"], ["demo"], ["demo", "--cartpole"]])
 def test_missing_weights_file_is_an_error(elsewhere, capsys, command):
     assert main([*command, "--weights", "typo.eqx"]) == 2
-    assert capsys.readouterr().err == "error: typo.eqx: no such file\n"
+    assert capsys.readouterr().err == "error: --weights typo.eqx: no such file\n"
     assert not (elsewhere / "runs").exists() and not (elsewhere / "typo.eqx").exists()
 
 
@@ -158,7 +271,8 @@ def test_missing_weights_file_is_an_error(elsewhere, capsys, command):
 def test_corrupt_weights_file_is_an_error(elsewhere, capsys, command):
     Path("q.csv").write_text("t,x\n0,1\n")
     assert main([*command, "--weights", "q.csv"]) == 2
-    assert capsys.readouterr().err == ("error: q.csv: not an ARCADE VLD weight file (bad magic)\n")
+    err = capsys.readouterr().err
+    assert err == "error: --weights q.csv: not an ARCADE VLD weight file (bad magic)\n"
     assert not (elsewhere / "runs").exists()
 
 
@@ -176,7 +290,7 @@ def test_corrupt_weights_file_is_an_error(elsewhere, capsys, command):
 )
 def test_weights_of_another_system_are_an_error(elsewhere, capsys, command, file, message):
     assert main([*command, "--weights", str(WEIGHTS / file)]) == 2
-    assert capsys.readouterr().err == f"error: {WEIGHTS / file}: {message}\n"
+    assert capsys.readouterr().err == f"error: --weights {WEIGHTS / file}: {message}\n"
     assert not (elsewhere / "runs").exists()
 
 

@@ -10,8 +10,22 @@ from arcade import atomicfile, jsonout
 
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
-    "fuzzing, quadrotor variants beside ours (~13 min); `report` regenerates BENCHMARKS.md"
+    "fuzzing, quadrotor variants beside ours; `report` regenerates BENCHMARKS.md "
+    "(on 2 cores: report 6-8 min, variants alone ~13 min)"
 )
+
+#: Wall time of the long benchmarks on 2 CPU cores (BENCHMARKS.md, README).
+DURATIONS = (
+    "time on 2 CPU cores: loop ~2.5 min (a 120 s real-time flight after start-up), soak\n"
+    "~3 min, variants ~13 min, report 6-8 min (it re-runs the latency benchmarks, the soak\n"
+    "and the cartpole evaluation, and renders the stored quadrotor results).\n"
+    "loop, soak and fuzz show progress on stderr; the result (JSON) goes to stdout.\n"
+    "fuzz runs the fuzz tests with pytest: it needs the source tree and the dev extras\n"
+    "(pip install -e '.[dev]'). soak and fuzz exit with 1 when a check fails."
+)
+
+#: Benchmarks whose ``run`` takes ``progress`` (one line at a time, shown on stderr).
+WITH_PROGRESS = ("loop", "soak", "fuzz")
 
 # name -> module in `benchmarks/` exposing run(**kwargs) -> dict
 BENCHES = {
@@ -28,8 +42,15 @@ BENCHES = {
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from arcade.runs import count
 
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.epilog = DURATIONS
     p.add_argument("which", choices=[*BENCHES, "report"], help="benchmark to run")
-    p.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print the result as one JSON object on one line (default: indented JSON; "
+        "discrepancy --sweep: a markdown table); not for report",
+    )
     p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke run)")
     p.add_argument(
         "--out",
@@ -104,22 +125,6 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.which == "discrepancy" and sweep_options:
         return _discrepancy_sweep(args)
-    if args.which == "report":
-        from arcade.runs import check_output_file
-
-        out = args.out or "BENCHMARKS.md"
-        try:
-            check_output_file(out, "--out")
-        except ValueError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        jaxsetup.configure()
-        from benchmarks.report import write_report
-
-        path = write_report(out, quick=args.quick)
-        print(f"wrote {path}")
-        return 0
-    jaxsetup.configure()
     mpc_options = {
         k: v
         for k, v in (
@@ -135,6 +140,25 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    if args.which == "report":
+        if args.json:
+            print("error: --json: `arcade bench report` writes a markdown file", file=sys.stderr)
+            return 2
+        from arcade.runs import check_output_file
+
+        out = args.out or "BENCHMARKS.md"
+        try:
+            check_output_file(out, "--out")
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        jaxsetup.configure()
+        from benchmarks.report import write_report
+
+        path = write_report(out, quick=args.quick)
+        print(f"wrote {path}")
+        return 0
+    jaxsetup.configure()
     if args.max_steps is not None and args.max_steps < 1:
         print("error: --max-steps must be at least 1", file=sys.stderr)
         return 2
@@ -145,7 +169,16 @@ def run(args: argparse.Namespace) -> int:
             print(f"error: --solver must be one of {', '.join(SOLVERS)}", file=sys.stderr)
             return 2
     module = importlib.import_module(BENCHES[args.which])
-    result = module.run(quick=args.quick, **mpc_options)
+    extra = {}
+    if args.which in WITH_PROGRESS:  # long runs: a line now and then, stdout stays the result
+        extra["progress"] = lambda m: print(m, file=sys.stderr, flush=True)
+    try:
+        result = module.run(quick=args.quick, **mpc_options, **extra)
+    except FileNotFoundError as exc:
+        if args.which != "fuzz":
+            raise
+        print(f"error: {exc}", file=sys.stderr)  # the fuzz tests are not installed
+        return 1
     if args.out is not None:  # written whole, so a failed run leaves an older file intact
         from pathlib import Path
 
@@ -156,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(jsonout.dumps(result, indent=2))
     sys.stdout.flush()
-    return 0
+    return 0 if result.get("ok", True) else 1  # soak and fuzz: checks failed
 
 
 def _discrepancy_sweep(args: argparse.Namespace) -> int:

@@ -23,13 +23,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--out",
         type=Path,
         default=None,
-        help="run folder (default runs/<time>-demo; relative to the current directory)",
+        help="run folder (default $ARCADE_RUNS/<time>-demo, or -demo-cartpole, "
+        "$ARCADE_RUNS defaulting to runs; relative to the current directory)",
     )
     p.add_argument(
         "--payload-g",
         type=number(0.0),
         default=None,
-        help=f"swinging payload [g] (default: {PAYLOAD_G:g})",
+        help=f"swinging payload [g], below what the vehicle lifts at full thrust "
+        f"(default: {PAYLOAD_G:g})",
     )
     p.add_argument(
         "--speed",
@@ -86,7 +88,9 @@ def run_cartpole(args: argparse.Namespace) -> int:
     try:  # a given file must load; the shipped one is trained first when it is missing
         vld = load_cartpole(args.weights)
     except (OSError, WeightFileError) as err:
-        return _error(str(err).splitlines()[0], 2 if args.weights is not None else 1)
+        if args.weights is None:  # the shipped file
+            return _error(str(err).splitlines()[0], 1)
+        return _error(f"--weights {str(err).splitlines()[0]}")
     from arcade.demo_cartpole import run_demo
 
     out = args.out or new_run_dir("demo-cartpole")
@@ -107,6 +111,14 @@ def run_cartpole(args: argparse.Namespace) -> int:
     return 0
 
 
+def payload_problem(payload_g: float | None) -> str | None:
+    """Why the stack demo's payload is more than the shipped vehicle lifts, or None."""
+    from arcade.commands.sim import payload_limit_problem
+    from arcade.vehicle import load_vehicle
+
+    return payload_limit_problem(load_vehicle(None), PAYLOAD_G if payload_g is None else payload_g)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.cartpole:
         return run_cartpole(args)
@@ -114,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     from arcade.commands.up import out_problem, weights_problem
     from arcade.runs import new_run_dir
 
-    problem = out_problem(args.out)
+    problem = payload_problem(args.payload_g) or out_problem(args.out)
     if problem is not None:
         return _error(problem)
     jaxsetup.configure(x64=args.x64)

@@ -809,6 +809,19 @@ def check_model_file(system: str, path: Path | None) -> None:
         raise ValueError(f"{path or 'default model'}: {exc}") from None
 
 
+def effect_line(effect: dict[str, Any]) -> str:
+    """One identified effect of the result as text: name, parameters with units (as in
+    report.md), confidence, and whether it was added to the model file."""
+    from arcade.discrepancy_report import format_params
+    from arcade_core.discrepancy.catalog import EFFECTS
+
+    units = {k: p.unit for k, p in EFFECTS[effect["name"]].params.items()}
+    return (
+        f"{effect['name']}: {format_params(effect['params'], units)}, confidence "
+        f"{effect['confidence']:.2f}{'' if effect['added'] else ' (not added)'}"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     from arcade.flightlog import LogError, read_log
     from arcade.runs import check_output_dir, check_runs_root, new_run_dir
@@ -824,6 +837,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             check_runs_root()
         check_model_file(args.system, args.vehicle)
+        if args.log.is_dir():
+            raise ValueError(f"flight log {args.log} is a directory, not a CSV file")
         try:
             log = read_log(args.log, args.system)
         except LogError:
@@ -857,10 +872,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(result["summary"])
         for e in result["effects"]:
-            print(
-                f"  {e['name']}: {e['params']} confidence {e['confidence']:.2f}"
-                f"{'' if e['added'] else ' (not added)'}"
-            )
+            print(f"  {effect_line(e)}")
         print(
             f"held-out one-step RMSE on {', '.join(result['heldout_components'])}: "
             f"{result['heldout_rmse_before']:.4g} -> {result['heldout_rmse_after']:.4g}"

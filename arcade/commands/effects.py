@@ -8,6 +8,19 @@ from arcade import jsonout
 
 HELP = "list the library of physical effects (name, parameters with units and ranges)"
 
+#: What the detectability threshold of each quadrotor effect measures, with its unit
+#: (``arcade_core.discrepancy.catalog.magnitude``).
+MAGNITUDES = {
+    "rotor_drag": ("largest |d|", "1/s"),
+    "quadratic_drag": ("largest |c|", "kg/m"),
+    "ground_effect": ("rotor radius", "m"),
+    "thrust_scale": ("|scale - 1|", ""),
+    "motor_lag": ("change of the motor time constant", "s"),
+    "rate_lag": ("delay + filter time constant", "s"),
+    "com_offset": ("horizontal offset", "m"),
+    "wind": ("wind speed", "m/s"),
+}
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
@@ -29,7 +42,11 @@ def run(args: argparse.Namespace) -> int:
     for e in effects:
         print(f"{e['name']} ({e['system']}): {e['description']}")
         if e["detectable_from"] is not None:
-            print(f"    detectable on the standard trajectory from {e['detectable_from']:g}")
+            quantity, unit = MAGNITUDES[e["name"]]
+            print(
+                f"    detectable on the standard trajectory from {quantity} = "
+                f"{e['detectable_from']:g}{f' {unit}' if unit else ''}"
+            )
         for k, p in e["params"].items():
             lo, hi = p["range"]
             default = "" if p["default"] is None else f", default {p['default']}"

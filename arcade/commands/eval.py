@@ -11,7 +11,7 @@ from arcade import atomicfile, jsonout
 
 HELP = (
     "reproduce the paper's evaluations, all methods in one run (cartpole: Table I, Fig. 3, "
-    "App. E; quadrotor: Tables II, III, V, Figs. 4-5)"
+    "App. E, ~2 min on 2 cores; quadrotor: Tables II, III, V, Figs. 4-5, ~25 min on 2 cores)"
 )
 
 
@@ -33,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         help="folder for figures and results.json, created if needed "
-        "(default: runs/<time>-eval-<system>)",
+        "(default: $ARCADE_RUNS/<time>-eval-<system>, $ARCADE_RUNS defaulting to runs)",
     )
     p.add_argument("--seed", type=count(0), default=0, help="seed (default: %(default)s)")
 

@@ -78,6 +78,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="stop after this many seconds, > 0 (default: until Ctrl-C)",
     )
     add_failsafe_arguments(p)
+    for action in p._actions:  # the shared option's help does not show its default
+        if action.dest == "vision_timeout" and "default" not in action.help:
+            action.help += " (default: %(default)s)"
     p.add_argument(
         "--takeoff-alt",
         type=number(0.0, low_open=True),
@@ -125,10 +128,23 @@ def status_line(v) -> str:
     )
 
 
+def payload_limit_problem(vehicle: dict, payload_g: float) -> str | None:
+    """Why ``payload_g`` is more than ``vehicle`` lifts at full thrust (one line), or None."""
+    from arcade.vehicle import max_payload_g
+
+    limit = max_payload_g(vehicle)
+    if payload_g >= limit:
+        return (
+            f"--payload-g must be below {limit:.0f} g for this vehicle (the rotors' full "
+            f"thrust carries no more), got {payload_g:g}"
+        )
+    return None
+
+
 def check_arguments(args: argparse.Namespace) -> dict:
     """The vehicle file, checked with the options that depend on it; ``ValueError`` /
     ``FileNotFoundError`` with a one-line message otherwise (nothing has started yet)."""
-    from arcade.vehicle import load_vehicle, max_payload_g
+    from arcade.vehicle import load_vehicle
     from simulator.px4.link import parse_url
 
     try:
@@ -139,12 +155,9 @@ def check_arguments(args: argparse.Namespace) -> dict:
             f"--px4: {msg}" if args.px4 in msg else f"--px4 {args.px4}: {msg}"
         ) from None
     vehicle = load_vehicle(args.vehicle)
-    limit = max_payload_g(vehicle)
-    if args.payload_g >= limit:
-        raise ValueError(
-            f"--payload-g must be below {limit:.0f} g for this vehicle (the rotors' full "
-            f"thrust carries no more), got {args.payload_g:g}"
-        )
+    problem = payload_limit_problem(vehicle, args.payload_g)
+    if problem is not None:
+        raise ValueError(problem)
     if args.payload_g == 0.0:
         for flag, value in (
             ("--cable-length", args.cable_length),

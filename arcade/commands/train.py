@@ -8,6 +8,10 @@ from pathlib import Path
 
 HELP = "offline training of the VLD encoder and decoder prior; writes a weights file"
 
+#: The training configurations' epochs (``arcade_core.encoder``), stated here so that
+#: ``--help`` does not import JAX.
+EPOCHS = {"cartpole": 50, "quadrotor": 100}
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from arcade.runs import count
@@ -24,7 +28,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="weights file to write (default: the shipped file under deploy/weights/)",
     )
-    p.add_argument("--epochs", type=count(1), default=None, help="override the Appendix D epochs")
+    p.add_argument(
+        "--epochs",
+        type=count(1),
+        default=None,
+        help=f"training epochs, at least 1 (default: Appendix D's, {EPOCHS['cartpole']} for "
+        f"the cartpole, {EPOCHS['quadrotor']} for the quadrotor)",
+    )
     p.add_argument(
         "--deterministic",
         action="store_true",

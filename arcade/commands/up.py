@@ -29,20 +29,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "failsafes and degraded modes are shown as they happen. Options that do not fit\n"
         "together and a --weights file that does not load are refused (exit code 2)\n"
         "before anything starts. Service options (e.g. the controller's --max-model-age)\n"
-        "are set with `python -m services NAME` or StackConfig.extra from Python."
+        "are set with `python -m services NAME` or StackConfig.extra from Python.\n"
+        "The clock is real time unless --lockstep is given. Without --out the run folder\n"
+        "is made under $ARCADE_RUNS (default runs/)."
     )
     p.add_argument(
         "--profile",
         choices=("sim", "px4"),
         default="sim",
-        help="sim: MuJoCo simulator as the vehicle; px4: a PX4 vehicle link",
+        help="sim: MuJoCo simulator as the vehicle; px4: a PX4 vehicle link (default: %(default)s)",
     )
     p.add_argument(
         "--lockstep",
         action="store_true",
-        help="simulated clock: the simulator waits for every setpoint",
+        help="simulated clock: the simulator waits for every setpoint (default: real time)",
     )
-    p.add_argument("--vehicle", default="default", help="vehicle name on the bus")
+    p.add_argument(
+        "--vehicle",
+        default="default",
+        metavar="NAME",
+        help="the vehicle's name on the bus (topic prefix arcade/NAME/...), not a vehicle "
+        "file (default: %(default)s)",
+    )
     p.add_argument(
         "--duration",
         type=number(0.0, low_open=True),
@@ -53,7 +61,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--payload-g",
         type=number(0.0),
         default=175.0,
-        help="swinging payload [g] (default: %(default)s)",
+        help="swinging payload [g], below what the vehicle lifts at full thrust "
+        "(default: %(default)s)",
     )
     p.add_argument(
         "--speed",
@@ -72,7 +81,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--out",
         type=Path,
         default=None,
-        help="run folder (default runs/<time>-up; relative to the current directory)",
+        help="run folder (default $ARCADE_RUNS/<time>-up, $ARCADE_RUNS defaulting to runs; "
+        "relative to the current directory)",
     )
     p.add_argument(
         "--hub",
@@ -101,7 +111,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--checkpoint",
         type=Path,
         default=None,
-        help="adapter posterior checkpoint (restored if present)",
+        help="adapter posterior checkpoint, restored if present (default: "
+        "<run folder>/adapter_checkpoint.npz, removed at start: the flight starts at the "
+        "prior)",
     )
     p.add_argument("--x64", action="store_true", help="compute in float64")
     p.add_argument(
@@ -116,6 +128,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from deploy import px4_profile
 
     px4_profile.add_arguments(p)
+    _set_help(
+        p,
+        "takeoff_m",
+        "on the ground: PX4 takes off to this height above the ground [m], > 0, before "
+        "offboard (default: none, offboard engages where the vehicle is)",
+    )
+
+
+def _set_help(p: argparse.ArgumentParser, dest: str, text: str) -> None:
+    """Replace the help of the option stored in ``dest`` (one defined with the profile)."""
+    (action,) = (a for a in p._actions if a.dest == dest)
+    action.help = text
 
 
 #: The px4 profile's options and the value each has when not given.
@@ -130,9 +154,12 @@ PX4_OPTIONS = {
 
 
 def usage_problem(args: argparse.Namespace) -> str | None:
-    """Why these options do not fit together (one line), or None."""
+    """Why these options do not fit together or do not parse (one line), or None."""
     if args.bus_configs is not None and args.hub is not None:
         return "--hub and --bus-configs exclude each other: the configurations name the endpoints"
+    problem = hub_problem(args.hub) or vehicle_name_problem(args.vehicle)
+    if problem is not None:
+        return problem
     if args.profile != "px4":
         given = [k for k, v in PX4_OPTIONS.items() if getattr(args, k) != v]
         if given:
@@ -145,7 +172,84 @@ def usage_problem(args: argparse.Namespace) -> str | None:
         return "--on-ground is for the simulated PX4: add --simulate"
     if args.takeoff_m is not None and not (math.isfinite(args.takeoff_m) and args.takeoff_m > 0):
         return f"--takeoff-m must be a positive number, got {args.takeoff_m:g}"
+    return bridge_args_problem(args.bridge_arg)
+
+
+def hub_problem(hub: str | None) -> str | None:
+    """Why ``--hub`` is not a Zenoh endpoint (the peers' configuration is refused), or None."""
+    if hub is None:
+        return None
+    import zenoh
+
+    from services.bus import peer_config, zenoh_reason
+
+    try:
+        peer_config(hub)
+    except zenoh.ZError as err:
+        return f"--hub {hub}: {zenoh_reason(err)}"
     return None
+
+
+def vehicle_name_problem(name: str) -> str | None:
+    """Why ``--vehicle`` is not a bus name, or None. A vehicle file is a common mistake:
+    ``arcade sim``, ``simulate`` and ``discrepancy`` take one under the same option."""
+    from services.bus import _check_name
+
+    try:
+        _check_name("vehicle", name)
+        if name.endswith(".toml"):
+            raise ValueError(f"{name!r} looks like a vehicle file")
+    except ValueError as err:
+        return (
+            f"--vehicle is the vehicle's name on the bus, not a vehicle file: {err}; a vehicle "
+            "file goes to the bridge with --profile px4 --bridge-arg=--vehicle-file=FILE"
+        )
+    return None
+
+
+def parse_bridge_args(bridge_args: list[str]) -> argparse.Namespace:
+    """``--bridge-arg`` values parsed with the bridge's own options and its geofence check,
+    as the bridge will parse them; ``ValueError`` with one line otherwise."""
+    from services import px4_bridge, runtime
+
+    parser = runtime.common_parser("bridge", "PX4 bridge")
+    px4_bridge._extra(parser)
+
+    def refuse(message: str) -> None:  # instead of printing the usage and exiting
+        raise ValueError(message)
+
+    parser.error = refuse  # type: ignore[method-assign]
+    bridge = parser.parse_args(bridge_args)
+    try:
+        px4_bridge.Geofence.parse(bridge.geofence)
+    except ValueError as err:
+        raise ValueError(f"--geofence {bridge.geofence}: {err}") from None
+    return bridge
+
+
+def bridge_args_problem(bridge_args: list[str]) -> str | None:
+    """Why the bridge would refuse ``--bridge-arg`` at its start (one line), or None."""
+    try:
+        parse_bridge_args(bridge_args)
+    except ValueError as err:
+        return f"--bridge-arg: {err}"
+    return None
+
+
+def payload_problem(args: argparse.Namespace) -> str | None:
+    """Why ``--payload-g`` is more than the vehicle lifts (the shipped vehicle, or the
+    bridge's ``--vehicle-file``), or None."""
+    from arcade.commands.sim import payload_limit_problem
+    from arcade.vehicle import load_vehicle
+
+    vehicle_file = None
+    if args.profile == "px4" and args.bridge_arg:
+        vehicle_file = parse_bridge_args(args.bridge_arg).vehicle_file
+    try:
+        vehicle = load_vehicle(vehicle_file)
+    except (OSError, ValueError) as err:
+        return f"--bridge-arg: {err}"
+    return payload_limit_problem(vehicle, args.payload_g)
 
 
 def bus_configs(directory: Path, processes: tuple[str, ...]) -> dict[str, Path] | str:
@@ -197,7 +301,7 @@ def weights_problem(path: Path | None) -> tuple[str, int] | None:
     problem = weight_file_problem(DEFAULT_WEIGHTS if path is None else path, "quadrotor")
     if problem is None:
         return None
-    return problem, 2 if path is not None else 1
+    return (f"--weights {problem}", 2) if path is not None else (problem, 1)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -207,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
         print(msg, file=sys.stderr, flush=True)
 
     # Everything a user can get wrong is refused before the run folder exists.
-    problem = usage_problem(args) or out_problem(args.out)
+    problem = usage_problem(args) or payload_problem(args) or out_problem(args.out)
     if problem is not None:
         say(f"error: {problem}")
         return 2
@@ -229,6 +333,8 @@ def run(args: argparse.Namespace) -> int:
     if bad_weights is not None:
         say(f"error: {bad_weights[0]}")
         return bad_weights[1]
+
+    import zenoh
 
     from arcade.demo_stack import free_hub
     from arcade.runs import new_run_dir
@@ -275,6 +381,11 @@ def run(args: argparse.Namespace) -> int:
         result = run_flight(cfg, progress=say, on_time=on_time if args.lockstep else None, **hooks)
     except (StackError, ValueError) as err:
         say(f"\nerror: {err}")
+        return 1
+    except zenoh.ZError as err:  # e.g. the hub's port is taken: one line, not a traceback
+        from services.bus import zenoh_reason
+
+        say(f"\nerror: bus: {zenoh_reason(err)}")
         return 1
     say("")
     restarts = result.get("restarts", {})
