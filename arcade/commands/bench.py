@@ -11,14 +11,15 @@ from arcade import atomicfile, jsonout
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
     "fuzzing, quadrotor variants beside ours; `report` regenerates BENCHMARKS.md "
-    "(on 2 cores: report 6-8 min, variants alone ~13 min)"
+    "(on 2 cores: report 7-9 min, variants alone ~13 min)"
 )
 
 #: Wall time of the long benchmarks on 2 CPU cores (BENCHMARKS.md, README).
 DURATIONS = (
     "time on 2 CPU cores: loop ~2.5 min (a 120 s real-time flight after start-up), soak\n"
-    "~3 min, variants ~13 min, report 6-8 min (it re-runs the latency benchmarks, the soak\n"
-    "and the cartpole evaluation, and renders the stored quadrotor results).\n"
+    "~3 min, variants ~13 min, report 7-9 min (it re-runs the latency benchmarks, the soak,\n"
+    "the cartpole evaluation and the discrepancy workflow, and renders the stored quadrotor\n"
+    "results).\n"
     "loop, soak and fuzz show progress on stderr; the result (JSON) goes to stdout.\n"
     "fuzz runs the fuzz tests with pytest: it needs the source tree and the dev extras\n"
     "(pip install -e '.[dev]'). soak and fuzz exit with 1 when a check fails."
