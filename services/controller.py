@@ -68,6 +68,9 @@ from services.messages import MAX_STAMP_S, Model, Setpoint, State
 
 #: Shortest interval between two log lines about failing control steps [s].
 STEP_ERROR_LOG_S = 5.0
+#: A state stamped further behind the previous setpoint than this is not late: the
+#: previous stamp was wrong, and the setpoint stamps follow the states again [s].
+MAX_STAMP_LAG_S = 1.0
 
 
 def one_hypothesis_beam(beam, theta, cov):
@@ -206,6 +209,7 @@ class Controller(runtime.Service):
             step_errors=0,
             fallback_errors=0,
             hover_failsafes=0,
+            stamp_reanchored=0,
         )
         bus.subscribe("model", self.on_model)
         self._state_sub = bus.subscribe("state", self.on_state)
@@ -455,7 +459,18 @@ class Controller(runtime.Service):
             mode = "hover"
         u = np.clip(u, self.u_min, self.u_max)
         # The stamp of the answered state; never older than the previous setpoint's, so
-        # that an answer to a late state is not rejected as out of order downstream.
+        # that an answer to a late state is not rejected as out of order downstream. A
+        # state far behind the previous answer is no late state: the previous stamp was
+        # wrong (one state stamped in the future, after which the state stream re-anchored),
+        # and holding on to it would stamp every later setpoint with it.
+        if s.stamp < self._last_stamp - MAX_STAMP_LAG_S:
+            self.stats["stamp_reanchored"] += 1
+            self.log.warning(
+                "state stamp %.3f is %.3f s behind the previous setpoint's: re-anchoring",
+                s.stamp,
+                self._last_stamp - s.stamp,
+            )
+            self._last_stamp = s.stamp
         stamp = max(s.stamp, self._last_stamp)
         self._last_stamp = stamp
         self.pub.put(

@@ -144,3 +144,16 @@ def test_a_long_hover_is_a_failsafe_once_per_episode(parser):
     assert len(svc.bus.events("failsafe")) == 1
     stale_mocap(svc, 13.0, 0.3, seq + 100)
     assert len(svc.bus.events("failsafe")) == 2
+
+
+def test_one_state_stamped_in_the_future_does_not_stamp_every_later_setpoint(parser):
+    svc = make_controller(parser)
+    svc.publish(state(10.0, 1), svc.u_hover, "hover", 0.0)
+    svc.publish(state(10.02, 2), svc.u_hover, "hover", 0.0)  # late by less than a period
+    svc.publish(state(9.99, 3), svc.u_hover, "hover", 0.0)
+    svc.publish(state(1e6, 4), svc.u_hover, "hover", 0.0)  # a faulty stamp
+    svc.publish(state(10.05, 5), svc.u_hover, "hover", 0.0)
+    svc.publish(state(10.10, 6), svc.u_hover, "hover", 0.0)
+    stamps = [sp.stamp for sp in svc.bus.setpoints()]
+    assert stamps == [10.0, 10.02, 10.02, 1e6, 10.05, 10.10]
+    assert svc.stats["stamp_reanchored"] == 1
