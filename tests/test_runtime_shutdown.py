@@ -403,6 +403,9 @@ def test_a_second_interrupt_during_stop_still_stops_every_service():
         )
         for name, code in (("first", _INTERRUPTS_BACK), ("second", _STUCK))
     }
+    # Ctrl-C raises KeyboardInterrupt, as in a terminal (a shell running the tests in
+    # the background starts them with SIGINT ignored).
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         for p in procs.values():
             assert p.stdout.readline().strip() == "up"
@@ -414,6 +417,7 @@ def test_a_second_interrupt_during_stop_still_stops_every_service():
         assert all(p.poll() is not None for p in procs.values())
         assert procs["first"].returncode == procs["second"].returncode == -signal.SIGTERM
     finally:
+        signal.signal(signal.SIGINT, previous)
         for p in procs.values():
             if p.poll() is None:
                 p.kill()
