@@ -598,7 +598,14 @@ def main_for(
         except OSError as err:
             log.warning("could not change the priority by %d: %s", args.nice, err)
     setup_jax(args.x64 or x64)
-    return cls(args).run()
+    code = cls(args).run()
+    # Shut down: a stop request arriving now is moot. Ignored, not left to the interpreter,
+    # which resets a Python-handled SIGINT/SIGTERM to the default action as it exits, so
+    # that the launcher's SIGINT racing a vehicle process that ends its flight by itself
+    # would kill it (exit -2) instead of letting it return its code.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    return code
 
 
 # ----------------------------------------------------------------------- learned model

@@ -431,3 +431,36 @@ def test_the_demo_turns_sigterm_into_an_interrupt_while_it_flies():
     with pytest.raises(KeyboardInterrupt), sigterm_interrupts():  # the stack's exit stops all
         signal.raise_signal(signal.SIGTERM)
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_a_service_that_has_shut_down_ignores_late_stop_signals():
+    """The launcher's SIGINT may race a vehicle process that ends its flight by itself:
+    once the service has shut down, the signal must not kill it (the interpreter resets a
+    Python-handled signal to its default action as it exits), so its exit code stands."""
+    code = textwrap.dedent(
+        """
+        import signal, sys
+        from services import runtime
+
+        class Stub:
+            "a service that has run"
+            name = "stub"
+
+            def __init__(self, args):
+                pass
+
+            def run(self):
+                signal.signal(signal.SIGINT, lambda *_: None)  # as Service.run installs
+                return 3
+
+        code = runtime.main_for(Stub, [])
+        print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN,
+              signal.getsignal(signal.SIGTERM) is signal.SIG_IGN)
+        sys.exit(code)
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert done.stdout.split() == ["True", "True"], done.stderr
+    assert done.returncode == 3
