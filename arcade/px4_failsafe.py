@@ -29,7 +29,7 @@ def add_failsafe_arguments(p: argparse.ArgumentParser) -> None:
         "--vision-timeout",
         type=number(0.0, low_open=True),
         default=0.5,
-        help="mocap older than this no longer gives a valid position [s]",
+        help="mocap older than this no longer gives a valid position [s] (default: %(default)s)",
     )
     p.add_argument(
         "--of-loss-s",

@@ -212,7 +212,8 @@ def add_arguments(p: Any) -> None:
         "--takeoff-m",
         type=float,
         default=None,
-        help="on the ground: PX4 takes off to this height before offboard",
+        help="on the ground: PX4 takes off to this height above the ground [m], > 0, before "
+        "offboard (default: none, offboard engages where the vehicle is)",
     )
     g.add_argument(
         "--on-ground",

@@ -23,13 +23,14 @@ but valid commands, states and dropouts) have their own deterministic tests at t
 from __future__ import annotations
 
 import os
-from collections import Counter, defaultdict
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from hypothesis import given
+from loopback import LoopbackSession
 from test_fuzz_messages import BATCH, fuzz_settings, make_payloads, recipes
 
 from services import messages as wm
@@ -42,80 +43,6 @@ VEHICLE = "fuzz"
 HANDLER_CASES = int(os.environ.get("ARCADE_FUZZ_HANDLER_CASES", "2000"))
 
 
-# ------------------------------------------------------------ in-process session
-
-
-class _Payload:
-    def __init__(self, data: bytes):
-        self._data = data
-
-    def to_bytes(self) -> bytes:
-        return self._data
-
-
-class _Sample:
-    def __init__(self, key: str, data: bytes):
-        self.key_expr = key
-        self.payload = _Payload(data)
-
-
-class _Declared:
-    def __init__(self, on_put: Callable[[bytes], None] | None = None):
-        self._on_put = on_put
-
-    def put(self, payload: bytes, attachment: Any = None) -> None:
-        assert self._on_put is not None
-        self._on_put(bytes(payload))
-
-    def undeclare(self) -> None:
-        pass
-
-
-class _Liveliness:
-    def declare_subscriber(self, key: str, callback: Any, history: bool = False) -> _Declared:
-        return _Declared()
-
-    def declare_token(self, key: str) -> _Declared:
-        return _Declared()
-
-
-class LoopbackSession:
-    """The part of ``zenoh.Session`` the bus uses: subscriptions are kept so that a test
-    can call them, and ``put`` payloads are captured by key."""
-
-    def __init__(self) -> None:
-        self.handlers: dict[str, list[Callable[[Any], None]]] = defaultdict(list)
-        self.published: dict[str, list[bytes]] = defaultdict(list)
-
-    def zid(self) -> str:
-        return "f0220000"
-
-    def liveliness(self) -> _Liveliness:
-        return _Liveliness()
-
-    def declare_subscriber(self, key: str, handler: Any) -> _Declared:
-        self.handlers[key].append(getattr(handler, "callback", handler))  # zenoh Callback
-        return _Declared()
-
-    def declare_publisher(self, key: str, **_: Any) -> _Declared:
-        return _Declared(self.published[key].append)
-
-    def put(self, key: str, payload: bytes) -> None:
-        self.published[key].append(bytes(payload))
-
-    def deliver(self, topic: str, payload: bytes) -> None:
-        key = f"arcade/{VEHICLE}/{topic}"
-        for handler in self.handlers[key]:
-            handler(_Sample(key, payload))  # must never raise
-
-    def outputs(self, topic: str) -> list[wm.Message]:
-        """Everything published on ``topic``, decoded (raises if anything is invalid)."""
-        return [decode(topic, p) for p in self.published[f"arcade/{VEHICLE}/{topic}"]]
-
-    def close(self) -> None:
-        pass
-
-
 def build(
     module: Any, cls: type[runtime.Service], out: Path, *argv: str
 ) -> tuple[runtime.Service, LoopbackSession]:
@@ -126,7 +53,7 @@ def build(
         extra(parser)
     args = parser.parse_args(["--vehicle", VEHICLE, "--out", str(out), "--x64", *argv])
     service = cls(args)
-    session = LoopbackSession()
+    session = LoopbackSession(VEHICLE)
     bus = Bus(VEHICLE, cls.name).open(session=session)
     service.bus = bus
     bus.subscribe("command", service._on_command)

@@ -14,7 +14,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
@@ -22,70 +21,11 @@ from typing import Any
 
 import numpy as np
 import pytest
+from loopback import LoopbackSession
 
 from services import runtime
 from services.bus import Bus
 from services.messages import Command, MessageError, Mocap, Reason, State, encode
-
-
-class _Payload:
-    def __init__(self, data: bytes):
-        self._data = data
-
-    def to_bytes(self) -> bytes:
-        return self._data
-
-
-class _Sample:
-    def __init__(self, data: bytes):
-        self.payload = _Payload(data)
-        self.attachment = None
-
-
-class _Declared:
-    def __init__(self, on_put: Callable[[bytes], None] | None = None):
-        self._on_put = on_put
-
-    def put(self, payload: bytes, attachment: Any = None) -> None:
-        if self._on_put is not None:
-            self._on_put(bytes(payload))
-
-    def undeclare(self) -> None:
-        pass
-
-
-class Session:
-    """The part of ``zenoh.Session`` the bus uses, in process: subscriptions are kept for
-    :meth:`deliver`, puts are captured per key and liveliness tokens are recorded."""
-
-    def __init__(self) -> None:
-        self.handlers: dict[str, list[Callable[[Any], None]]] = defaultdict(list)
-        self.published: dict[str, list[bytes]] = defaultdict(list)
-        self.tokens: list[str] = []
-
-    def zid(self) -> str:
-        return "f0220000"
-
-    def liveliness(self) -> Session:
-        return self
-
-    def declare_token(self, key: str) -> _Declared:
-        self.tokens.append(key)
-        return _Declared()
-
-    def declare_subscriber(self, key: str, handler: Any, history: bool = False) -> _Declared:
-        self.handlers[key].append(getattr(handler, "callback", handler))  # zenoh Callback
-        return _Declared()
-
-    def declare_publisher(self, key: str, **_: Any) -> _Declared:
-        return _Declared(self.published[key].append)
-
-    def deliver(self, topic: str, payload: bytes) -> None:
-        for handler in self.handlers[f"arcade/test/{topic}"]:
-            handler(_Sample(payload))
-
-    def close(self) -> None:
-        pass
 
 
 def args(out: Path | None) -> argparse.Namespace:
@@ -101,7 +41,7 @@ class Probe(runtime.Service):
 
     def __init__(self, a: argparse.Namespace, **hooks: Callable[[Probe], None]):
         super().__init__(a)
-        self.session = Session()
+        self.session = LoopbackSession()
         self.calls: list[str] = []
         self.hooks = hooks
 
@@ -203,7 +143,7 @@ def test_statistics_report_streams_rejects_by_topic_and_callback_failures(tmp_pa
 
 
 def test_a_record_that_is_not_sent_keeps_its_sequence_number_free():
-    session = Session()
+    session = LoopbackSession()
     bus = Bus("test", "probe").open(session=session)
     pub = bus.publisher("command")
     assert pub.put(Command(name="arm", stamp=1.0)) == 1
@@ -349,7 +289,7 @@ def test_non_finite_physics_is_reported_as_a_crash_not_an_exception(tmp_path):
     parser = runtime.common_parser("sim", "test")
     sim_node._extra(parser)
     node = SimNode(parser.parse_args(["--lockstep", "--vehicle", "test"]))
-    session = Session()
+    session = LoopbackSession()
     node.bus = Bus("test", "sim").open(session=session)
     node.sim = DivergingSim()
     node.n_steps, node.period, node.k_release = 5, 0.05, -1

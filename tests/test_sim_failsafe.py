@@ -9,13 +9,12 @@ the failsafe event per instant), and the physics is a vehicle at rest.
 
 from __future__ import annotations
 
-from collections import defaultdict
 from collections.abc import Callable
 from types import SimpleNamespace
-from typing import Any
 
 import numpy as np
 import pytest
+from loopback import LoopbackSession
 
 from services import runtime, sim_node
 from services.bus import Bus
@@ -23,70 +22,6 @@ from services.messages import Event, Setpoint, decode, encode
 
 PERIOD = 0.05
 START = np.array([0.0, 0.0, 1.0])
-
-
-class _Payload:
-    def __init__(self, data: bytes):
-        self._data = data
-
-    def to_bytes(self) -> bytes:
-        return self._data
-
-
-class _Sample:
-    def __init__(self, key: str, data: bytes):
-        self.key_expr = key
-        self.payload = _Payload(data)
-
-
-class _Declared:
-    def __init__(self, on_put: Callable[[bytes], None] | None = None):
-        self._on_put = on_put
-
-    def put(self, payload: bytes, attachment: Any = None) -> None:
-        self._on_put(bytes(payload))
-
-    def undeclare(self) -> None:
-        pass
-
-
-class LoopbackSession:
-    """The part of ``zenoh.Session`` the bus uses, in process: a put reaches the
-    subscribers of its key (as Zenoh delivers a session's own samples), then ``on_put``."""
-
-    def __init__(self) -> None:
-        self.handlers: dict[str, list[Callable[[Any], None]]] = defaultdict(list)
-        self.published: dict[str, list[bytes]] = defaultdict(list)
-        self.on_put: dict[str, Callable[[bytes], None]] = {}
-
-    def zid(self) -> str:
-        return "f0220000"
-
-    def liveliness(self) -> Any:
-        return SimpleNamespace(
-            declare_subscriber=lambda *a, **k: _Declared(),
-            declare_token=lambda *a, **k: _Declared(),
-        )
-
-    def declare_subscriber(self, key: str, handler: Any, **_: Any) -> _Declared:
-        self.handlers[key].append(getattr(handler, "callback", handler))
-        return _Declared()
-
-    def declare_publisher(self, key: str, **_: Any) -> _Declared:
-        def put(payload: bytes) -> None:
-            self.published[key].append(payload)
-            self.deliver(key, payload)
-            if key in self.on_put:
-                self.on_put[key](payload)
-
-        return _Declared(put)
-
-    def deliver(self, key: str, payload: bytes) -> None:
-        for handler in self.handlers[key]:
-            handler(_Sample(key, payload))
-
-    def close(self) -> None:
-        pass
 
 
 class RestingSim:
@@ -174,7 +109,7 @@ def make_node(*argv: str, n_steps: int = 30) -> tuple[sim_node.SimNode, Loopback
     parser = runtime.common_parser("sim", "test")
     sim_node._extra(parser)
     node = sim_node.SimNode(parser.parse_args(["--vehicle", "test", "--wait-for", "", *argv]))
-    session = LoopbackSession()
+    session = LoopbackSession(echo=True)
     node.bus = Bus("test", "sim").open(session=session)
     node.bus.subscribe("command", node._on_command)
     node.bus.publisher("event")

@@ -78,9 +78,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="stop after this many seconds, > 0 (default: until Ctrl-C)",
     )
     add_failsafe_arguments(p)
-    for action in p._actions:  # the shared option's help does not show its default
-        if action.dest == "vision_timeout" and "default" not in action.help:
-            action.help += " (default: %(default)s)"
     p.add_argument(
         "--takeoff-alt",
         type=number(0.0, low_open=True),

@@ -128,18 +128,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from deploy import px4_profile
 
     px4_profile.add_arguments(p)
-    _set_help(
-        p,
-        "takeoff_m",
-        "on the ground: PX4 takes off to this height above the ground [m], > 0, before "
-        "offboard (default: none, offboard engages where the vehicle is)",
-    )
-
-
-def _set_help(p: argparse.ArgumentParser, dest: str, text: str) -> None:
-    """Replace the help of the option stored in ``dest`` (one defined with the profile)."""
-    (action,) = (a for a in p._actions if a.dest == dest)
-    action.help = text
 
 
 #: The px4 profile's options and the value each has when not given.

@@ -1,0 +1,109 @@
+"""An in-process stand-in for the part of ``zenoh.Session`` that :class:`services.bus.Bus`
+uses, so that a service can be wired exactly as ``Service.run`` wires it, without a network:
+subscriptions are kept for :meth:`LoopbackSession.deliver`, puts are captured per key."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable
+from typing import Any
+
+from services.messages import Message, decode
+
+
+class Payload:
+    def __init__(self, data: bytes):
+        self._data = data
+
+    def to_bytes(self) -> bytes:
+        return self._data
+
+
+class Sample:
+    def __init__(self, key: str, data: bytes):
+        self.key_expr = key
+        self.payload = Payload(data)
+        self.attachment = None
+
+
+class Declared:
+    """A declared publisher, subscriber or token; ``on_put`` receives what is put."""
+
+    def __init__(self, on_put: Callable[[bytes], None] | None = None):
+        self._on_put = on_put
+
+    def put(self, payload: bytes, attachment: Any = None) -> None:
+        if self._on_put is not None:
+            self._on_put(bytes(payload))
+
+    def undeclare(self) -> None:
+        pass
+
+
+class Liveliness:
+    """Tokens are recorded; liveliness subscribers hear nothing."""
+
+    def __init__(self) -> None:
+        self.tokens: list[str] = []
+
+    def declare_subscriber(self, key: str, callback: Any, **_: Any) -> Declared:
+        return Declared()
+
+    def declare_token(self, key: str) -> Declared:
+        self.tokens.append(key)
+        return Declared()
+
+
+class LoopbackSession:
+    """``echo``: a put also reaches the subscribers of its key (as Zenoh delivers a
+    session's own samples), then ``on_put[key]`` if set."""
+
+    def __init__(self, vehicle: str = "test", echo: bool = False) -> None:
+        self.vehicle, self.echo = vehicle, echo
+        self.handlers: dict[str, list[Callable[[Any], None]]] = defaultdict(list)
+        self.published: dict[str, list[bytes]] = defaultdict(list)
+        self.on_put: dict[str, Callable[[bytes], None]] = {}
+        self._liveliness = Liveliness()
+
+    @property
+    def tokens(self) -> list[str]:
+        return self._liveliness.tokens
+
+    def zid(self) -> str:
+        return "f0220000"
+
+    def liveliness(self) -> Liveliness:
+        return self._liveliness
+
+    def key(self, topic: str) -> str:
+        return f"arcade/{self.vehicle}/{topic}"
+
+    def declare_subscriber(self, key: str, handler: Any, **_: Any) -> Declared:
+        self.handlers[key].append(getattr(handler, "callback", handler))  # zenoh Callback
+        return Declared()
+
+    def declare_publisher(self, key: str, **_: Any) -> Declared:
+        def put(payload: bytes) -> None:
+            self.published[key].append(payload)
+            if self.echo:
+                self.deliver(key, payload)
+            if key in self.on_put:
+                self.on_put[key](payload)
+
+        return Declared(put)
+
+    def put(self, key: str, payload: bytes, **_: Any) -> None:
+        self.published[key].append(bytes(payload))
+
+    def deliver(self, topic_or_key: str, payload: bytes) -> None:
+        """Hand ``payload`` to the subscribers of a topic (``"state"``) or a full key."""
+        key = topic_or_key if "/" in topic_or_key else self.key(topic_or_key)
+        for handler in self.handlers[key]:
+            handler(Sample(key, payload))
+
+    def outputs(self, topic: str) -> list[Message]:
+        """Everything published on ``topic``, decoded (raises if anything is invalid)."""
+        return [decode(topic, p) for p in self.published[self.key(topic)]]
+
+    def close(self) -> None:
+        pass
