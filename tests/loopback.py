@@ -107,3 +107,45 @@ class LoopbackSession:
 
     def close(self) -> None:
         pass
+
+
+class RecordingBus:
+    """What the estimator service needs of a bus, in process: what it publishes lands in
+    ``states`` and ``events``; nothing is subscribed."""
+
+    def __init__(self) -> None:
+        from types import SimpleNamespace
+
+        from services.messages import RejectCounter
+
+        self.rejects = RejectCounter()
+        self.session = SimpleNamespace(declare_subscriber=lambda *a, **k: None)
+        self.states: list[Message] = []
+        self.events: list[Message] = []
+        self.alive: frozenset[str] = frozenset()
+
+    def key(self, topic: str) -> str:
+        return f"arcade/test/{topic}"
+
+    def publisher(self, topic: str) -> RecordingBus:
+        return self
+
+    def put(self, record: Message) -> int:
+        (self.events if record.TOPIC == "event" else self.states).append(record)
+        return len(self.states)
+
+
+def lockstep_estimator() -> tuple[Any, RecordingBus]:
+    """The estimator service (lockstep, default screening) set up on a :class:`RecordingBus`."""
+    import argparse
+
+    from services.estimator import Estimator
+
+    args = argparse.Namespace(
+        lockstep=True, out=None, max_frame_lag=0.25, stamp_tolerance=0.005, vehicle="test"
+    )
+    est = Estimator(args)
+    bus = RecordingBus()
+    est.setup(bus)
+    est.bus = bus
+    return est, bus

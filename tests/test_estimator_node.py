@@ -3,55 +3,24 @@ next control instant, a diverged or non-finite filter, the bounded frame buffer.
 
 from __future__ import annotations
 
-import argparse
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
+from loopback import lockstep_estimator
 
 from services import estimator as est_service
 from services.estimator import Estimator
-from services.messages import Imu, Mocap, RejectCounter
+from services.messages import Imu, Mocap
 
 T0 = 100.0
 MOCAP_DT = 1.0 / 120.0
 CONTROL_DT = 0.05
 
 
-class FakeBus:
-    """What the estimator needs of a bus: publishers and events land in lists."""
-
-    def __init__(self):
-        self.rejects = RejectCounter()
-        self.session = SimpleNamespace(declare_subscriber=lambda *a, **k: None)
-        self.states, self.events = [], []
-
-    def key(self, topic):
-        return f"arcade/test/{topic}"
-
-    def publisher(self, topic):
-        return self
-
-    def put(self, record):
-        (self.events if record.TOPIC == "event" else self.states).append(record)
-        return len(self.states)
-
-
 @pytest.fixture(scope="module")
 def make():
-    def build() -> tuple[Estimator, FakeBus]:
-        a = argparse.Namespace(
-            lockstep=True, out=None, max_frame_lag=0.25, stamp_tolerance=0.005, vehicle="test"
-        )
-        est = Estimator(a)
-        bus = FakeBus()
-        est.setup(bus)
-        est.bus = bus
-        return est, bus
-
-    est, _ = build()
+    est, _ = lockstep_estimator()
     est.warmup()  # compile once for the module
-    return build
+    return lockstep_estimator
 
 
 def frame(t: float) -> Mocap:

@@ -11,15 +11,13 @@ outlasts its bound and tracks again after it.
 
 from __future__ import annotations
 
-import argparse
 import json
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from loopback import lockstep_estimator
 
-from services.estimator import Estimator
-from services.messages import Imu, Mocap, RejectCounter
+from services.messages import Imu, Mocap
 
 MOCAP_DT = 1.0 / 120.0
 CONTROL_DT = 0.05
@@ -33,41 +31,11 @@ def truth(t: float) -> np.ndarray:
     return CENTER + RADIUS * np.array([np.cos(OMEGA * t), np.sin(OMEGA * t), 0.0])
 
 
-class FakeBus:
-    """What the estimator needs of a bus: publishers and events land in lists."""
-
-    def __init__(self):
-        self.rejects = RejectCounter()
-        self.session = SimpleNamespace(declare_subscriber=lambda *a, **k: None)
-        self.states, self.events = [], []
-        self.alive = frozenset()
-
-    def key(self, topic):
-        return f"arcade/test/{topic}"
-
-    def publisher(self, topic):
-        return self
-
-    def put(self, record):
-        (self.events if record.TOPIC == "event" else self.states).append(record)
-        return len(self.states)
-
-
 @pytest.fixture(scope="module")
 def estimator_factory():
-    def make() -> tuple[Estimator, FakeBus]:
-        args = argparse.Namespace(
-            lockstep=True, out=None, max_frame_lag=0.25, stamp_tolerance=0.005, vehicle="test"
-        )
-        est = Estimator(args)
-        bus = FakeBus()
-        est.setup(bus)
-        est.bus = bus
-        return est, bus
-
-    est, _ = make()
+    est, _ = lockstep_estimator()
     est.warmup()  # compile once for the module
-    return make
+    return lockstep_estimator
 
 
 def fly(
