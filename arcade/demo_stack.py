@@ -12,13 +12,9 @@ adapter's changepoint events give the detection delay. The run folder holds the 
 
 from __future__ import annotations
 
-import contextlib
 import json
-import signal
 import socket
 import sys
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -95,25 +91,6 @@ def plot(
     plt.close(fig)
 
 
-@contextlib.contextmanager
-def sigterm_interrupts() -> Iterator[None]:
-    """While inside, SIGTERM raises ``KeyboardInterrupt`` as Ctrl-C does, so the launcher's
-    context manager stops every service (as ``arcade up`` does); the previous handler is
-    restored on leaving. Only the main thread can install handlers: elsewhere, nothing."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def on_term(*_: object) -> None:
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, on_term)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
-
-
 def run_demo(
     out: Path,
     *,
@@ -134,7 +111,7 @@ def run_demo(
     from tqdm import tqdm
 
     from benchmarks.quadrotor_closedloop import Scenario
-    from deploy.launcher import StackConfig, run_flight
+    from deploy.launcher import StackConfig, run_flight, sigterm_interrupts
 
     scen = Scenario(payload_g=payload_g, speed_mps=speed)
     t_end = duration if duration is not None else scen.t_end

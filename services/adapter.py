@@ -302,7 +302,7 @@ class Adapter(runtime.Service):
         self._set_applied(True, f"mission started ({cmd.src})")
 
     def on_event(self, e: Event) -> None:
-        if e.kind == "failsafe" and e.src.split("/")[0] != "controller":
+        if e.kind == "failsafe" and not e.src.startswith("controller/"):
             self._set_applied(False, f"{e.src}: {e.text}")
         elif e.kind == "failsafe_cleared":
             self._set_applied(True, f"{e.src}: {e.text}")

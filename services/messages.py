@@ -158,7 +158,6 @@ class Reason(enum.StrEnum):
     OUT_OF_RANGE = "out_of_range"
     OUT_OF_ORDER = "out_of_order"
     STALE = "stale"
-    CALLBACK_ERROR = "callback_error"
     INTERNAL = "internal"
 
 
@@ -1085,9 +1084,8 @@ class RejectCounter:
             self._cond.notify_all()
         if emit:
             more = f" ({suppressed} more suppressed)" if suppressed else ""
-            level = logging.ERROR if error.reason is Reason.CALLBACK_ERROR else logging.WARNING
-            self.logger.log(
-                level, "rejected %s message: %s%s", topic or "a", error, more, exc_info=exc
+            self.logger.warning(
+                "rejected %s message: %s%s", topic or "a", error, more, exc_info=exc
             )
 
     def failure(self, exc: BaseException, *, topic: str = "") -> None:

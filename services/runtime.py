@@ -235,17 +235,15 @@ def subscribe_ordered(
     from services.bus import TRANSIT_SAMPLES, transit_time
     from services.messages import Receiver, safe_handler
 
-    # In-process stand-ins of a bus (tests) may keep no stream statistics.
-    track = getattr(bus, "track_stream", lambda topic, checker: None)
     subs = []
     for topic, callback in topics.items():
         receiver: Any
         if topic in seq_only:
             receiver = _SeqOnly(Receiver(topic, check_order=False))
-            track(topic, receiver)
+            bus.track_stream(topic, receiver)
         else:
             receiver = Receiver(topic)
-            track(topic, receiver.checker)
+            bus.track_stream(topic, receiver.checker)
         hops = None
         if transit is not None:
             hops = transit.setdefault(topic, deque(maxlen=TRANSIT_SAMPLES))

@@ -130,6 +130,9 @@ class RecordingBus:
     def publisher(self, topic: str) -> RecordingBus:
         return self
 
+    def track_stream(self, topic: str, checker: Any) -> None:
+        pass
+
     def put(self, record: Message) -> int:
         (self.events if record.TOPIC == "event" else self.states).append(record)
         return len(self.states)

@@ -10,8 +10,8 @@ The controller's loop body (``Controller.handle``) runs on every state it queued
 
 Per service ``HANDLER_CASES`` payloads (2 000 by default so that the suite stays fast;
 ``ARCADE_FUZZ_HANDLER_CASES=10000``, as ``arcade bench fuzz`` sets it, for the full run):
-no exception escapes a handler, no callback fails (``callback_error``/``internal``
-rejects stay at zero), every payload the decoder refuses is counted once per subscription
+no exception escapes a handler, no callback fails and no ``internal`` reject is
+counted, every payload the decoder refuses is counted once per subscription
 under the decoder's reason (a valid one is delivered or refused by the subscription's
 order check), and everything the service publishes decodes as a valid record -- in
 particular every setpoint is finite and within the MPC input bounds. Handlers that run a
@@ -134,7 +134,6 @@ class Fuzzer:
         go()
         assert self.cases >= cases
         by_reason = self.service.bus.rejects.counts
-        assert Reason.CALLBACK_ERROR.value not in by_reason, by_reason
         assert self.service.bus.rejects.failures == {}
         assert Reason.INTERNAL.value not in by_reason, by_reason
         for topic in set(self.topics):

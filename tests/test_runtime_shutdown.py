@@ -365,7 +365,7 @@ def test_a_second_interrupt_during_stop_still_stops_every_service():
 
 
 def test_the_demo_turns_sigterm_into_an_interrupt_while_it_flies():
-    from arcade.demo_stack import sigterm_interrupts
+    from deploy.launcher import sigterm_interrupts
 
     before = signal.getsignal(signal.SIGTERM)
     with pytest.raises(KeyboardInterrupt), sigterm_interrupts():  # the stack's exit stops all

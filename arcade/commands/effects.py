@@ -8,19 +8,6 @@ from arcade import jsonout
 
 HELP = "list the library of physical effects (name, parameters with units and ranges)"
 
-#: What the detectability threshold of each quadrotor effect measures, with its unit
-#: (``arcade_core.discrepancy.catalog.magnitude``).
-MAGNITUDES = {
-    "rotor_drag": ("largest |d|", "1/s"),
-    "quadratic_drag": ("largest |c|", "kg/m"),
-    "ground_effect": ("rotor radius", "m"),
-    "thrust_scale": ("|scale - 1|", ""),
-    "motor_lag": ("change of the motor time constant", "s"),
-    "rate_lag": ("delay + filter time constant", "s"),
-    "com_offset": ("horizontal offset", "m"),
-    "wind": ("wind speed", "m/s"),
-}
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
@@ -33,7 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from arcade_core.discrepancy.catalog import describe
+    from arcade_core.discrepancy.catalog import MAGNITUDE_QUANTITY, describe
 
     effects = describe(args.system)
     if args.json:
@@ -42,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     for e in effects:
         print(f"{e['name']} ({e['system']}): {e['description']}")
         if e["detectable_from"] is not None:
-            quantity, unit = MAGNITUDES[e["name"]]
+            quantity, unit = MAGNITUDE_QUANTITY[e["name"]]
             print(
                 f"    detectable on the standard trajectory from {quantity} = "
                 f"{e['detectable_from']:g}{f' {unit}' if unit else ''}"

@@ -183,16 +183,17 @@ def vehicle_name_problem(name: str) -> str | None:
     ``arcade sim``, ``simulate`` and ``discrepancy`` take one under the same option."""
     from services.bus import _check_name
 
+    why = f"{name!r} looks like a vehicle file" if name.endswith(".toml") else None
     try:
         _check_name("vehicle", name)
-        if name.endswith(".toml"):
-            raise ValueError(f"{name!r} looks like a vehicle file")
     except ValueError as err:
-        return (
-            f"--vehicle is the vehicle's name on the bus, not a vehicle file: {err}; a vehicle "
-            "file goes to the bridge with --profile px4 --bridge-arg=--vehicle-file=FILE"
-        )
-    return None
+        why = str(err)
+    if why is None:
+        return None
+    return (
+        f"--vehicle is the vehicle's name on the bus, not a vehicle file: {why}; a vehicle "
+        "file goes to the bridge with --profile px4 --bridge-arg=--vehicle-file=FILE"
+    )
 
 
 def parse_bridge_args(bridge_args: list[str]) -> argparse.Namespace:
@@ -293,7 +294,6 @@ def weights_problem(path: Path | None) -> tuple[str, int] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import signal
 
     def say(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
@@ -326,7 +326,7 @@ def run(args: argparse.Namespace) -> int:
 
     from arcade.demo_stack import free_hub
     from arcade.runs import new_run_dir
-    from deploy.launcher import StackConfig, StackError, last_output, run_flight
+    from deploy.launcher import StackConfig, StackError, last_output, run_flight, sigterm_interrupts
 
     cfg = StackConfig(
         out=args.out or new_run_dir("up"),
@@ -346,11 +346,6 @@ def run(args: argparse.Namespace) -> int:
         bus_configs=configs,
     )  # run folder, weights, checkpoint and bus configurations made absolute
 
-    def on_term(*_: object) -> None:
-        raise KeyboardInterrupt  # the launcher's context manager stops every service
-
-    signal.signal(signal.SIGTERM, on_term)
-
     last = [-1.0]
 
     def on_time(t: float) -> None:
@@ -366,7 +361,10 @@ def run(args: argparse.Namespace) -> int:
             cfg = px4_profile.config_from_args(args, cfg)
             hooks = px4_profile.flight_hooks(args, cfg, say)
         hooks["on_event"] = _show_faults(say, hooks.get("on_event"))
-        result = run_flight(cfg, progress=say, on_time=on_time if args.lockstep else None, **hooks)
+        with sigterm_interrupts():
+            result = run_flight(
+                cfg, progress=say, on_time=on_time if args.lockstep else None, **hooks
+            )
     except (StackError, ValueError) as err:
         say(f"\nerror: {err}")
         return 1

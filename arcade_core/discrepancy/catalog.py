@@ -208,6 +208,21 @@ def describe(system: str | None = None) -> list[dict]:
     return out
 
 
+#: What :func:`magnitude` (and so :data:`DETECTABLE`) measures per effect, with its unit.
+MAGNITUDE_QUANTITY: MappingProxyType = MappingProxyType(
+    {
+        "rotor_drag": ("largest |d|", "1/s"),
+        "quadratic_drag": ("largest |c|", "kg/m"),
+        "ground_effect": ("rotor radius", "m"),
+        "thrust_scale": ("|scale - 1|", ""),
+        "motor_lag": ("change of the motor time constant", "s"),
+        "rate_lag": ("delay + filter time constant", "s"),
+        "com_offset": ("horizontal offset", "m"),
+        "wind": ("wind speed", "m/s"),
+    }
+)
+
+
 def magnitude(name: str, params, vehicle: dict | None = None) -> float:
     """Size of a quadrotor effect in the units of :data:`DETECTABLE` (one number per effect).
 
