@@ -126,6 +126,30 @@ def with_learner(carry, learner):
     return carry._replace(**{carry._fields[0]: learner})
 
 
+#: Gain of the level-hover attitude law [rad/s per unit tilt].
+LEVEL_GAIN = 2.0
+
+
+def level_hover(q: np.ndarray, thrust_hover: float, gain: float = LEVEL_GAIN) -> np.ndarray:
+    """``[collective N, body rates FLU]`` that level the vehicle of attitude ``q``
+    (scalar first, body FLU to world ENU) and hold its height while level.
+
+    ``g_b`` is the world's up axis in body coordinates (the third row of ``R(q)``); the
+    body sees it move as ``dg_b/dt = -omega x g_b``, so ``omega = gain [-g_b,y, g_b,x, 0]``
+    makes ``1 - g_b,z`` (the tilt) decrease: ``d/dt (1 - g_b,z) = -gain (g_b,x^2 +
+    g_b,y^2)``. Yaw rate zero. The thrust is divided by the tilt's cosine (at most 2x).
+    """
+    g_b = np.array(
+        [
+            2 * (q[1] * q[3] - q[0] * q[2]),
+            2 * (q[2] * q[3] + q[0] * q[1]),
+            1 - 2 * (q[1] ** 2 + q[2] ** 2),
+        ]
+    )
+    rates = gain * np.array([-g_b[1], g_b[0], 0.0])
+    return np.r_[thrust_hover / max(g_b[2], 0.5), rates]
+
+
 class Controller(runtime.Service):
     """Controller: uncertainty-modulated MPC on the latest state and model."""
 
@@ -383,19 +407,8 @@ class Controller(runtime.Service):
         return m
 
     def hover(self, s: State) -> np.ndarray:
-        """Level hover: nominal hover thrust, body rates that level the vehicle."""
-        q = s.q
-        # World z axis in body coordinates (third row of R).
-        g_b = np.array(
-            [
-                2 * (q[1] * q[3] - q[0] * q[2]),
-                2 * (q[2] * q[3] + q[0] * q[1]),
-                1 - 2 * (q[1] ** 2 + q[2] ** 2),
-            ]
-        )
-        rates = 2.0 * np.array([g_b[1], -g_b[0], 0.0])
-        thrust = self._thrust_hover / max(g_b[2], 0.5)
-        return np.clip(np.r_[thrust, rates], self.u_min, self.u_max)
+        """Level hover at the learned hover thrust (:func:`level_hover`)."""
+        return np.clip(level_hover(s.q, self._thrust_hover), self.u_min, self.u_max)
 
     def handle(self, s: State) -> None:
         a = self.args

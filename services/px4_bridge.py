@@ -42,6 +42,11 @@ severity ``info`` and are not counted as failsafes. The failsafes (``stats.fails
   (``--geofence-action hold|land``);
 - PX4 leaves offboard by itself (RC override, its own failsafe): stop streaming.
 
+When PX4 denies or does not answer the Hold of a failsafe (it has no position estimate
+without mocap), the bridge commands Land (``hold_denied_landings``): otherwise the vehicle
+would fly its last setpoint until PX4's own ``COM_OF_LOSS_T``. An operator's denied
+``hold`` is only reported.
+
 The setpoint watchdog thread survives its own errors (``fault`` event, ``watchdog_errors``).
 
 MAVSDK's offboard plugin re-sends the last setpoint every 50 ms on its own thread (it
@@ -176,6 +181,8 @@ class Px4Bridge(runtime.Service):
         self._latest: tuple[np.ndarray, float] | None = None
         self._controller_failsafe = False  # the controller's failsafe, until it tracks again
         self._send_error_run = 0  # consecutive set_attitude_rate failures
+        #: The newest thread awaiting PX4's answer to leaving offboard (then Land if due).
+        self.leave_worker: threading.Thread | None = None
         self._telemetry: dict[str, Any] = {}
         self._tel_cond = threading.Condition()
         self._commands: list[Command] = []
@@ -190,6 +197,7 @@ class Px4Bridge(runtime.Service):
             failsafes=0,
             offboard_exits=0,
             watchdog_errors=0,
+            hold_denied_landings=0,
             engagements=0,
             mode_changes=0,
             connect=a.connect,
@@ -556,11 +564,21 @@ class Px4Bridge(runtime.Service):
         )
 
         def finish() -> None:
+            held = False
             if not done.wait(self.args.command_timeout):
                 self.event("fault", "PX4 did not answer the Hold command", "error")
             elif result[0] != "SUCCESS":
                 self.event("fault", f"Hold command: {result[0]}", "error")
-            if action == "land":
+            else:
+                held = True
+            land = action == "land"
+            if failsafe and not held and not land:
+                # PX4 refuses Hold without a position estimate (e.g. mocap lost): a failsafe
+                # must not leave it on the last setpoint until its own offboard-loss timeout.
+                self.stats["hold_denied_landings"] += 1
+                self.event("fault", "no Hold after a failsafe: commanding Land", "error")
+                land = True
+            if land:
                 try:
                     self.action.land()
                 except Exception as err:
@@ -569,7 +587,8 @@ class Px4Bridge(runtime.Service):
         if wait:
             finish()
         else:
-            threading.Thread(target=finish, name="leave-offboard", daemon=True).start()
+            self.leave_worker = threading.Thread(target=finish, name="leave-offboard", daemon=True)
+            self.leave_worker.start()
         return True
 
     def _check_geofence(self, p_enu: np.ndarray, source: str) -> None:

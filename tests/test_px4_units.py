@@ -199,6 +199,7 @@ class FakeOffboard:
         self.started = self.stopped = 0
         self.destroyed = False
         self.fail_send = self.fail_stop = False
+        self.stop_result = "SUCCESS"  # PX4's answer to the Hold that stop() commands
 
     def set_attitude_rate(self, sp) -> None:
         if self.fail_send:
@@ -212,7 +213,7 @@ class FakeOffboard:
         if self.fail_stop:
             raise RuntimeError("plugin destroyed")
         self.stopped += 1
-        callback(SimpleNamespace(name="SUCCESS"), None)
+        callback(SimpleNamespace(name=self.stop_result), None)
 
     def destroy(self) -> None:
         self.destroyed = True
@@ -342,8 +343,31 @@ def test_a_failing_offboard_stop_drops_the_plugin_and_is_reported():
     assert b.leave_offboard("test", "hold", reason="test", wait=True)
     assert not b._engaged
     assert old.destroyed and b.offboard is not old  # MAVSDK's re-send timer is gone
-    assert [e.kind for e in b.bus.events()] == ["failsafe", "fault"]
+    assert [e.kind for e in b.bus.events()] == ["failsafe", "fault", "fault"]
     assert "not sent" in b.bus.events("fault")[0].text
+    assert b.action.calls == ["land"]  # no Hold: Land (next test)
+
+
+@pytest.mark.parametrize("operator", [False, True])
+def test_a_failsafe_whose_hold_is_denied_lands(operator):
+    # PX4 denies Hold without a position estimate (mocap lost): a failsafe must not leave
+    # the vehicle on its last setpoint until PX4's own offboard-loss timeout. An operator's
+    # hold is only reported: what to do next is the operator's call.
+    b = engaged_bridge()
+    b.offboard.stop_result = "COMMAND_DENIED"
+    if operator:
+        b._do_command(Command(name="hold", stamp=1.0))
+    else:
+        b.on_event(Event(kind="failsafe", text="hover", stamp=1.0, src="controller/1"))
+    b.leave_worker.join(5.0)  # PX4's answer is awaited off the caller's thread
+    assert not b.leave_worker.is_alive()
+    faults = [e.text for e in b.bus.events("fault")]
+    assert faults[0] == "Hold command: COMMAND_DENIED"
+    if operator:
+        assert faults == ["Hold command: COMMAND_DENIED"] and b.action.calls == []
+    else:
+        assert faults[1] == "no Hold after a failsafe: commanding Land"
+        assert b.action.calls == ["land"] and b.stats["hold_denied_landings"] == 1
 
 
 def test_the_watchdog_survives_its_own_errors():

@@ -11,6 +11,11 @@ MuJoCo quadrotor as PX4 (``px4sim``) <-> MAVLink over UDP loopback <-> MAVSDK <-
    fires; after the supervisor restarted the bridge and offboard is engaged again, the
    controller killed -> the bridge leaves offboard within 0.3 s (+ one PX4 heartbeat for
    the mode to show) and PX4 holds, before its own offboard-loss timeout.
+3. An operator's ``hold`` leaves offboard and pauses the adapter's learning; arming again
+   resumes it.
+4. A 4 s mocap dropout: the controller's hover failsafe, PX4 denying Hold (no position
+   estimate without vision), the bridge's Land; ``arm`` is refused until the controller
+   tracks again.
 
 Both compare flights fly ARCADE with the shipped weights. Before offboard is engaged PX4
 holds the vehicle and the controller's setpoints are not applied; the adapter learns only
@@ -31,6 +36,8 @@ import pytest
 from arcade.demo_stack import free_hub
 from deploy.launcher import Stack, StackConfig, run_flight
 from deploy.px4_profile import EventWaiter, Px4StackConfig, arm
+from services.bus import Bus
+from services.messages import Command
 
 pytestmark = pytest.mark.integration
 
@@ -215,3 +222,167 @@ def test_failsafes_bridge_killed_then_controller_killed(tmp_path):
     px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())
     assert not px4["crashed"]
     assert [f["mode"] for f in px4["px4_failsafes"]] == ["HOLD"]
+
+
+def _learning(value: bool):
+    def pred(r: dict) -> bool:
+        return (
+            r["kind"] == "info"
+            and r["src"].startswith("adapter/")
+            and r["data"].get("learning") is value
+        )
+
+    return pred
+
+
+def test_operator_hold_pauses_learning_until_offboard_is_engaged_again(tmp_path):
+    # The adapter learns only while PX4 flies the stack's setpoints: an operator's hold
+    # leaves offboard (the bridge's failsafe event, reason "command"), the adapter pauses
+    # and counts the steps it does not learn from; arming again resumes it.
+    cfg = Px4StackConfig(
+        out=tmp_path,
+        hub=free_hub(),
+        simulate=True,
+        connect=_udp_url(),
+        duration=60.0,
+        hover_s=120.0,
+        release=-1.0,
+    )
+    events = EventWaiter()
+
+    def engage() -> None:
+        n = events.mark()
+        assert arm(events, cfg)
+        _wait(events, _learning(True), 5.0, n, "adapter learning")
+        _wait(
+            events,
+            lambda r: r["kind"] == "mode_change" and r["data"]["mode"] == "OFFBOARD",
+            5.0,
+            n,
+            "PX4 in Offboard",
+        )
+
+    with Stack(cfg, on_event=events) as stack:
+        stack.wait_ready()
+        engage()
+
+        n = events.mark()
+        with Bus(cfg.vehicle, "operator", cfg.bus_config("operator")) as bus:
+            bus.wait_alive(["bridge"], 10.0)
+            bus.put(Command(name="hold", target="bridge", stamp=time.monotonic()))
+        fs = _wait(
+            events,
+            lambda r: r["kind"] == "failsafe" and r["src"].startswith("bridge/"),
+            5.0,
+            n,
+            "bridge leaving offboard",
+        )
+        assert fs["data"]["reason"] == "command" and fs["data"]["action"] == "hold"
+        _wait(events, _learning(False), 5.0, n, "adapter pausing")
+        _wait(
+            events,
+            lambda r: (
+                r["kind"] == "mode_change"
+                and r["src"].startswith("bridge/")
+                and r["data"]["mode"] == "HOLD"
+            ),
+            5.0,
+            n,
+            "PX4 in Hold",
+        )
+        # Arming again waits for a steady setpoint stream (1 s) while PX4 holds: the
+        # adapter sees states it must not learn from.
+        engage()
+        cleared = events.wait(
+            lambda r: r["kind"] == "failsafe_cleared" and r["src"].startswith("bridge/"),
+            0.0,
+            after=n,
+        )
+        assert cleared is not None
+        stack.stop()
+    adapter = json.loads((tmp_path / "stats" / "adapter.json").read_text())
+    assert adapter["not_applied"] > 0 and adapter["learned"] > 0, adapter
+    px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())
+    assert not px4["crashed"] and px4["px4_failsafes"] == []
+
+
+def test_long_mocap_dropout_lands_and_arming_waits_for_tracking(tmp_path):
+    # Mocap lost for 4 s, 2 s into the mission: the controller hovers level without
+    # position feedback, gives up after its --max-hover-s (1 s, a failsafe event), the
+    # bridge leaves offboard; PX4 has no position estimate, so it denies Hold and the
+    # bridge commands Land. Arming is refused until the controller tracks again.
+    cfg = Px4StackConfig(
+        out=tmp_path,
+        hub=free_hub(),
+        simulate=True,
+        connect=_udp_url(),
+        duration=60.0,
+        hover_s=120.0,
+        release=-1.0,
+        extra={"px4sim": ["--mocap-fault", "dropout@2.0+4.0"]},
+    )
+    events = EventWaiter()
+
+    def from_(service: str, kind: str):
+        return lambda r: r["kind"] == kind and r["src"].startswith(f"{service}/")
+
+    with Stack(cfg, on_event=events) as stack:
+        stack.wait_ready()
+        n = events.mark()
+        assert arm(events, cfg)
+        _wait(events, _learning(True), 5.0, n, "adapter learning")
+
+        n = events.mark()
+        ctl = _wait(events, from_("controller", "failsafe"), 10.0, n, "controller failsafe")
+        assert ctl["data"]["reason"] == "hover_timeout"
+        fs = _wait(events, from_("bridge", "failsafe"), 5.0, n, "bridge leaving offboard")
+        assert fs["data"]["reason"] == "controller_failsafe"
+        assert fs["data"]["controller_reason"] == "hover_timeout"
+        _wait(events, _learning(False), 5.0, n, "adapter pausing")
+        _wait(
+            events,
+            lambda r: r["src"].startswith("bridge/") and r["text"].startswith("no Hold"),
+            5.0,
+            n,
+            "Land after the denied Hold",
+        )
+        _wait(
+            events,
+            lambda r: (
+                r["kind"] == "mode_change"
+                and r["src"].startswith("bridge/")
+                and r["data"]["mode"] == "LAND"
+            ),
+            5.0,
+            n,
+            "PX4 in Land",
+        )
+        # Still in the dropout: the controller streams hover setpoints, arming is refused.
+        m = events.mark()
+        assert not arm(events, cfg)
+        refused = _wait(
+            events, lambda r: r["text"].startswith("arm refused"), 0.0, m, "arm refused"
+        )
+        assert "has not tracked since" in refused["text"], refused["text"]
+        tracked = events.wait(lambda r: r["text"].startswith("tracking resumed"), 0.0, after=n)
+        assert tracked is None, "the dropout ended before arming could be checked"
+
+        # Mocap back: the controller tracks again.
+        _wait(
+            events,
+            lambda r: r["src"].startswith("controller/") and r["text"].startswith("tracking"),
+            10.0,
+            n,
+            "controller tracking again",
+        )
+        stack.stop()
+    controller = json.loads((tmp_path / "stats" / "controller.json").read_text())
+    assert controller["hover_failsafes"] == 1, controller["hover_failsafes"]
+    bridge = json.loads((tmp_path / "stats" / "bridge.json").read_text())
+    assert bridge["hold_denied_landings"] == 1
+    adapter = json.loads((tmp_path / "stats" / "adapter.json").read_text())
+    assert adapter["not_applied"] > 0, adapter
+    px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())
+    # PX4's own offboard-loss failsafe never fired: the bridge acted first.
+    assert not px4["crashed"] and px4["px4_failsafes"] == []
+    assert px4["mocap_faults"]["dropout"] > 0
