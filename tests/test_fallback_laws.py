@@ -1,5 +1,7 @@
-"""The controller's level hover (no position feedback: stale mocap, failed solves)
-levels a tilted vehicle and holds it level; it must never feed the tilt back."""
+"""The hand-written fallback laws, flown on the MuJoCo quadrotor: the controller's level
+hover (no position feedback: stale mocap, failed solves) levels a tilted vehicle and never
+feeds the tilt back; the simulator's position hold (its failsafe) returns to the hold
+point."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import numpy as np
 import pytest
 
 from services.controller import level_hover
+from services.sim_node import hold_setpoint
 from simulator import QuadrotorSim
 
 
@@ -53,3 +56,18 @@ def test_level_hover_levels_the_simulated_vehicle():
     # Gain 2 rad/s per unit tilt: about exp(-2 t) of the tilt, never growing.
     assert np.all(np.diff(tilts) < 0.0) and tilts[10] < 10.0 and tilts[-1] < 1.0, tilts
     assert abs(x[2] - 2.0) < 0.3 and np.linalg.norm(x[10:13]) < 0.05
+
+
+def test_the_simulators_position_hold_returns_to_the_hold_point():
+    sim = QuadrotorSim(payload_mass=0.0, seed=0)
+    sim.reset((0.3, -0.2, 1.8))
+    sim.data.qpos[3:7] = _quat((0.6, 0.8, 0.0), math.radians(15.0))
+    mujoco.mj_forward(sim.model, sim.data)
+    x = sim.state()
+    hover = sim.hover_thrust()
+    goal = np.array([0.0, 0.0, 2.0])
+    for _ in range(60):  # 3 s
+        sim.set_setpoint(hold_setpoint(x, goal, hover, hover / 9.81, 16.0))
+        x = sim.step(0.05)
+    assert np.linalg.norm(x[:3] - goal) < 0.02 and np.linalg.norm(x[3:6]) < 0.02
+    assert _tilt_deg(x[6:10]) < 1.0
