@@ -10,7 +10,8 @@ MuJoCo quadrotor as PX4 (``px4sim``) <-> MAVLink over UDP loopback <-> MAVSDK <-
 2. Failsafes: the bridge killed -> the simulated PX4's own ``COM_OF_LOSS_T`` failsafe
    fires; after the supervisor restarted the bridge and offboard is engaged again, the
    controller killed -> the bridge leaves offboard within 0.3 s (+ one PX4 heartbeat for
-   the mode to show) and PX4 holds, before its own offboard-loss timeout.
+   the mode to show) and PX4 holds, before its own offboard-loss timeout; the restarted
+   controller rejoins under Hold (learning stays paused) and offboard engages again.
 3. An operator's ``hold`` leaves offboard and pauses the adapter's learning; arming again
    resumes it.
 4. A 4 s mocap dropout: the controller's hover failsafe, PX4 denying Hold (no position
@@ -119,7 +120,7 @@ def _wait(events: EventWaiter, pred, timeout: float, after: int, what: str) -> d
     return rec
 
 
-def test_failsafes_bridge_killed_then_controller_killed(tmp_path):
+def test_failsafes_bridge_killed_then_controller_killed_and_restarted(tmp_path):
     # Hover plan (the reference stays put), long enough for both faults.
     cfg = Px4StackConfig(
         out=tmp_path,
@@ -218,6 +219,21 @@ def test_failsafes_bridge_killed_then_controller_killed(tmp_path):
             after=n,
         )
         assert late is None, late
+
+        # The supervisor restarts the controller under Hold; it rejoins the mission (the
+        # clock re-sent, which does not resume learning), and offboard engages again.
+        _wait(
+            events,
+            lambda r: r["kind"] == "restart" and r["data"].get("service") == "controller",
+            10.0,
+            n,
+            "controller restart",
+        )
+        stack.wait_alive(["controller"], 60.0)  # its token: warmed up and answering
+        assert events.wait(_learning(True), 0.0, after=n) is None
+        m = events.mark()
+        engage()
+        _wait(events, _learning(True), 5.0, m, "adapter learning again")
         stack.stop()
     px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())
     assert not px4["crashed"]
