@@ -10,7 +10,8 @@ of latency and occasional dropped frames; the gyro measures body rates. The filt
   share one ``3 x 3`` covariance (exact, and much cheaper than the ``9 x 9`` form). The
   acceleration state keeps the velocity unbiased through the smooth accelerations of
   flight with a low noise level (a constant-velocity model must trade one for the other);
-- **attitude**: propagated with the gyro between frames (``q <- q (x) exp(omega dt / 2)``)
+- **attitude**: integrated with the gyro at every control instant (``q <- q (x) exp(omega
+  dt / 2)``, the mean of the last two readings over the period), through dropouts too,
   and pulled towards each mocap quaternion with a fixed complementary gain;
 - **gating**: a frame whose position innovation has a squared Mahalanobis distance above
   ``gate_chi2`` (3 dof) or whose attitude differs by more than ``gate_angle_rad`` from
@@ -78,9 +79,13 @@ class FilterConfig(NamedTuple):
 
 
 class FilterState(NamedTuple):
-    """Filter state at ``t`` (capture time of the newest fused frame).
+    """Filter state: position, velocity and acceleration at ``t`` (capture time of the
+    newest fused frame), the attitude ``q`` at ``q_t``.
 
     ``cov`` is the ``(3, 3)`` covariance of ``[p_i, v_i, a_i]`` shared by the three axes.
+    The attitude has its own time because the gyro moves it forward at every control
+    instant, frames or not (the position model needs no such step: its prediction is
+    exact for any horizon); ``omega`` is the gyro reading at ``q_t``.
     ``initialised`` is False until the first frame; ``rejects`` counts consecutive
     gated-out frames; ``accepted``/``rejected`` are running totals.
     """
@@ -90,6 +95,8 @@ class FilterState(NamedTuple):
     v: Array
     a: Array
     q: Array
+    q_t: Array
+    omega: Array
     cov: Array
     initialised: Array
     rejects: Array
@@ -128,6 +135,8 @@ def init(dtype=None) -> FilterState:
         v=jnp.zeros(3, dtype),
         a=jnp.zeros(3, dtype),
         q=jnp.array([1.0, 0.0, 0.0, 0.0], dtype),
+        q_t=z,
+        omega=jnp.zeros(3, dtype),
         cov=jnp.eye(3, dtype=dtype),
         initialised=jnp.zeros((), bool),
         rejects=i,
@@ -219,7 +228,8 @@ def update(
     stamp = jnp.asarray(stamp, dtype)
     r = jnp.asarray(config.position_std, dtype) ** 2
     pred = predict(state, stamp, config)
-    q_pred = propagate_attitude(state.q, omega, stamp - state.t)
+    # From the attitude's own time (forwards, or back over a few ms of mocap latency).
+    q_pred = propagate_attitude(state.q, omega, stamp - state.q_t)
     nu = position - pred.p
     S = pred.cov[0, 0] + r
     d2 = jnp.sum(nu * nu) / S
@@ -258,6 +268,8 @@ def update(
         v=jnp.where(state.initialised, pred.v, 0.0),
         a=jnp.zeros(3, dtype),
         q=q_first,
+        q_t=stamp,
+        omega=omega,
         cov=jnp.diag(var0),
         initialised=jnp.ones((), bool),
         rejects=jnp.zeros((), jnp.int32),
@@ -270,6 +282,8 @@ def update(
         v=v_new,
         a=a_new,
         q=q_new,
+        q_t=stamp,
+        omega=omega,
         cov=cov_new,
         initialised=state.initialised,
         rejects=jnp.zeros((), jnp.int32),
@@ -286,12 +300,16 @@ def update(
 
 
 def output(state: FilterState, t: ArrayLike, omega: Array, config: FilterConfig) -> Estimate:
-    """State at the control instant ``t``: latency-compensated prediction (no update)."""
+    """State at the control instant ``t``: latency-compensated prediction (no update).
+
+    The attitude is integrated from ``q_t`` with the mean of ``state.omega`` and
+    ``omega`` (the trapezoid rule over the period; with a frame fused at ``q_t`` both are
+    this period's reading)."""
     dtype = state.p.dtype
     t = jnp.asarray(t, dtype)
     age = jnp.maximum(t - state.t, 0.0)
     pred = predict(state, t, config)
-    q = propagate_attitude(state.q, omega, age)
+    q = propagate_attitude(state.q, 0.5 * (state.omega + omega), t - state.q_t)
     x = jnp.concatenate([pred.p, pred.v, q, omega])
     att_var = jnp.full(4, (config.gyro_std * age) ** 2 + 1e-6, dtype)
     var = jnp.concatenate(
@@ -311,7 +329,8 @@ def fuse_and_predict(
     """One control period: fuse the valid ``frames`` in order, then :func:`output` at ``t``.
 
     ``omega`` (3,) is the latest gyro reading; it propagates the attitude between frames
-    and to ``t``, and is the output body rate.
+    and to ``t``, and is the output body rate. The attitude output at ``t`` becomes the
+    state's (``q_t = t``): without frames (a dropout) the gyro alone carries it.
     """
     omega = jnp.asarray(omega, state.p.dtype)
 
@@ -323,4 +342,11 @@ def fuse_and_predict(
 
     state, ok = jax.lax.scan(body, state, tuple(frames))
     est = output(state, t, omega, config)
+    t = jnp.asarray(t, state.p.dtype)
+    ahead = state.initialised & (t > state.q_t)
+    state = state._replace(
+        q=jnp.where(ahead, est.x[6:10], state.q),
+        q_t=jnp.where(ahead, t, state.q_t),
+        omega=jnp.where(ahead, omega, state.omega),
+    )
     return state, est._replace(fused=jnp.sum(ok.astype(jnp.int32)))

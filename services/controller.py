@@ -36,9 +36,10 @@ announced by an event when entered:
   fused mocap older than ``--max-meas-age``, 0.2 s: the estimator's constant-acceleration
   prediction extrapolates its acceleration estimate, whose noise (~1-2 m/s^2) makes the
   predicted velocity drift by tenths of m/s within a few tenths of a second, which the MPC
-  would chase): level hover (mode ``hover``) at the hover
-  thrust learned while tracking (the mean of the recent tracking thrusts, corrected for
-  tilt; the nominal one before any), tracking resumes with the next fresh state;
+  would chase): level hover (mode ``hover``, :func:`level_hover`) at the hover thrust
+  learned while tracking (the mean of the tracking thrusts, over the last 2.5 s once there
+  are that many, corrected for tilt; the nominal one before any), tracking resumes with
+  the next fresh state;
 - a non-finite or failed solve, or a control step that raised (``step_errors``; the first
   traceback is logged in full, later ones as a count at most every ``STEP_ERROR_LOG_S``):
   hover for that step.
@@ -126,6 +127,8 @@ def with_learner(carry, learner):
     return carry._replace(**{carry._fields[0]: learner})
 
 
+#: Tracking steps the level hover's thrust is averaged over (50: 2.5 s at 20 Hz).
+HOVER_THRUST_STEPS = 50
 #: Gain of the level-hover attitude law [rad/s per unit tilt].
 LEVEL_GAIN = 2.0
 
@@ -223,6 +226,7 @@ class Controller(runtime.Service):
         self._step_errors_unlogged = 0
         self._stale_model = False
         self._thrust_hover = float(self.u_hover[0])  # learned while tracking
+        self._thrust_samples = 0  # tracking steps averaged into it so far
         self._solve_s: list[float] = []
         self.stats.update(
             setpoints=0,
@@ -460,7 +464,12 @@ class Controller(runtime.Service):
         if not s.predicted_through_dropout:
             q = s.q
             tilt = 1 - 2 * (q[1] ** 2 + q[2] ** 2)
-            self._thrust_hover += 0.02 * (float(u[0]) * max(tilt, 0.5) - self._thrust_hover)
+            # The plain mean of the first HOVER_THRUST_STEPS samples, then an exponential
+            # mean over as many: the nominal value it starts from (no payload) must not
+            # linger for seconds.
+            self._thrust_samples += 1
+            w = max(1.0 / self._thrust_samples, 1.0 / HOVER_THRUST_STEPS)
+            self._thrust_hover += w * (float(u[0]) * max(tilt, 0.5) - self._thrust_hover)
         self._set_mode(mode, "model available" if m is not None else "no current model", s.stamp)
         if not a.lockstep and self.now() - t_recv > 1.0 / a.rate:
             self.stats["deadline_misses"] += 1
