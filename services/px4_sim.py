@@ -18,10 +18,11 @@ counts as a missed deadline. MAVLink carries no bus stamps; what is measured ins
 the actuation delay: simulated time from a control instant to the first new
 SET_ATTITUDE_TARGET after it (``actuation_delay``, resolution one ``--substep``). PX4's
 offboard-loss failsafe (``--of-loss-s``) switches to Hold or Land and is reported as a
-``failsafe`` event; while it lasts, crash detection measures the distance to the hold
-position instead of the reference. Realtime only (MAVLink runs on the wall
-clock): ``--lockstep`` is refused; ``--wait-for`` is not used (the mission waits for
-offboard instead).
+``failsafe`` event. Whenever PX4 flies by itself (its failsafe, or the bridge's Hold or
+Land), crash detection measures the distance to PX4's own target instead of the reference
+(:meth:`Px4Vehicle.own_target`), and a landed vehicle is not a crash. Realtime only
+(MAVLink runs on the wall clock): ``--lockstep`` is refused; ``--wait-for`` is not used
+(the mission waits for offboard instead).
 
 At the plan's end the service emits ``flight finished`` and keeps the vehicle running
 (mocap, imu and MAVLink) until it is stopped or ``--linger-s`` passed: a real vehicle does
@@ -166,7 +167,10 @@ class Px4SimNode(SimNode):
             with px4.lock:
                 engaged = v.armed and v.mode is FlightMode.OFFBOARD
                 sp = v.offboard_sp
-                hold = v.hold_position if v.failsafe else None
+                # Off the stack's setpoints (PX4's failsafe, the bridge's Hold or Land),
+                # PX4 flies to its own target: crashes are measured against that.
+                hold = None if engaged else v.own_target()
+                self._on_ground = v.landed
                 u = sim.setpoint
             k = st["k"]
             if k < 0 and engaged and t_sim >= self.args.preroll:

@@ -209,6 +209,7 @@ class SimNode(runtime.Service):
     name = "sim"
 
     _hold_by_controller = False  # the position hold answers the controller's failsafe
+    _on_ground = False  # landed on purpose (the PX4 vehicle's Land): not a crash
     _controller_failsafe: Event | None = None  # received, not yet acted on
 
     def setup(self, bus) -> None:
@@ -441,7 +442,7 @@ class SimNode(runtime.Service):
         goal = ref if self._hold is None else self._hold
         crashed = (
             np.linalg.norm(x[:3] - goal) > CRASH_ERROR_M
-            or x[2] < CRASH_HEIGHT_M
+            or (x[2] < CRASH_HEIGHT_M and not self._on_ground)
             or not np.all(np.isfinite(x))
         )
         if crashed:

@@ -129,9 +129,14 @@ def test_offboard_needs_a_stream_and_loss_lands_with_land_action(airframe):
     assert v.time - t_last == pytest.approx(0.4, abs=0.011)
     assert v.mode is FlightMode.LAND and v.failsafe
     assert any("offboard signal lost" in text for _, text in v.texts)
+    # What PX4 steers to by itself (the simulator's crash check): the landing point at the
+    # current height while it descends.
+    target = v.own_target()
+    np.testing.assert_allclose(target, v.state()[0:3], atol=1e-3)
     fly(v, 8.0)
     assert v.landed and not v.armed  # landed, then disarmed after COM_DISARM_LAND
     assert v.state()[2] == pytest.approx(v.ground_z, abs=0.01)
+    np.testing.assert_allclose(v.own_target(), v.state()[0:3])  # disarmed: where it is
 
 
 def test_parameters_are_checked(airframe):
@@ -149,9 +154,12 @@ def test_takeoff_then_hold_keeps_the_height(airframe):
     assert not v.takeoff()[0]  # disarmed
     v.arm()
     assert v.takeoff()[0] and v.landed_state == 3  # MAV_LANDED_STATE_TAKEOFF
+    target = v.own_target()
+    assert target[2] == pytest.approx(v.ground_z + 1.0)
     fly(v, 4.0)
     assert v.mode is FlightMode.HOLD
     assert v.state()[2] == pytest.approx(v.ground_z + 1.0, abs=0.1)
+    np.testing.assert_allclose(v.own_target(), target)  # holds where the take-off ended
     assert not v.disarm()[0]  # not in the air
 
 

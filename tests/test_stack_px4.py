@@ -17,6 +17,8 @@ MuJoCo quadrotor as PX4 (``px4sim``) <-> MAVLink over UDP loopback <-> MAVSDK <-
 4. A 4 s mocap dropout: the controller's hover failsafe, PX4 denying Hold (no position
    estimate without vision), the bridge's Land; ``arm`` is refused until the controller
    tracks again.
+5. A figure-eight crossing a tight geofence: the bridge leaves offboard, PX4 holds near the
+   fence.
 
 Both compare flights fly ARCADE with the shipped weights. Before offboard is engaged PX4
 holds the vehicle and the controller's setpoints are not applied; the adapter learns only
@@ -402,3 +404,51 @@ def test_long_mocap_dropout_lands_and_arming_waits_for_tracking(tmp_path):
     # PX4's own offboard-loss failsafe never fired: the bridge acted first.
     assert not px4["crashed"] and px4["px4_failsafes"] == []
     assert px4["mocap_faults"]["dropout"] > 0
+
+
+def test_geofence_breach_leaves_offboard_and_px4_holds_inside_reach(tmp_path):
+    # A 2 m x 2 m fence around the centre of the 4 m x 2 m figure-eight: the vehicle
+    # crosses it on the first lap; the bridge leaves offboard to Hold, PX4 holds where it
+    # is (not a crash, although the plan's reference moves on), learning pauses.
+    cfg = Px4StackConfig(
+        out=tmp_path,
+        hub=free_hub(),
+        simulate=True,
+        connect=_udp_url(),
+        speed=1.0,
+        duration=14.0,  # the reference ends more than 2 m from the hold point
+        release=-1.0,
+        bridge_args=["--geofence=-1,1,-1,1,0,3"],
+    )
+    events = EventWaiter()
+    armed: list[bool] = []
+    result = run_flight(
+        cfg, on_event=events, timeout=120.0, on_ready=lambda stack: armed.append(arm(events, cfg))
+    )
+    assert armed == [True]
+    assert all(c == 0 for c in result["codes"].values()), result["codes"]
+    fences = [
+        r for r in result["events"] if r["kind"] == "failsafe" and r["src"].startswith("bridge/")
+    ]
+    assert fences and fences[0]["data"]["reason"] == "geofence", fences
+    assert "outside the geofence" in fences[0]["text"]
+    modes = [
+        r["data"]["mode"]
+        for r in result["events"]
+        if r["kind"] == "mode_change" and r["src"].startswith("bridge/")
+    ]
+    assert modes[-2:] == ["OFFBOARD", "HOLD"], modes
+    assert any(
+        r["src"].startswith("adapter/") and r["data"].get("learning") is False
+        for r in result["events"]
+    )
+    px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())
+    assert not px4["crashed"] and px4["px4_failsafes"] == []
+    truth = _truth(tmp_path / "truth.csv")
+    # Held within a vehicle's reach of the fence (the braking distance at 1 m/s), far from
+    # the reference by the end.
+    held = truth["failsafe"] == 1.0
+    assert held.any()
+    end = np.array([truth[f"ref_{a}"][-1] - truth[a][-1] for a in ("px", "py", "pz")])
+    assert np.linalg.norm(end) > 2.0
+    assert np.abs(truth["px"][held]).max() < 1.5 and np.abs(truth["py"][held]).max() < 1.5

@@ -181,6 +181,20 @@ class Px4Vehicle:
         """Where Hold / Position keep the vehicle (ENU) [m]."""
         return self._hold_p.copy()
 
+    def own_target(self) -> np.ndarray | None:
+        """Where PX4's own controller steers the vehicle (ENU) [m], or None in Offboard:
+        the hold position in Hold / Position, the take-off point, in Land the landing point
+        at the current height (the descent is not an error), and disarmed where it is."""
+        if not self.armed:
+            return self.sim.state()[:3].copy()
+        if self.mode is FlightMode.OFFBOARD:
+            return None
+        if self.mode is FlightMode.TAKEOFF:
+            return self._target_p.copy()
+        if self.mode is FlightMode.LAND:
+            return np.array([*self._target_p[:2], self.sim.state()[2]])
+        return self._hold_p.copy()
+
     def position_ok(self) -> bool:
         """Whether the (vision-aided) estimator has a valid local position."""
         if not self.vision_required:
