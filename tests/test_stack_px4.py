@@ -19,6 +19,8 @@ MuJoCo quadrotor as PX4 (``px4sim``) <-> MAVLink over UDP loopback <-> MAVSDK <-
    tracks again.
 5. A figure-eight crossing a tight geofence: the bridge leaves offboard, PX4 holds near the
    fence.
+6. From the floor: ``arm`` with a take-off height, PX4's take-off, offboard from the hover,
+   the operator's ``land``, PX4's landing and disarm.
 
 Both compare flights fly ARCADE with the shipped weights. Before offboard is engaged PX4
 holds the vehicle and the controller's setpoints are not applied; the adapter learns only
@@ -452,3 +454,52 @@ def test_geofence_breach_leaves_offboard_and_px4_holds_inside_reach(tmp_path):
     end = np.array([truth[f"ref_{a}"][-1] - truth[a][-1] for a in ("px", "py", "pz")])
     assert np.linalg.norm(end) > 2.0
     assert np.abs(truth["px"][held]).max() < 1.5 and np.abs(truth["py"][held]).max() < 1.5
+
+
+def test_take_off_from_the_ground_fly_then_land_on_command(tmp_path):
+    # A real vehicle's day: on the floor, disarmed; `arm` with a take-off height lets PX4
+    # take off by itself, offboard starts from the hover; the operator's `land` lands it
+    # and PX4 disarms (a landing is not a crash).
+    cfg = Px4StackConfig(
+        out=tmp_path,
+        hub=free_hub(),
+        simulate=True,
+        connect=_udp_url(),
+        on_ground=True,
+        takeoff_m=1.5,
+        duration=60.0,
+        hover_s=120.0,
+        release=-1.0,
+    )
+    events = EventWaiter()
+
+    def bridge_mode(mode: str):
+        return lambda r: (
+            r["kind"] == "mode_change"
+            and r["src"].startswith("bridge/")
+            and r["data"]["mode"] == mode
+        )
+
+    with Stack(cfg, on_event=events) as stack:
+        stack.wait_ready()
+        n = events.mark()
+        assert arm(events, cfg)
+        _wait(events, bridge_mode("TAKEOFF"), 0.0, n, "PX4 taking off")
+        _wait(events, bridge_mode("OFFBOARD"), 5.0, n, "PX4 in Offboard")
+        n = events.mark()
+        with Bus(cfg.vehicle, "operator", cfg.bus_config("operator")) as bus:
+            bus.wait_alive(["bridge"], 10.0)
+            bus.put(Command(name="land", target="bridge", stamp=time.monotonic()))
+        _wait(events, bridge_mode("LAND"), 5.0, n, "PX4 landing")
+        _wait(
+            events,
+            lambda r: r["src"].startswith("px4sim/") and "Landing detected" in r["text"],
+            15.0,
+            n,
+            "PX4 landed and disarmed",
+        )
+        stack.stop()
+    px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())
+    assert not px4["crashed"] and px4["px4_failsafes"] == []
+    truth = _truth(tmp_path / "truth.csv")
+    assert truth["pz"][-1] < 0.1 and truth["pz"].max() > 1.3
