@@ -634,13 +634,20 @@ def sigterm_interrupts() -> Iterator[None]:
 
 def _end_process(p: subprocess.Popen, grace: float, hurry: threading.Event) -> None:
     """SIGINT ``p`` and wait up to ``grace`` s (less once ``hurry`` is set), then SIGTERM
-    and 5 s, then SIGKILL; returns once it has been reaped."""
+    and 5 s, then SIGKILL; returns once it has been reaped. A service still running after
+    the grace period first gets SIGUSR1: it writes its threads' stacks to its ``.out`` log
+    (``faulthandler``), the record of where it hung."""
     with contextlib.suppress(ProcessLookupError):
         p.send_signal(signal.SIGINT)
     deadline = time.monotonic() + grace
     # Polled, because a process's exit cannot be waited for together with ``hurry``.
     while p.poll() is None and not hurry.is_set() and time.monotonic() < deadline:
         hurry.wait(0.05)
+    if p.poll() is None and not hurry.is_set():
+        with contextlib.suppress(ProcessLookupError):
+            p.send_signal(signal.SIGUSR1)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            p.wait(timeout=0.5)
     if p.poll() is None:
         with contextlib.suppress(ProcessLookupError):
             p.terminate()

@@ -16,6 +16,7 @@ The bus session: by default a peer on loopback that meets the others through ``-
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import gc
 import logging
 import os
@@ -590,6 +591,9 @@ def main_for(
     if args.bus_config is not None and args.hub is not None:
         parser.error("--hub and --bus-config exclude each other (the file names the endpoints)")
     setup_logging(cls.name, args.out, args.log_level)
+    # `kill -USR1 <pid>` writes every thread's Python stack to stderr (<service>.out):
+    # what a hung service is doing, without stopping it.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     if args.nice:
         try:
             os.nice(args.nice)

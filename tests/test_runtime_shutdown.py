@@ -404,3 +404,50 @@ def test_a_service_that_has_shut_down_ignores_late_stop_signals():
     )
     assert done.stdout.split() == ["True", "True"], done.stderr
     assert done.returncode == 3
+
+
+def test_a_service_hung_while_stopping_dumps_its_stacks_before_it_is_terminated():
+    import threading
+
+    from deploy.launcher import _end_process
+
+    code = textwrap.dedent(
+        """
+        import signal, sys, time
+        from services import runtime
+
+        class Stub:
+            "a service that ignores its stop request"
+            name = "stub"
+
+            def __init__(self, args):
+                pass
+
+            def run(self):
+                signal.signal(signal.SIGINT, lambda *_: None)
+                print("up", flush=True)
+                while True:
+                    time.sleep(0.01)
+
+        sys.exit(runtime.main_for(Stub, []))
+        """
+    )
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    p = subprocess.Popen(
+        [sys.executable, "-c", code],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    try:
+        assert p.stdout.readline().strip() == "up"
+        _end_process(p, grace=0.2, hurry=threading.Event())
+        assert p.returncode == -signal.SIGTERM
+        err = p.stderr.read()
+        assert "most recent call first" in err and "in run" in err, err
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
