@@ -124,6 +124,37 @@ def _wait(events: EventWaiter, pred, timeout: float, after: int, what: str) -> d
     return rec
 
 
+def _from(service: str, kind: str):
+    """Predicate: an event of ``kind`` from ``service``."""
+    return lambda r: r["kind"] == kind and r["src"].startswith(f"{service}/")
+
+
+def _px4_mode(mode: str):
+    """Predicate: the bridge reports PX4 in flight mode ``mode``."""
+    return lambda r: _from("bridge", "mode_change")(r) and r["data"]["mode"] == mode
+
+
+def _learning(value: bool):
+    """Predicate: the adapter starts (True) or pauses (False) learning."""
+    return lambda r: _from("adapter", "info")(r) and r["data"].get("learning") is value
+
+
+def _engage(events: EventWaiter, cfg: Px4StackConfig, learning: bool = True) -> None:
+    """Arm through the bridge; PX4 in Offboard (and the adapter learning) afterwards."""
+    n = events.mark()
+    assert arm(events, cfg)
+    if learning:
+        _wait(events, _learning(True), 5.0, n, "adapter learning")
+    _wait(events, _px4_mode("OFFBOARD"), 5.0, n, "PX4 in Offboard")
+
+
+def _operator(cfg: Px4StackConfig, command: str) -> None:
+    """Send an operator's command to the bridge, as ``arcade up``'s console does."""
+    with Bus(cfg.vehicle, "operator", cfg.bus_config("operator")) as bus:
+        bus.wait_alive(["bridge"], 10.0)
+        bus.put(Command(name=command, target="bridge", stamp=time.monotonic()))
+
+
 def test_failsafes_bridge_killed_then_controller_killed_and_restarted(tmp_path):
     # Hover plan (the reference stays put), long enough for both faults.
     cfg = Px4StackConfig(
@@ -140,20 +171,9 @@ def test_failsafes_bridge_killed_then_controller_killed_and_restarted(tmp_path):
     )
     events = EventWaiter()
 
-    def engage() -> None:
-        n = events.mark()
-        assert arm(events, cfg)
-        _wait(
-            events,
-            lambda r: r["kind"] == "mode_change" and r["data"]["mode"] == "OFFBOARD",
-            5.0,
-            n,
-            "PX4 in Offboard",
-        )
-
     with Stack(cfg, on_event=events) as stack:
         stack.wait_ready()
-        engage()
+        _engage(events, cfg, learning=False)
 
         # The bridge dies: the simulated PX4's offboard-loss failsafe (COM_OF_LOSS_T) fires.
         n = events.mark()
@@ -184,32 +204,16 @@ def test_failsafes_bridge_killed_then_controller_killed_and_restarted(tmp_path):
             n,
             "restarted bridge ready",
         )
-        engage()
+        _engage(events, cfg, learning=False)
 
         # The controller dies: the bridge leaves offboard -> Hold within 0.3 s + one
         # heartbeat, before PX4's own offboard-loss timeout would.
         n = events.mark()
         t_kill = time.monotonic()
         stack.kill("controller")
-        fs = _wait(
-            events,
-            lambda r: r["kind"] == "failsafe" and r["src"].startswith("bridge"),
-            5.0,
-            n,
-            "bridge failsafe",
-        )
+        fs = _wait(events, _from("bridge", "failsafe"), 5.0, n, "bridge failsafe")
         assert fs["data"]["reason"] in ("controller_lost", "setpoint_timeout")
-        hold = _wait(
-            events,
-            lambda r: (
-                r["kind"] == "mode_change"
-                and r["src"].startswith("bridge")
-                and r["data"]["mode"] == "HOLD"
-            ),
-            5.0,
-            n,
-            "PX4 in Hold",
-        )
+        hold = _wait(events, _px4_mode("HOLD"), 5.0, n, "PX4 in Hold")
         assert hold["stamp"] - t_kill <= 0.3 + HEARTBEAT_S
         print(
             f"controller killed -> bridge failsafe after {fs['stamp'] - t_kill:.3f} s, "
@@ -235,24 +239,11 @@ def test_failsafes_bridge_killed_then_controller_killed_and_restarted(tmp_path):
         )
         stack.wait_alive(["controller"], 60.0)  # its token: warmed up and answering
         assert events.wait(_learning(True), 0.0, after=n) is None
-        m = events.mark()
-        engage()
-        _wait(events, _learning(True), 5.0, m, "adapter learning again")
+        _engage(events, cfg)
         stack.stop()
     px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())
     assert not px4["crashed"]
     assert [f["mode"] for f in px4["px4_failsafes"]] == ["HOLD"]
-
-
-def _learning(value: bool):
-    def pred(r: dict) -> bool:
-        return (
-            r["kind"] == "info"
-            and r["src"].startswith("adapter/")
-            and r["data"].get("learning") is value
-        )
-
-    return pred
 
 
 def test_operator_hold_pauses_learning_until_offboard_is_engaged_again(tmp_path):
@@ -270,55 +261,20 @@ def test_operator_hold_pauses_learning_until_offboard_is_engaged_again(tmp_path)
     )
     events = EventWaiter()
 
-    def engage() -> None:
-        n = events.mark()
-        assert arm(events, cfg)
-        _wait(events, _learning(True), 5.0, n, "adapter learning")
-        _wait(
-            events,
-            lambda r: r["kind"] == "mode_change" and r["data"]["mode"] == "OFFBOARD",
-            5.0,
-            n,
-            "PX4 in Offboard",
-        )
-
     with Stack(cfg, on_event=events) as stack:
         stack.wait_ready()
-        engage()
+        _engage(events, cfg)
 
         n = events.mark()
-        with Bus(cfg.vehicle, "operator", cfg.bus_config("operator")) as bus:
-            bus.wait_alive(["bridge"], 10.0)
-            bus.put(Command(name="hold", target="bridge", stamp=time.monotonic()))
-        fs = _wait(
-            events,
-            lambda r: r["kind"] == "failsafe" and r["src"].startswith("bridge/"),
-            5.0,
-            n,
-            "bridge leaving offboard",
-        )
+        _operator(cfg, "hold")
+        fs = _wait(events, _from("bridge", "failsafe"), 5.0, n, "bridge leaving offboard")
         assert fs["data"]["reason"] == "command" and fs["data"]["action"] == "hold"
         _wait(events, _learning(False), 5.0, n, "adapter pausing")
-        _wait(
-            events,
-            lambda r: (
-                r["kind"] == "mode_change"
-                and r["src"].startswith("bridge/")
-                and r["data"]["mode"] == "HOLD"
-            ),
-            5.0,
-            n,
-            "PX4 in Hold",
-        )
+        _wait(events, _px4_mode("HOLD"), 5.0, n, "PX4 in Hold")
         # Arming again waits for a steady setpoint stream (1 s) while PX4 holds: the
         # adapter sees states it must not learn from.
-        engage()
-        cleared = events.wait(
-            lambda r: r["kind"] == "failsafe_cleared" and r["src"].startswith("bridge/"),
-            0.0,
-            after=n,
-        )
-        assert cleared is not None
+        _engage(events, cfg)
+        assert events.wait(_from("bridge", "failsafe_cleared"), 0.0, after=n) is not None
         stack.stop()
     adapter = json.loads((tmp_path / "stats" / "adapter.json").read_text())
     assert adapter["not_applied"] > 0 and adapter["learned"] > 0, adapter
@@ -343,19 +299,14 @@ def test_long_mocap_dropout_lands_and_arming_waits_for_tracking(tmp_path):
     )
     events = EventWaiter()
 
-    def from_(service: str, kind: str):
-        return lambda r: r["kind"] == kind and r["src"].startswith(f"{service}/")
-
     with Stack(cfg, on_event=events) as stack:
         stack.wait_ready()
-        n = events.mark()
-        assert arm(events, cfg)
-        _wait(events, _learning(True), 5.0, n, "adapter learning")
+        _engage(events, cfg)
 
         n = events.mark()
-        ctl = _wait(events, from_("controller", "failsafe"), 10.0, n, "controller failsafe")
+        ctl = _wait(events, _from("controller", "failsafe"), 10.0, n, "controller failsafe")
         assert ctl["data"]["reason"] == "hover_timeout"
-        fs = _wait(events, from_("bridge", "failsafe"), 5.0, n, "bridge leaving offboard")
+        fs = _wait(events, _from("bridge", "failsafe"), 5.0, n, "bridge leaving offboard")
         assert fs["data"]["reason"] == "controller_failsafe"
         assert fs["data"]["controller_reason"] == "hover_timeout"
         _wait(events, _learning(False), 5.0, n, "adapter pausing")
@@ -366,17 +317,7 @@ def test_long_mocap_dropout_lands_and_arming_waits_for_tracking(tmp_path):
             n,
             "Land after the denied Hold",
         )
-        _wait(
-            events,
-            lambda r: (
-                r["kind"] == "mode_change"
-                and r["src"].startswith("bridge/")
-                and r["data"]["mode"] == "LAND"
-            ),
-            5.0,
-            n,
-            "PX4 in Land",
-        )
+        _wait(events, _px4_mode("LAND"), 5.0, n, "PX4 in Land")
         # Still in the dropout: the controller streams hover setpoints, arming is refused.
         m = events.mark()
         assert not arm(events, cfg)
@@ -429,21 +370,12 @@ def test_geofence_breach_leaves_offboard_and_px4_holds_inside_reach(tmp_path):
     )
     assert armed == [True]
     assert all(c == 0 for c in result["codes"].values()), result["codes"]
-    fences = [
-        r for r in result["events"] if r["kind"] == "failsafe" and r["src"].startswith("bridge/")
-    ]
+    fences = [r for r in result["events"] if _from("bridge", "failsafe")(r)]
     assert fences and fences[0]["data"]["reason"] == "geofence", fences
     assert "outside the geofence" in fences[0]["text"]
-    modes = [
-        r["data"]["mode"]
-        for r in result["events"]
-        if r["kind"] == "mode_change" and r["src"].startswith("bridge/")
-    ]
+    modes = [r["data"]["mode"] for r in result["events"] if _from("bridge", "mode_change")(r)]
     assert modes[-2:] == ["OFFBOARD", "HOLD"], modes
-    assert any(
-        r["src"].startswith("adapter/") and r["data"].get("learning") is False
-        for r in result["events"]
-    )
+    assert any(_learning(False)(r) for r in result["events"])
     px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())
     assert not px4["crashed"] and px4["px4_failsafes"] == []
     truth = _truth(tmp_path / "truth.csv")
@@ -473,24 +405,15 @@ def test_take_off_from_the_ground_fly_then_land_on_command(tmp_path):
     )
     events = EventWaiter()
 
-    def bridge_mode(mode: str):
-        return lambda r: (
-            r["kind"] == "mode_change"
-            and r["src"].startswith("bridge/")
-            and r["data"]["mode"] == mode
-        )
-
     with Stack(cfg, on_event=events) as stack:
         stack.wait_ready()
         n = events.mark()
         assert arm(events, cfg)
-        _wait(events, bridge_mode("TAKEOFF"), 0.0, n, "PX4 taking off")
-        _wait(events, bridge_mode("OFFBOARD"), 5.0, n, "PX4 in Offboard")
+        _wait(events, _px4_mode("TAKEOFF"), 0.0, n, "PX4 taking off")
+        _wait(events, _px4_mode("OFFBOARD"), 5.0, n, "PX4 in Offboard")
         n = events.mark()
-        with Bus(cfg.vehicle, "operator", cfg.bus_config("operator")) as bus:
-            bus.wait_alive(["bridge"], 10.0)
-            bus.put(Command(name="land", target="bridge", stamp=time.monotonic()))
-        _wait(events, bridge_mode("LAND"), 5.0, n, "PX4 landing")
+        _operator(cfg, "land")
+        _wait(events, _px4_mode("LAND"), 5.0, n, "PX4 landing")
         _wait(
             events,
             lambda r: r["src"].startswith("px4sim/") and "Landing detected" in r["text"],
