@@ -58,6 +58,19 @@ def _udp_url() -> str:
         return f"udpin://127.0.0.1:{s.getsockname()[1]}"
 
 
+def _px4_config(out: Path, **options) -> Px4StackConfig:
+    """The stack through a simulated PX4 on a fresh hub and UDP port; by default a hover
+    plan (the reference stays put) long enough for any fault sequence, no release."""
+    plan = {"duration": 60.0, "hover_s": 120.0, "release": -1.0}
+    return Px4StackConfig(
+        out=out,
+        hub=free_hub(),
+        simulate=True,
+        connect=_udp_url(),
+        **{**plan, **options},
+    )
+
+
 def _truth(path: Path) -> dict[str, np.ndarray]:
     with path.open() as f:
         rows = list(csv.reader(f))
@@ -79,8 +92,8 @@ def _fly_sim_profile(out: Path) -> float:
     return _rmse(_truth(out / "truth.csv"), PLAN["duration"])
 
 
-def _fly_through_px4(out: Path) -> float:
-    cfg = Px4StackConfig(out=out, hub=free_hub(), simulate=True, connect=_udp_url(), **PLAN)
+def _fly_armed(cfg: Px4StackConfig) -> dict:
+    """Fly the plan, armed as soon as the stack is ready; every process exits cleanly."""
     events = EventWaiter()
     armed: list[bool] = []
     result = run_flight(
@@ -88,6 +101,11 @@ def _fly_through_px4(out: Path) -> float:
     )
     assert armed == [True]
     assert all(c == 0 for c in result["codes"].values()), result["codes"]
+    return result
+
+
+def _fly_through_px4(out: Path) -> float:
+    result = _fly_armed(_px4_config(out, hover_s=None, **PLAN))
     px4 = json.loads((out / "stats" / "px4sim.json").read_text())
     bridge = json.loads((out / "stats" / "bridge.json").read_text())
     assert not px4["crashed"] and px4["released_at"] is not None
@@ -157,15 +175,9 @@ def _operator(cfg: Px4StackConfig, command: str) -> None:
 
 def test_failsafes_bridge_killed_then_controller_killed_and_restarted(tmp_path):
     # Hover plan (the reference stays put), long enough for both faults.
-    cfg = Px4StackConfig(
-        out=tmp_path,
-        hub=free_hub(),
+    cfg = _px4_config(
+        tmp_path,
         weights=tmp_path / "none.eqx",
-        simulate=True,
-        connect=_udp_url(),
-        duration=60.0,
-        hover_s=120.0,
-        release=-1.0,
         of_loss_s=COM_OF_LOSS_T,
         of_loss_action="hold",
     )
@@ -250,15 +262,7 @@ def test_operator_hold_pauses_learning_until_offboard_is_engaged_again(tmp_path)
     # The adapter learns only while PX4 flies the stack's setpoints: an operator's hold
     # leaves offboard (the bridge's failsafe event, reason "command"), the adapter pauses
     # and counts the steps it does not learn from; arming again resumes it.
-    cfg = Px4StackConfig(
-        out=tmp_path,
-        hub=free_hub(),
-        simulate=True,
-        connect=_udp_url(),
-        duration=60.0,
-        hover_s=120.0,
-        release=-1.0,
-    )
+    cfg = _px4_config(tmp_path)
     events = EventWaiter()
 
     with Stack(cfg, on_event=events) as stack:
@@ -287,16 +291,7 @@ def test_long_mocap_dropout_lands_and_arming_waits_for_tracking(tmp_path):
     # position feedback, gives up after its --max-hover-s (1 s, a failsafe event), the
     # bridge leaves offboard; PX4 has no position estimate, so it denies Hold and the
     # bridge commands Land. Arming is refused until the controller tracks again.
-    cfg = Px4StackConfig(
-        out=tmp_path,
-        hub=free_hub(),
-        simulate=True,
-        connect=_udp_url(),
-        duration=60.0,
-        hover_s=120.0,
-        release=-1.0,
-        extra={"px4sim": ["--mocap-fault", "dropout@2.0+4.0"]},
-    )
+    cfg = _px4_config(tmp_path, extra={"px4sim": ["--mocap-fault", "dropout@2.0+4.0"]})
     events = EventWaiter()
 
     with Stack(cfg, on_event=events) as stack:
@@ -353,23 +348,14 @@ def test_geofence_breach_leaves_offboard_and_px4_holds_inside_reach(tmp_path):
     # A 2 m x 2 m fence around the centre of the 4 m x 2 m figure-eight: the vehicle
     # crosses it on the first lap; the bridge leaves offboard to Hold, PX4 holds where it
     # is (not a crash, although the plan's reference moves on), learning pauses.
-    cfg = Px4StackConfig(
-        out=tmp_path,
-        hub=free_hub(),
-        simulate=True,
-        connect=_udp_url(),
+    cfg = _px4_config(
+        tmp_path,
         speed=1.0,
         duration=14.0,  # the reference ends more than 2 m from the hold point
-        release=-1.0,
+        hover_s=None,  # the scenario's: the figure-eight
         bridge_args=["--geofence=-1,1,-1,1,0,3"],
     )
-    events = EventWaiter()
-    armed: list[bool] = []
-    result = run_flight(
-        cfg, on_event=events, timeout=120.0, on_ready=lambda stack: armed.append(arm(events, cfg))
-    )
-    assert armed == [True]
-    assert all(c == 0 for c in result["codes"].values()), result["codes"]
+    result = _fly_armed(cfg)
     fences = [r for r in result["events"] if _from("bridge", "failsafe")(r)]
     assert fences and fences[0]["data"]["reason"] == "geofence", fences
     assert "outside the geofence" in fences[0]["text"]
@@ -392,17 +378,7 @@ def test_take_off_from_the_ground_fly_then_land_on_command(tmp_path):
     # A real vehicle's day: on the floor, disarmed; `arm` with a take-off height lets PX4
     # take off by itself, offboard starts from the hover; the operator's `land` lands it
     # and PX4 disarms (a landing is not a crash).
-    cfg = Px4StackConfig(
-        out=tmp_path,
-        hub=free_hub(),
-        simulate=True,
-        connect=_udp_url(),
-        on_ground=True,
-        takeoff_m=1.5,
-        duration=60.0,
-        hover_s=120.0,
-        release=-1.0,
-    )
+    cfg = _px4_config(tmp_path, on_ground=True, takeoff_m=1.5)
     events = EventWaiter()
 
     with Stack(cfg, on_event=events) as stack:
