@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from arcade import jsonout
+from arcade import jsonout, signals
 
 REPO = Path(__file__).resolve().parents[1]
 #: Start order; stop order is the reverse of the data flow (vehicle first, recorder last).
@@ -671,7 +671,7 @@ def _interrupts_deferred() -> Any:
 
     def defer(sig: int, _frame: object) -> None:
         came.append(sig)
-        hurry.set()
+        signals.set_from_handler(hurry)  # the main thread may be inside hurry.wait()
 
     sigs = (signal.SIGINT, signal.SIGTERM)
     previous = {sig: signal.signal(sig, defer) for sig in sigs}

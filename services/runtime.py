@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from arcade import atomicfile, jsonout
+from arcade import atomicfile, jsonout, signals
 from services.bus import DEFAULT_HUB, Bus, peer_config, read_config, zenoh_reason
 
 log = logging.getLogger("arcade.service")
@@ -406,7 +406,7 @@ class Service:
     def run(self) -> int:
         """Set up, warm up, announce liveliness, run, shut down cleanly. Returns an exit code."""
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: self.stop.set())
+            signal.signal(sig, lambda *_: signals.set_from_handler(self.stop))
         watch_parent(self.stop, self.log)
         t0 = time.perf_counter()
         code = 0

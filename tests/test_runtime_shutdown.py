@@ -451,3 +451,26 @@ def test_a_service_hung_while_stopping_dumps_its_stacks_before_it_is_terminated(
         if p.poll() is None:
             p.kill()
             p.wait()
+
+
+def test_a_stop_signal_while_the_main_thread_holds_the_event_lock_does_not_deadlock():
+    # The launcher's SIGINT can land while a service's main thread is inside its own
+    # stop.set() (a flight that ended by itself) or stop.wait(): the handler must not
+    # take the event's lock on that same thread. In a child process: the old handler
+    # hung there for good.
+    code = textwrap.dedent(
+        """
+        import signal, threading
+        from arcade import signals
+        stop = threading.Event()
+        signal.signal(signal.SIGINT, lambda *_: signals.set_from_handler(stop))
+        with stop._cond:  # where stop.set() and stop.wait() hold it
+            signal.raise_signal(signal.SIGINT)  # the handler runs here
+        print(stop.wait(5.0), flush=True)
+        """
+    )
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=30
+    )
+    assert out.returncode == 0 and out.stdout.strip() == "True", out

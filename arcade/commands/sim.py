@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+from arcade import signals
 from arcade.px4_failsafe import add_failsafe_arguments, failsafe_settings
 
 HELP = "run the simulator alone as a PX4 vehicle on MAVLink (MAVSDK/QGC can fly it)"
@@ -223,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
         return False
 
     previous = {
-        sig: signal.signal(sig, lambda *_: sim.stop.set())
+        sig: signal.signal(sig, lambda *_: signals.set_from_handler(sim.stop))
         for sig in (signal.SIGINT, signal.SIGTERM)
     }
     try:
