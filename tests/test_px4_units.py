@@ -139,6 +139,21 @@ def test_offboard_needs_a_stream_and_loss_lands_with_land_action(airframe):
     np.testing.assert_allclose(v.own_target(), v.state()[0:3])  # disarmed: where it is
 
 
+def test_land_without_a_position_estimate_is_a_level_descent_that_keeps_its_drift(airframe):
+    # PX4's Descend: no vision, so no horizontal position to steer to (the bridge lands a
+    # vehicle whose mocap is gone); the height rate is still controlled.
+    v = Px4Vehicle(airframe, start=(0.0, 0.0, 2.0), airborne=True, vision_required=True)
+    airframe.reset(position=(0.0, 0.0, 2.0), velocity=(0.4, 0.0, 0.0))
+    assert not v.position_ok() and v.set_mode(FlightMode.LAND)[0]
+    fly(v, 1.5)
+    x = v.state()
+    assert x[3] == pytest.approx(0.4, abs=0.05)  # drifting on, not braked back
+    assert x[5] == pytest.approx(-float(v.params["MPC_LAND_SPEED"]), abs=0.1)
+    tilt = math.degrees(math.acos(1 - 2 * (x[7] ** 2 + x[8] ** 2)))
+    assert tilt < 2.0
+    np.testing.assert_allclose(v.own_target(), x[0:3])  # no target of its own
+
+
 def test_parameters_are_checked(airframe):
     with pytest.raises(ValueError, match="COM_OBL_RC_ACT"):
         Px4Vehicle(airframe, params={"COM_OBL_RC_ACT": 3})  # Return: not flown here

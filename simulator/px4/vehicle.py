@@ -24,7 +24,8 @@ Behaviour, after PX4 (v1.14/1.15):
   ``COM_OBL_RC_ACT`` (0: Position, 4: Land, 5: Hold; default Hold) and says so.
 - **Hold / Position** keep the position where the mode was entered; on the ground the
   motors idle. **Take-off** climbs ``MIS_TAKEOFF_ALT`` above the ground and switches to
-  Hold. **Land** descends at ``MPC_LAND_SPEED``.
+  Hold. **Land** descends at ``MPC_LAND_SPEED``; without a valid position it is PX4's
+  Descend: level, no horizontal correction (the vehicle keeps its drift).
 """
 
 from __future__ import annotations
@@ -192,7 +193,9 @@ class Px4Vehicle:
         if self.mode is FlightMode.TAKEOFF:
             return self._target_p.copy()
         if self.mode is FlightMode.LAND:
-            return np.array([*self._target_p[:2], self.sim.state()[2]])
+            x = self.sim.state()
+            # Without a position estimate the descent drifts (see _control): no target.
+            return x[:3].copy() if not self.position_ok() else np.r_[self._target_p[:2], x[2]]
         return self._hold_p.copy()
 
     def position_ok(self) -> bool:
@@ -415,6 +418,10 @@ class Px4Vehicle:
             return np.zeros(4)  # auto modes idle on the ground
         if self.mode is FlightMode.LAND:
             v_sp = [math.nan, math.nan, -float(self.params["MPC_LAND_SPEED"])]
+            if not self.position_ok():
+                # PX4's Descend: no horizontal position to hold, so no horizontal
+                # correction (level, the vehicle keeps its drift); height rate only.
+                v_sp[:2] = x[3:5]
             return self.pos_ctl.control(x, self._target_p, self._hold_yaw, hover, v_sp=v_sp)
         return self.pos_ctl.control(x, self._hold_p, self._hold_yaw, hover)
 
