@@ -27,6 +27,9 @@ from services import runtime
 from services.bus import Bus
 from services.messages import Command, MessageError, Mocap, Reason, State, encode
 
+#: Environment of child interpreters that import the project (from any working directory).
+CHILD_ENV = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+
 
 def args(out: Path | None) -> argparse.Namespace:
     return runtime.common_parser("probe", "test").parse_args(
@@ -203,13 +206,12 @@ def test_a_service_stops_when_its_launcher_dies():
         input()  # until killed
         """
     )
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
     parent = subprocess.Popen(
         [sys.executable, "-c", launcher],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
-        env=env,
+        env=CHILD_ENV,
     )
     pid = int(parent.stdout.readline())
     service = os.pidfd_open(pid)  # not our child: its exit is waited for on a pidfd
@@ -432,13 +434,12 @@ def test_a_service_hung_while_stopping_dumps_its_stacks_before_it_is_terminated(
         sys.exit(runtime.main_for(Stub, []))
         """
     )
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
     p = subprocess.Popen(
         [sys.executable, "-c", code],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        env=env,
+        env=CHILD_ENV,
         start_new_session=True,
     )
     try:
@@ -469,8 +470,7 @@ def test_a_stop_signal_while_the_main_thread_holds_the_event_lock_does_not_deadl
         print(stop.wait(5.0), flush=True)
         """
     )
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
     out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=30
+        [sys.executable, "-c", code], capture_output=True, text=True, env=CHILD_ENV, timeout=30
     )
     assert out.returncode == 0 and out.stdout.strip() == "True", out
