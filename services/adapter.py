@@ -24,7 +24,10 @@ vehicle link does not fly them: from a ``failsafe`` event (the PX4 bridge emits 
 exit from offboard, operator commands included) until ``failsafe_cleared`` (the link flies
 the setpoints again: the bridge emits it whenever offboard is engaged) or a new ``start``.
 A ``start`` that repeats the mission's ``t0`` (the clock re-sent to a restarted controller)
-is no new mission and does not resume learning. A ``failsafe`` event of the controller is
+is no new mission and does not resume learning. An adapter that (re)joins a running mission
+is sent its clock too, with ``flying`` (whether the link flies the setpoints at that moment):
+it learns at once, or announces that it waits for ``failsafe_cleared``. A ``failsafe`` event
+of the controller is
 a request to the vehicle link, whose own event follows when it acts: it does not pause
 learning by itself. Steps not learned from for this reason are counted (``not_applied``).
 In lockstep every setpoint is applied from the first state on.
@@ -297,9 +300,15 @@ class Adapter(runtime.Service):
             return
         t0 = cmd.args.get("t0", cmd.stamp)
         if t0 == self._mission_t0:
-            return  # the mission clock re-sent to a (re)joining controller: no new mission
+            return  # the mission clock re-sent to a (re)joining service: no new mission
         self._mission_t0 = t0
-        self._set_applied(True, f"mission started ({cmd.src})")
+        # ``flying``: the link's answer to a service that (re)joins a running mission (this
+        # adapter, restarted) -- whether the vehicle flies the setpoints right now.
+        flying = cmd.args.get("flying", True)
+        if flying is False:
+            self._set_applied(False, f"joined the mission under a failsafe ({cmd.src})", True)
+        else:
+            self._set_applied(True, f"mission started ({cmd.src})")
 
     def on_event(self, e: Event) -> None:
         if e.kind == "failsafe" and not e.src.startswith("controller/"):
@@ -307,9 +316,10 @@ class Adapter(runtime.Service):
         elif e.kind == "failsafe_cleared":
             self._set_applied(True, f"{e.src}: {e.text}")
 
-    def _set_applied(self, applied: bool, why: str) -> None:
-        """Learn (or not) from the steps to come; announced when it changes."""
-        if applied == self._applied:
+    def _set_applied(self, applied: bool, why: str, announce: bool = False) -> None:
+        """Learn (or not) from the steps to come; announced when it changes (or
+        ``announce``)."""
+        if applied == self._applied and not announce:
             return
         self._applied = applied
         if applied:

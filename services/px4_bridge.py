@@ -21,7 +21,8 @@ that controller setpoints stream steadily (``--min-stream``), the vehicle is arm
 inside the geofence, and no controller failsafe since it last tracked; then it sends the
 newest setpoint, arms and starts offboard, emits ``failsafe_cleared`` (the vehicle flies
 the stack's setpoints again: the adapter learns from here on) and puts a ``start`` command
-(mission clock of the controller; not with ``--no-start-mission``). With
+(mission clock of the controller; not with ``--no-start-mission``), which an adapter
+that (re)joins later gets again, with ``flying`` (offboard engaged at that moment). With
 ``args.takeoff_m`` and the vehicle on the ground, PX4 first takes off by itself to that
 height (Takeoff mode, then Hold) and offboard starts from the hover. ``hold`` / ``stop``
 leave offboard to Hold, ``land`` to Land, ``disarm`` is refused unless PX4 reports the
@@ -176,6 +177,7 @@ class Px4Bridge(runtime.Service):
         self._lock = threading.RLock()  # offboard state and every offboard call
         self._cond = threading.Condition(self._lock)
         self._engaged = False  # offboard control by this bridge (or being engaged)
+        self._mission_t0: float | None = None  # the latest start this bridge put
         self._last_rx = -math.inf  # arrival time of the newest valid setpoint
         self._stream_since = math.inf  # arrival of the first setpoint without a gap since
         self._latest: tuple[np.ndarray, float] | None = None
@@ -484,6 +486,13 @@ class Px4Bridge(runtime.Service):
             )
 
     def _on_alive_change(self, service: str, up: bool) -> None:
+        if service == "adapter" and up and self._mission_t0 is not None:
+            # A restarted adapter: the mission's clock, and whether offboard flies the
+            # setpoints now (it learns from them only then).
+            with self._lock:
+                flying = self._engaged
+            args = {"t0": self._mission_t0, "flying": flying}
+            self.bus.put(Command(name="start", args=args, stamp=time.monotonic()))
         if service == "controller" and not up:
             self.leave_offboard(
                 "the controller's liveliness token disappeared",
@@ -712,6 +721,7 @@ class Px4Bridge(runtime.Service):
         # Whether or not this bridge starts the mission: the setpoints are flown again.
         self.event("failsafe_cleared", "offboard control engaged: setpoints flown", stamp=stamp)
         if self.args.start_mission:
+            self._mission_t0 = stamp
             self.bus.put(Command(name="start", args={"t0": stamp}, stamp=stamp))
 
     def _engage_problems(self) -> list[str]:

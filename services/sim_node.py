@@ -37,8 +37,10 @@ that long), the vehicle holds its position (a PD position loop on its own state,
 role of PX4's position controller, with the hover thrust of the mass it carries) and a
 ``failsafe`` event says so, with the measured delay. When setpoints answer
 ``--failsafe-resume`` consecutive control instants again, offboard control resumes
-(``failsafe_cleared`` event). A (re)joining controller in realtime is sent the mission's
-``start`` command again, so that it picks up the mission clock.
+(``failsafe_cleared`` event). A (re)joining controller or adapter is sent the mission's
+``start`` command again, so that it picks up the mission clock, with ``flying`` (whether
+the vehicle flies the setpoints at that moment: a restarted adapter learns from them only
+then).
 
 The controller's failsafe (an ``event`` of kind ``failsafe`` from ``controller/...``: it
 hovered open loop, without position feedback, for too long) engages the same position
@@ -304,9 +306,11 @@ class SimNode(runtime.Service):
             self._release_at = cmd.stamp
 
     def _on_alive(self, service: str, up: bool) -> None:
-        """A controller that (re)joins after the mission started gets its clock again."""
-        if service == "controller" and up and math.isfinite(self._flight_stamp):
-            self.bus.put(Command(name="start", args={"t0": self._flight_stamp}, stamp=self.now()))
+        """A controller or adapter that (re)joins after the mission started gets its clock
+        again, and whether the vehicle flies the setpoints now (``flying``: not holding)."""
+        if service in ("controller", "adapter") and up and math.isfinite(self._flight_stamp):
+            args = {"t0": self._flight_stamp, "flying": self._hold is None}
+            self.bus.put(Command(name="start", args=args, stamp=self.now()))
 
     # -- failsafe
     def _engage_failsafe(self, stamp: float, since: float, controller: Event | None = None) -> None:

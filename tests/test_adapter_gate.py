@@ -106,6 +106,25 @@ def test_learning_follows_the_vehicle_link_not_the_controller_nor_a_resent_clock
     assert [e.data["learning"] for e in svc.bus.events("info")] == [True, False, True, False, True]
 
 
+def test_a_restarted_adapter_learns_from_the_clock_it_is_sent_again():
+    """An adapter restarted mid-flight saw neither the mission's start nor the link's
+    events: the link's re-sent clock says whether the setpoints are flown now."""
+    flying = make_adapter()
+    flying.on_command(Command(name="start", args={"t0": 5.0, "flying": True}, stamp=7.0))
+    assert flying._applied
+    assert [e.data["learning"] for e in flying.bus.events("info")] == [True]
+    held = make_adapter()
+    held.on_command(Command(name="start", args={"t0": 5.0, "flying": False}, stamp=7.0))
+    assert not held._applied
+    # Announced although the gate did not change: the adapter says why it does not learn.
+    (paused,) = held.bus.events("info")
+    assert paused.data["learning"] is False and "under a failsafe" in paused.text
+    held.on_command(Command(name="start", args={"t0": 5.0, "flying": True}, stamp=7.5))
+    assert not held._applied  # the same clock again (a controller rejoining): no change
+    held.on_event(event("failsafe_cleared", "sim/1"))
+    assert held._applied
+
+
 def test_steps_not_applied_are_counted_and_not_learned():
     svc = make_adapter()
     for k, t in enumerate((10.0, 10.05, 10.1)):

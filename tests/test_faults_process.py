@@ -12,7 +12,8 @@ restarted services rejoin the running flight:
   (failsafe delay measured on the wall clock by an independent subscriber); the restarted
   adapter restores its checkpoint (written atomically, so a SIGKILL never leaves a torn
   file), the restarted controller picks up the mission clock, the failsafe clears and the
-  controller tracks on fresh models again.
+  controller tracks on fresh models again; then the adapter alone dies, and the restarted
+  one learns again (the simulator re-sends it the mission clock, with ``flying``).
 
 Every kill is triggered by what the bus says (stamps, events), never by a sleep.
 """
@@ -223,11 +224,35 @@ def test_realtime_adapter_and_controller_killed(tmp_path):
                 "tracking on a fresh model",
                 lambda: any(t > t_restored and mode == "track" for t, mode in mon.modes),
             )
+            # The adapter alone, killed while it learns: restarted, it saw neither the
+            # mission's start nor the failsafes; the simulator's re-sent clock says whether
+            # the setpoints are flown now (the restart's load may have the simulator hold
+            # again), and it learns again.
+            mon.wait_event(
+                "the restored adapter learning",
+                lambda e: e.src == restored.src and e.data.get("learning") is True,
+                n,
+            )
+            n = len(mon.events)
+            stack.kill("adapter")
+            _, _, back = mon.wait_event("restored again", is_event("restart", "adapter"), n)
+
+            def of_new(e: Any) -> bool:
+                return e.src == back.src and e.kind == "info"
+
+            _, _, first = mon.wait_event("its first word on learning", of_new, n)
+            assert "mission started" in first.text or "under a failsafe" in first.text, first
+            mon.wait_event(
+                "learning again", lambda e: of_new(e) and e.data.get("learning") is True, n
+            )
         finally:
             mon.close()
     codes = {n: p.returncode for n, p in stack.procs.items()}
     check_logs(tmp_path, codes)
-    assert stack.restarts["controller"] == 1 and stack.restarts["adapter"] == 1
+    assert stack.restarts["controller"] == 1 and stack.restarts["adapter"] == 2
+    # The last incarnation learned from the flight (its stats are written at shutdown).
+    stats = json.loads((tmp_path / "stats" / "adapter.json").read_text())
+    assert stats["learned"] > 0, stats
 
 
 def test_supervisor_restarts_with_backoff_then_gives_up(tmp_path):

@@ -431,5 +431,29 @@ def test_px4sim_resends_start_to_a_rejoining_controller_only_when_it_owns_it(no_
     node = Px4SimNode(argparse.Namespace(out=None, no_start_command=no_start))
     node.bus = FakeBus()
     node._flight_stamp = 12.5
+    node._hold = None  # flying the stack's setpoints (offboard)
     node._on_alive("controller", True)
     assert commands(node) == ([] if no_start else ["start"])
+    # A rejoining adapter: the clock, and whether PX4 flies the stack's setpoints now.
+    node._hold = np.zeros(3)  # PX4 flies to its own target (not in offboard)
+    node._on_alive("adapter", True)
+    node._hold = None
+    node._on_alive("adapter", True)
+    sent = [c.args for c in node.bus.sent if isinstance(c, Command)]
+    flights = [{"t0": 12.5, "flying": f} for f in (True, False, True)]  # controller first
+    assert sent == ([] if no_start else flights)
+
+
+def test_the_bridge_tells_a_rejoining_adapter_whether_offboard_flies_the_setpoints():
+    b = bridge()
+    b._on_alive_change("adapter", True)
+    assert commands(b) == []  # no mission started by this bridge yet
+    stream(b)
+    b.engage()
+    (t0,) = [c.args["t0"] for c in b.bus.sent if isinstance(c, Command)]
+    b.bus.sent.clear()
+    b._on_alive_change("adapter", True)
+    b._do_command(Command(name="hold", stamp=1.0))
+    b._on_alive_change("adapter", True)
+    starts = [c.args for c in b.bus.sent if isinstance(c, Command)]
+    assert starts == [{"t0": t0, "flying": True}, {"t0": t0, "flying": False}]
