@@ -35,7 +35,8 @@ The input of a transition is the setpoint answering its first state; in realtime
 one is missing (the controller answers only the newest state, or the bus dropped it), the
 newest setpoint stamped at or before that state (what the vehicle's zero-order hold
 applied) if it is at most about one period older (``input_fallback``), else the transition
-is skipped (``input_missing``).
+is skipped (``input_missing``; ``before_first_setpoint`` for the states before the first
+setpoint this adapter received: the controller was not answering yet).
 Quaternions: ``q`` and ``-q`` are one attitude but far apart as the vectors the features
 and the residual use; each transition is taken with the first state's scalar part
 non-negative (as in training) and the second state in the same hemisphere.
@@ -258,10 +259,12 @@ class Adapter(runtime.Service):
             not_applied=0,
             input_fallback=0,
             input_missing=0,
+            before_first_setpoint=0,
             nonfinite_resets=0,
         )
         # Whether the vehicle is flying the controller's setpoints (see the module docstring).
         self._applied = bool(a.lockstep)
+        self._first_setpoint: float | None = None  # stamp of the first setpoint received
         self._mission_t0: float | None = None  # t0 of the newest mission start
         bus.subscribe("setpoint", self.on_setpoint)
         bus.subscribe("state", self.on_state)
@@ -333,6 +336,8 @@ class Adapter(runtime.Service):
 
     def on_setpoint(self, sp: Setpoint) -> None:
         with self._cond:
+            if self._first_setpoint is None:
+                self._first_setpoint = sp.stamp
             self._setpoints[sp.stamp] = sp
             if len(self._setpoints) > 64:
                 for s in sorted(self._setpoints)[:-32]:
@@ -363,7 +368,11 @@ class Adapter(runtime.Service):
             if held and prev.stamp - max(held) <= FALLBACK_PERIODS / self.args.rate:
                 self.stats["input_fallback"] += 1
                 return self._setpoints[max(held)]
-            self.stats["input_missing"] += 1
+            if self._first_setpoint is None or prev.stamp < self._first_setpoint:
+                # The controller was not answering yet (warming up, or joining): no loss.
+                self.stats["before_first_setpoint"] += 1
+            else:
+                self.stats["input_missing"] += 1
             return None
 
     def on_state(self, s: State) -> None:

@@ -164,8 +164,21 @@ def test_transition_without_a_recent_setpoint_is_skipped():
     svc.on_state(state(10.1, 3))
     assert svc.calls == []  # 9.9 is three periods before 10.05: nothing known to be held
     assert svc.stats["input_missing"] == 2 and svc.stats["skipped"] == 2
-    assert svc.stats["input_fallback"] == 0
+    assert svc.stats["input_fallback"] == 0 and svc.stats["before_first_setpoint"] == 0
     assert len([m for m in svc.bus.sent if type(m).__name__ == "Model"]) == 3
+
+
+def test_states_before_the_controller_answers_are_not_counted_as_lost_inputs():
+    svc = make_adapter()
+    svc.on_state(state(10.0, 1))
+    svc.on_state(state(10.05, 2))  # warming up: no setpoint yet
+    svc.on_setpoint(setpoint(10.1, 5.0, seq=1))
+    svc.on_state(state(10.1, 3))
+    svc.on_state(state(10.15, 4))
+    svc.on_state(state(10.2, 5))
+    svc.on_state(state(10.25, 6))  # 10.1 answered; then held (fallback), then lost
+    assert svc.stats["before_first_setpoint"] == 2
+    assert svc.stats["input_fallback"] == 1 and svc.stats["input_missing"] == 1
 
 
 def test_lockstep_waits_for_the_exact_setpoint_only():
