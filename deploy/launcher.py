@@ -307,6 +307,8 @@ class Stack:
         self.restarts: dict[str, int] = dict.fromkeys(self.services, 0)
         self.events: list[dict[str, Any]] = []
         self._events_lock = threading.Lock()
+        #: Why ``events.jsonl`` is no longer written (a full disk), or None.
+        self.events_file_error: str | None = None
         self._on_event_cb = on_event
         self._bus: Any = None
         self._seen: set[str] = set()  # services whose token appeared at least once
@@ -449,13 +451,30 @@ class Stack:
                 bus.put(Event(kind=kind, severity=severity, text=text, data=data, stamp=stamp))
 
     def _record(self, rec: dict[str, Any]) -> None:
+        recs = [rec]
         with self._events_lock:
             self.events.append(rec)
-            with (self.out / "events.jsonl").open("a") as f:
-                f.write(jsonout.dumps(rec) + "\n")
+            if self.events_file_error is None:
+                try:
+                    with (self.out / "events.jsonl").open("a") as f:
+                        f.write(jsonout.dumps(rec) + "\n")
+                except OSError as err:  # a full disk must not stop the supervision
+                    self.events_file_error = str(err)
+                    lost = {
+                        **rec,
+                        "src": "launcher",
+                        "kind": "fault",
+                        "severity": "error",
+                        "text": f"cannot write events.jsonl: {err.strerror or err}; events "
+                        "from here on are only shown (and kept in Stack.events)",
+                        "data": {"file": str(self.out / "events.jsonl")},
+                    }
+                    self.events.append(lost)
+                    recs.append(lost)
         if self._on_event_cb is not None:
-            with contextlib.suppress(Exception):
-                self._on_event_cb(rec)
+            for r in recs:
+                with contextlib.suppress(Exception):
+                    self._on_event_cb(r)
 
     def _on_event(self, e: Any) -> None:
         if e.src.startswith("launcher/"):

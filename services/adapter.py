@@ -54,7 +54,8 @@ has, which is never this state's, so the adapter only takes CPU from it otherwis
 
 Checkpoints: the beam is written atomically to ``--checkpoint`` every
 ``--checkpoint-every`` steps and at shutdown, and restored at start when it matches the
-weights (``restart`` event).
+weights (``restart`` event). A checkpoint that cannot be written (a full disk) is a
+``fault`` event the first time and counted (``checkpoint_errors``); adaptation goes on.
 """
 
 from __future__ import annotations
@@ -478,7 +479,27 @@ class Adapter(runtime.Service):
         self._lat.append(self.now() - t0)
         every = self.args.checkpoint_every
         if self.args.checkpoint is not None and every > 0 and self.stats["steps"] % every == 0:
+            self._checkpoint()
+
+    def _checkpoint(self) -> None:
+        """Write the checkpoint; a failure (a full disk) is said once, counted, and tried
+        again at the next checkpoint: the adaptation goes on either way."""
+        try:
             save_checkpoint(self.args.checkpoint, self.learner.beam, self.meta)
+        except OSError as err:
+            self.stats["checkpoint_errors"] = self.stats.get("checkpoint_errors", 0) + 1
+            if self.stats["checkpoint_errors"] == 1:
+                self.event(
+                    "fault",
+                    f"cannot write the checkpoint {self.args.checkpoint}: "
+                    f"{err.strerror or err}; a restarted adapter would start from an "
+                    "older posterior or the offline prior",
+                    "error",
+                    errno=err.errno if err.errno is not None else -1,
+                )
+            return
+        if self.stats.get("checkpoint_errors"):
+            self.stats["checkpoint_errors_cleared"] = int(self.learner.beam.step)
 
     def _u_hover(self) -> np.ndarray:
         return np.array([0.57 * 9.81, 0.0, 0.0, 0.0])
@@ -486,8 +507,10 @@ class Adapter(runtime.Service):
     def teardown(self) -> None:
         self.stats["update"] = runtime.percentiles_ms(self._lat)
         if self.learner is not None and self.args.checkpoint is not None:
-            save_checkpoint(self.args.checkpoint, self.learner.beam, self.meta)
-            self.stats["checkpoint_step"] = int(self.learner.beam.step)
+            errors = self.stats.get("checkpoint_errors", 0)
+            self._checkpoint()
+            if self.stats.get("checkpoint_errors", 0) == errors:
+                self.stats["checkpoint_step"] = int(self.learner.beam.step)
 
 
 def _same_hemisphere(xp: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,10 +15,16 @@ the oldest go first once :data:`MAX_UNPAIRED` wait).
 
 Messages are recorded as received (no order check: a recorder wants everything, including
 what a consumer would reject as stale); invalid payloads are still rejected and counted.
+
+A file that cannot be written (a full disk, a removed drive) stops being written, never the
+recorder nor the flight: a ``fault`` event names the file and the error, the other file
+goes on, and what is not recorded from then on is counted (``unrecorded`` messages,
+``unwritten_rows``); ``recording_errors`` in the statistics keeps each file's error.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import heapq
@@ -96,23 +102,34 @@ class Recorder(runtime.Service):
         self._flushed = -float("inf")  # ... when the file was last flushed
         self._t0: float | None = None
         self.stats["messages"] = dict.fromkeys(MESSAGE_TYPES, 0)
-        self.stats.update(rows=0, late_rows=0, unpaired_setpoints=0)
+        self.stats.update(rows=0, late_rows=0, unpaired_setpoints=0, unrecorded=0, unwritten_rows=0)
+        self.stats["recording_errors"] = {}
+        self._mcap_name = self._file.name
+        self._csv_name = self._csv_file.name
+        self._closed = False
         for topic in MESSAGE_TYPES:
             bus.subscribe(topic, lambda m, topic=topic: self.record(topic, m), check_order=False)
 
     def record(self, topic: str, m: Message) -> None:
         data = json.dumps(m.to_wire()).encode()
         with self._lock:
-            if self.writer is None:
+            if self._closed:
                 return
-            self.writer.add_message(
-                self._channels[topic],
-                log_time=time.time_ns(),
-                data=data,
-                publish_time=min(int(m.stamp * 1e9), 2**64 - 1),
-                sequence=m.seq % 2**32,
-            )
-            self.stats["messages"][topic] += 1
+            if self.writer is not None:
+                try:
+                    self.writer.add_message(
+                        self._channels[topic],
+                        log_time=time.time_ns(),
+                        data=data,
+                        publish_time=min(int(m.stamp * 1e9), 2**64 - 1),
+                        sequence=m.seq % 2**32,
+                    )
+                except OSError as err:
+                    self._stop_mcap(err)
+            if self.writer is None:
+                self.stats["unrecorded"] += 1
+            else:
+                self.stats["messages"][topic] += 1
             # State and setpoint come from different publishers: pair whichever is second.
             # By stamp (a setpoint carries the stamp of the state it answers), not by
             # ``seq``: a restarted estimator counts ``seq`` from 1 again.
@@ -152,22 +169,67 @@ class Recorder(runtime.Service):
                 if self.stats["late_rows"] == 1:
                     self.log.warning("a state-setpoint pair completed too late for the log")
                 continue
-            self.csv.writerow([stamp - t0, *row])
-            self.stats["rows"] += 1
             self._written = stamp
-        if self._written - self._flushed >= 1.0:
-            self._csv_file.flush()
+            if self.csv is None:
+                self.stats["unwritten_rows"] += 1
+                continue
+            try:
+                self.csv.writerow([stamp - t0, *row])
+                self.stats["rows"] += 1
+            except OSError as err:
+                self._stop_csv(err)
+                self.stats["unwritten_rows"] += 1
+        if self.csv is not None and self._written - self._flushed >= 1.0:
+            try:
+                self._csv_file.flush()
+            except OSError as err:  # the rows since the last flush are lost with it
+                self._stop_csv(err)
             self._flushed = self._written
+
+    # -- a file that cannot be written
+    def _stop_mcap(self, err: OSError) -> None:
+        self.writer = None
+        self._lost(self._mcap_name, err, self._file)
+
+    def _stop_csv(self, err: OSError) -> None:
+        self.csv = None
+        self._lost(self._csv_name, err, self._csv_file)
+
+    def _lost(self, name: str, err: OSError, file: Any) -> None:
+        """Report once that ``name`` is no longer written, and let the file go."""
+        if name in self.stats["recording_errors"]:
+            return
+        self.stats["recording_errors"][name] = str(err)
+        self.event(
+            "fault",
+            f"cannot write {name}: {err.strerror or err}; not recorded from here on",
+            "error",
+            file=str(name),
+            errno=err.errno if err.errno is not None else -1,
+        )
+        with contextlib.suppress(OSError):  # the buffered bytes cannot go anywhere either
+            file.close()
 
     def teardown(self) -> None:
         with self._lock:
+            self._closed = True
             try:
-                self.writer.finish()
+                if self.writer is not None:
+                    self.writer.finish()
+                    self._file.close()
+            except OSError as err:
+                self._stop_mcap(err)
             finally:  # the flight log even when the MCAP file cannot be finished
                 self.writer = None
-                self._file.close()
+                if not self._file.closed:
+                    with contextlib.suppress(OSError):  # reported above
+                        self._file.close()
                 self._write_rows(float("inf"))
-                self._csv_file.close()
+                if self.csv is not None:
+                    try:
+                        self._csv_file.close()
+                    except OSError as err:
+                        self._stop_csv(err)
 
 
 def main(argv: list[str] | None = None) -> int:

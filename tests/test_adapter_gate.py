@@ -231,3 +231,38 @@ def test_bridge_exits_and_engagements_drive_the_gate():
     forward()
     assert svc._applied
     assert not [c for c in bridge.bus.sent if isinstance(c, Command)]  # no start: not ours
+
+
+# ------------------------------------------------------------------ checkpoint
+
+
+def test_a_checkpoint_that_cannot_be_written_is_said_once_and_adaptation_goes_on(tmp_path):
+    from typing import NamedTuple
+
+    class Beam(NamedTuple):
+        step: np.ndarray
+
+    (tmp_path / "file").write_text("")  # a file where the checkpoint's folder should be
+    svc = make_adapter(
+        "--checkpoint", str(tmp_path / "file" / "ckpt.npz"), "--checkpoint-every", "1"
+    )
+    svc.learner = SimpleNamespace(beam=Beam(np.int32(3)))
+    svc.meta = {}
+    nan, zeros = np.full(13, math.nan), np.zeros(13)
+
+    def adapt(learner, xp, up, x, h, learn, var_p, var_x):  # a finite posterior, recorded
+        svc.calls.append(SimpleNamespace(learn=bool(learn)))
+        cov = np.zeros((13, 1, 1))
+        return learner, nan, Pred(nan, nan), 0.0, False, svc.theta, cov, zeros
+
+    svc._adapt = adapt
+    svc.on_command(start(9.0))
+    for k, t in enumerate((10.0, 10.05, 10.1, 10.15)):
+        svc.on_setpoint(setpoint(t, 5.0, seq=k + 1))
+        svc.on_state(state(t, k + 1))
+    assert len(svc.calls) == 3 and svc.stats["steps"] == 4  # every state answered
+    assert svc.stats["checkpoint_errors"] == 4
+    (fault,) = [e for e in svc.bus.events("fault") if "checkpoint" in e.text]
+    assert fault.severity == "error" and fault.data["errno"] > 0
+    svc.teardown()  # never raises; no checkpoint step claimed
+    assert svc.stats["checkpoint_errors"] == 5 and "checkpoint_step" not in svc.stats

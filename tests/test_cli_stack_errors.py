@@ -87,6 +87,26 @@ def test_dead_vehicle_error_quotes_its_output_and_names_the_logs(tmp_path):
     assert "File " not in text and "\x1b" not in text  # no frames, no colour codes
 
 
+def test_a_full_disk_does_not_stop_the_supervision(tmp_path):
+    """events.jsonl on a full disk (/dev/full: every write fails with ENOSPC): the
+    supervisor still restarts, records its events in memory and shows them, and says once
+    that the file is no longer written."""
+    shown = []
+    stack = Stack(StackConfig(out=tmp_path, max_restarts=0), on_event=shown.append)
+    (tmp_path / "events.jsonl").symlink_to("/dev/full")
+    (tmp_path / "logs").mkdir()
+    proc = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    stack._watch("adapter", proc)  # its crash is an event: no exception escapes
+    stack.emit("info", "a later event")
+    kinds = [(r["src"], r["kind"], r["text"].split(":")[0]) for r in shown]
+    assert kinds == [
+        ("launcher", "fault", "adapter exited with code 3; no restart left (0 used)"),
+        ("launcher", "fault", "cannot write events.jsonl"),
+        ("launcher", "info", "a later event"),
+    ], kinds
+    assert stack.events == shown and "No space left on device" in stack.events_file_error
+
+
 def test_service_out_of_restarts_error_quotes_its_output(tmp_path):
     stack = Stack(StackConfig(out=tmp_path, max_restarts=0))
     (tmp_path / "logs").mkdir()

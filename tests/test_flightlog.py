@@ -171,3 +171,59 @@ def test_recorder_keeps_the_newest_unpaired_setpoints_and_counts_the_rest(tmp_pa
     rec.teardown()
     assert rec.stats["rows"] == 30  # their setpoints were still waiting
     assert len(read_log(tmp_path / "flight_log.csv", "quadrotor").t) == 30
+
+
+class _EventBus:
+    """The bus a service publishes its events on: every record kept."""
+
+    def __init__(self):
+        self.sent = []
+
+    def put(self, record):
+        self.sent.append(record)
+
+
+def _full_disk_recorder(tmp_path, full: str):
+    """A recorder whose ``full`` file is /dev/full: every write to it fails with ENOSPC,
+    as on a full disk (the kernel's own device, no mocking)."""
+    (tmp_path / full).symlink_to("/dev/full")
+    rec = _recorder(tmp_path)
+    rec.bus = _EventBus()
+    return rec
+
+
+def _fly(rec, n: int, t0: float = 100.0) -> None:
+    for k in range(n):
+        s, sp = _pair(t0 + k * 0.05)
+        rec.record("state", s)
+        rec.record("setpoint", sp)
+
+
+def test_a_full_disk_stops_the_bus_log_not_the_recorder_nor_the_flight_log(tmp_path):
+    import errno
+
+    rec = _full_disk_recorder(tmp_path, "bus.mcap")
+    _fly(rec, 3000)  # the MCAP writer writes its first chunk (1 MiB) before this ends
+    rec.teardown()  # never raises
+    (fault,) = [e for e in rec.bus.sent if e.kind == "fault"]  # said once
+    assert fault.severity == "error" and fault.data["errno"] == errno.ENOSPC
+    assert "bus.mcap" in fault.text and "No space left on device" in fault.text
+    assert rec.stats["unrecorded"] > 0 and "bus.mcap" in next(iter(rec.stats["recording_errors"]))
+    assert sum(rec.stats["messages"].values()) + rec.stats["unrecorded"] == 6000
+    # The flight log, on a disk with space, is whole.
+    log = read_log(tmp_path / "flight_log.csv", "quadrotor")
+    assert len(log.t) == 3000 and rec.stats["unwritten_rows"] == 0
+
+
+def test_a_full_disk_stops_the_flight_log_not_the_bus_log(tmp_path):
+    from mcap.reader import make_reader
+
+    rec = _full_disk_recorder(tmp_path, "flight_log.csv")
+    _fly(rec, 400)  # rows are flushed once a second of stamps: the first flush fails
+    rec.teardown()
+    (fault,) = [e for e in rec.bus.sent if e.kind == "fault"]
+    assert "flight_log.csv" in fault.text
+    assert rec.stats["rows"] + rec.stats["unwritten_rows"] == 400
+    assert rec.stats["unwritten_rows"] > 0 and rec.stats["unrecorded"] == 0
+    with open(tmp_path / "bus.mcap", "rb") as f:  # finished and readable, every message in it
+        assert sum(1 for _ in make_reader(f).iter_messages()) == 800
