@@ -178,6 +178,7 @@ class Px4Bridge(runtime.Service):
         self._cond = threading.Condition(self._lock)
         self._engaged = False  # offboard control by this bridge (or being engaged)
         self._mission_t0: float | None = None  # the latest start this bridge put
+        self._mocap_error_said = -math.inf  # when a forwarding failure was last an event
         self._last_rx = -math.inf  # arrival time of the newest valid setpoint
         self._stream_since = math.inf  # arrival of the first setpoint without a gap since
         self._latest: tuple[np.ndarray, float] | None = None
@@ -195,6 +196,7 @@ class Px4Bridge(runtime.Service):
             clamped=0,
             send_errors=0,
             mocap_forwarded=0,
+            mocap_forward_errors=0,
             imu=0,
             failsafes=0,
             offboard_exits=0,
@@ -464,7 +466,13 @@ class Px4Bridge(runtime.Service):
             self.mocap.set_odometry(odom)
             self.stats["mocap_forwarded"] += 1
         except Exception as err:
-            self.log.warning("mocap forwarding failed: %s", err)
+            # PX4 without vision loses its position estimate: said at once, then at most
+            # every 5 s while it lasts (frames come at 100-240 Hz).
+            n = self.stats["mocap_forward_errors"] = self.stats["mocap_forward_errors"] + 1
+            now = time.monotonic()
+            if now - self._mocap_error_said >= 5.0:
+                self._mocap_error_said = now
+                self.event("fault", f"mocap not forwarded to PX4: {err}", "error", errors=n)
 
     def on_command(self, cmd: Command) -> None:
         if cmd.target not in ("", self.name):

@@ -421,6 +421,27 @@ def test_the_watchdog_leaves_offboard_when_setpoints_stop():
     assert e.data["reason"] == "setpoint_timeout" and e.severity == "warning"
 
 
+def test_mocap_that_cannot_be_forwarded_is_a_fault_event_not_a_log_flood():
+    from mavsdk.plugins import mocap as mc
+
+    from services.messages import Mocap
+
+    class FailingMocap:
+        def set_odometry(self, odom) -> None:
+            raise RuntimeError("connection lost")
+
+    b = bridge()
+    b._mc, b.mocap = mc, FailingMocap()
+    for k in range(200):  # 1 s of frames at 200 Hz
+        t = 10.0 + k * 0.005
+        b.on_mocap(
+            Mocap(position=[0.0, 0.0, 1.0], quaternion=[1.0, 0, 0, 0], capture_stamp=t, stamp=t)
+        )
+    (fault,) = b.bus.events("fault")  # once, not per frame
+    assert "mocap not forwarded to PX4: connection lost" in fault.text
+    assert b.stats["mocap_forward_errors"] == 200 and b.stats["mocap_forwarded"] == 0
+
+
 # ------------------------------------------------------------------ px4sim
 
 
