@@ -115,6 +115,7 @@ from arcade import atomicfile
 from arcade_core import adaptation, encoder, metrics, mpc
 from arcade_core.baselines import gp, l1, mlp
 from arcade_core.dynamics import quaternion as quat
+from arcade_core.dynamics.quadrotor import quadrotor_step
 from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff, flat_state
 from benchmarks import quadrotor_data as qd
 from benchmarks.common import machine
@@ -344,6 +345,9 @@ class Method(NamedTuple):
     correction: Callable
     info: Callable
     learned: bool = False
+    #: ``reference(model, x_ref, u_ref) -> u_ref`` replacing :func:`thrust_reference`
+    #: (learned methods only; the mass oracle's is exact).
+    reference: Callable | None = None
 
 
 def _zero_info(a):
@@ -382,6 +386,45 @@ def l1_method() -> Method:
         lambda a, x, u: None,
         l1.correction,
         _zero_info,
+    )
+
+
+class MassOracle(NamedTuple):
+    """What :func:`oracle_mass_method` knows: the payload's mass and the release step."""
+
+    count: Array  # () int32: transitions seen (the control step after the first)
+    k_release: Array  # () int32: control step of the release (-1: never)
+    payload_kg: Array  # ()
+
+
+def oracle_mass_method() -> Method:
+    """A diagnostic, not a method of the evaluation: the nominal model with the payload
+    as a rigid mass, known exactly, removed at the exact release step. It bounds what any
+    model of ``(x, u)`` alone can give this MPC: it knows everything about the payload
+    except its swing (the cable's changing pull), which no state in ``(x, u)`` shows.
+    The thrust reference is exact (the thrust scales with the mass)."""
+    p = qd.nominal_params()
+
+    def mass(a: MassOracle) -> Array:
+        attached = (a.k_release < 0) | (a.count < a.k_release)
+        return jnp.where(attached, p.mass + a.payload_kg, p.mass).astype(a.payload_kg.dtype)
+
+    def step_fn(x, u, m):
+        return quadrotor_step(x, u, p._replace(mass=m), DT)
+
+    def reference(m, x_ref, u_ref):
+        return u_ref.at[:, 0].multiply(m / p.mass)
+
+    return Method(
+        "oracle_mass",
+        step_fn,
+        lambda a, xp, up, x: a._replace(count=a.count + 1),
+        mass,
+        lambda a, x, u: None,
+        _no_correction,
+        _zero_info,
+        learned=True,
+        reference=reference,
     )
 
 
@@ -554,6 +597,8 @@ def beam_method(name: str = "ours", intercept: bool = False, matched: bool = Fal
 #: Suffix of a learned-model method flown with its residual held along the warm start
 #: (the optimiser does not see the model's derivatives) instead of inside the rollout.
 HELD = "_held"
+#: The diagnostic of :func:`oracle_mass_method` (not in :data:`METHODS`).
+ORACLE = "oracle_mass"
 
 
 def base_name(name: str) -> str:
@@ -576,6 +621,8 @@ def make_method(name: str) -> Method:
         return beam_method(name, intercept=intercept, matched=matched)
     if name in ("ours", "ours_no_cp") or name.startswith("ours_K"):
         return beam_method(name)
+    if name == ORACLE:
+        return oracle_mass_method()
     known = (*METHODS, *BEAM_VARIANTS)
     raise ValueError(f"unknown method {name!r} (one of {', '.join(known)})")
 
@@ -597,6 +644,8 @@ def initial_learner(name: str, models, dtype) -> Any:
     p = qd.nominal_params()
     if name == "nominal":
         return jnp.zeros((), dtype)
+    if name == ORACLE:  # the flight fills in its payload and release step
+        return MassOracle(jnp.zeros((), jnp.int32), -jnp.ones((), jnp.int32), jnp.zeros((), dtype))
     tuned = {**TUNED_DEFAULTS, **getattr(models, "closedloop", {})}
     if name == "l1":
         # The rate channel (matched body-rate disturbance) is applied when it has a bandwidth.
@@ -722,7 +771,9 @@ def make_controller_step(method: Method, cfg: mpc.MPCConfig, hold_residual: bool
         u_ref = jax.lax.dynamic_slice_in_dim(u_ref_all, k, N)
         sigma = method.sigma(learner, x, carry.u_warm[0])
         model = method.model(learner)
-        if method.learned:
+        if method.reference is not None:
+            u_ref = jnp.clip(method.reference(model, x_ref, u_ref), cfg.u_min, cfg.u_max)
+        elif method.learned:
             u_ref = jnp.clip(
                 thrust_reference(method.step_fn, model, x_ref, u_ref), cfg.u_min, cfg.u_max
             )
@@ -809,6 +860,11 @@ class Runner:
         step = self.step_fn(name)
         dt = self.dtype
         learner = initial_learner(name, self.models, dt)
+        if isinstance(learner, MassOracle):
+            learner = learner._replace(
+                k_release=jnp.asarray(k_release, jnp.int32),
+                payload_kg=jnp.asarray(scenario.payload_g / 1000.0, dt),
+            )
         # Warm start and smoothness reference: the nominal hover input (Appendix D U_0).
         p = qd.nominal_params()
         u0 = jnp.asarray([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0], dt)

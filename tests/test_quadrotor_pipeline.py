@@ -138,6 +138,26 @@ def test_matched_residual_keeps_what_the_thrust_can_cancel():
     np.testing.assert_allclose(cl.matched_residual(level, delta)[3:6], [0, 0, delta[5]])
 
 
+def test_mass_oracle_carries_the_payload_until_the_release_step():
+    """The diagnostic oracle: the nominal model with the payload's mass until the release
+    step, without it from then on, and the thrust reference that holds that mass."""
+    method = cl.make_method(cl.ORACLE)
+    p = qd.nominal_params()
+    a = cl.initial_learner(cl.ORACLE, None, jnp.float64)
+    a = a._replace(k_release=jnp.asarray(3, jnp.int32), payload_kg=jnp.asarray(0.175))
+    masses = []
+    for _ in range(5):  # the mass the MPC plans with at control steps 0..4
+        masses.append(float(method.model(a)))
+        a = method.learn(a, None, None, None)
+    np.testing.assert_allclose(masses, [p.mass + 0.175] * 3 + [p.mass] * 2)
+    # The reference thrust holds the heavier vehicle: no vertical acceleration at hover.
+    x = jnp.asarray(np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0])
+    u_ref = jnp.asarray([[p.mass * p.gravity, 0.0, 0.0, 0.0]])
+    m = jnp.asarray(p.mass + 0.175)
+    u = method.reference(m, x[None], u_ref)[0]
+    np.testing.assert_allclose(method.step_fn(x, u, m)[3:6], 0.0, atol=1e-12)
+
+
 def test_beam_variants_start_from_the_offline_decoder():
     """A variant with the intercept starts with one more, zero, decoder column; its knobs
     are its own (``ours_matched``) or ours' (the two changes one at a time)."""
