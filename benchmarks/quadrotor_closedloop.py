@@ -390,7 +390,8 @@ def l1_method() -> Method:
 
 
 class MassOracle(NamedTuple):
-    """What :func:`oracle_mass_method` knows: the payload's mass and the release step."""
+    """What :func:`oracle_mass_method` knows: the mass hanging from the vehicle (payload
+    and cable) and the release step."""
 
     count: Array  # () int32: transitions seen (the control step after the first)
     k_release: Array  # () int32: control step of the release (-1: never)
@@ -399,7 +400,8 @@ class MassOracle(NamedTuple):
 
 def oracle_mass_method() -> Method:
     """A diagnostic, not a method of the evaluation: the nominal model with the payload
-    as a rigid mass, known exactly, removed at the exact release step. It bounds what any
+    (and the cable's lumped mass) as a rigid mass, known exactly, removed at the exact
+    release step. It bounds what any
     model of ``(x, u)`` alone can give this MPC: it knows everything about the payload
     except its swing (the cable's changing pull), which no state in ``(x, u)`` shows.
     The thrust reference is exact (the thrust scales with the mass)."""
@@ -860,10 +862,10 @@ class Runner:
         step = self.step_fn(name)
         dt = self.dtype
         learner = initial_learner(name, self.models, dt)
-        if isinstance(learner, MassOracle):
-            learner = learner._replace(
+        if isinstance(learner, MassOracle):  # what the rotors carry beyond the nominal
+            learner = learner._replace(  # mass: the payload and the cable's lumped mass
                 k_release=jnp.asarray(k_release, jnp.int32),
-                payload_kg=jnp.asarray(scenario.payload_g / 1000.0, dt),
+                payload_kg=jnp.asarray(sim.carried_mass() - float(qd.nominal_params().mass), dt),
             )
         # Warm start and smoothness reference: the nominal hover input (Appendix D U_0).
         p = qd.nominal_params()
