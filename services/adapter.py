@@ -310,7 +310,8 @@ class Adapter(runtime.Service):
         # adapter, restarted) -- whether the vehicle flies the setpoints right now.
         flying = cmd.args.get("flying", True)
         if flying is False:
-            self._set_applied(False, f"joined the mission under a failsafe ({cmd.src})", True)
+            why = f"joined the mission under a failsafe ({cmd.src})"
+            self._set_applied(False, why, announce=True)
         else:
             self._set_applied(True, f"mission started ({cmd.src})")
 

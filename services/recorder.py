@@ -19,7 +19,9 @@ what a consumer would reject as stale); invalid payloads are still rejected and 
 A file that cannot be written (a full disk, a removed drive) stops being written, never the
 recorder nor the flight: a ``fault`` event names the file and the error, the other file
 goes on, and what is not recorded from then on is counted (``unrecorded`` messages,
-``unwritten_rows``); ``recording_errors`` in the statistics keeps each file's error.
+``unwritten_rows``); ``recording_errors`` in the statistics keeps each file's error. What
+was buffered when the write failed is lost with the file: the MCAP writer's open chunk (up
+to 1 MiB of messages), the flight log's rows since its last flush (a second of stamps).
 """
 
 from __future__ import annotations
