@@ -142,6 +142,7 @@ def oracle(trials: int = 10) -> dict[str, Any]:
             _progress(f"{pay:g} g, {speed:g} m/s: RMSE {rmse}")
             rows.append(row)
     return {
+        "generated": time.strftime("%Y-%m-%d %H:%M"),
         "machine": machine(),
         "trials": trials,
         "methods": list(names),
