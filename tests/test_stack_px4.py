@@ -261,7 +261,8 @@ def test_failsafes_bridge_killed_then_controller_killed_and_restarted(tmp_path):
 def test_operator_hold_pauses_learning_until_offboard_is_engaged_again(tmp_path):
     # The adapter learns only while PX4 flies the stack's setpoints: an operator's hold
     # leaves offboard (the bridge's failsafe event, reason "command"), the adapter pauses
-    # and counts the steps it does not learn from; arming again resumes it.
+    # and counts the steps it does not learn from; an adapter restarted under the hold
+    # waits as well; arming again resumes it.
     cfg = _px4_config(tmp_path)
     events = EventWaiter()
 
@@ -275,12 +276,21 @@ def test_operator_hold_pauses_learning_until_offboard_is_engaged_again(tmp_path)
         assert fs["data"]["reason"] == "command" and fs["data"]["action"] == "hold"
         _wait(events, _learning(False), 5.0, n, "adapter pausing")
         _wait(events, _px4_mode("HOLD"), 5.0, n, "PX4 in Hold")
+        # The adapter dies under Hold: the restarted one saw neither the start nor the
+        # exit from offboard. The simulated PX4 re-sends it the mission's clock with
+        # ``flying`` false, and it says that it waits.
+        m = events.mark()
+        stack.kill("adapter")
+        waiting = _wait(events, _learning(False), 60.0, m, "restarted adapter waiting")
+        assert "under a failsafe" in waiting["text"], waiting
+        assert events.wait(_learning(True), 0.0, after=m) is None
         # Arming again waits for a steady setpoint stream (1 s) while PX4 holds: the
         # adapter sees states it must not learn from.
         _engage(events, cfg)
         assert events.wait(_from("bridge", "failsafe_cleared"), 0.0, after=n) is not None
         stack.stop()
-    adapter = json.loads((tmp_path / "stats" / "adapter.json").read_text())
+    assert stack.restarts["adapter"] == 1
+    adapter = json.loads((tmp_path / "stats" / "adapter.json").read_text())  # the restarted one
     assert adapter["not_applied"] > 0 and adapter["learned"] > 0, adapter
     px4 = json.loads((tmp_path / "stats" / "px4sim.json").read_text())
     assert not px4["crashed"] and px4["px4_failsafes"] == []
