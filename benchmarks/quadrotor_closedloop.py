@@ -862,13 +862,13 @@ class Runner:
         step = self.step_fn(name)
         dt = self.dtype
         learner = initial_learner(name, self.models, dt)
+        p = qd.nominal_params()
         if isinstance(learner, MassOracle):  # what the rotors carry beyond the nominal
             learner = learner._replace(  # mass: the payload and the cable's lumped mass
                 k_release=jnp.asarray(k_release, jnp.int32),
-                payload_kg=jnp.asarray(sim.carried_mass() - float(qd.nominal_params().mass), dt),
+                payload_kg=jnp.asarray(sim.carried_mass() - float(p.mass), dt),
             )
         # Warm start and smoothness reference: the nominal hover input (Appendix D U_0).
-        p = qd.nominal_params()
         u0 = jnp.asarray([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0], dt)
         carry = Carry(
             learner, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x, dt), jnp.zeros((), bool)
