@@ -27,7 +27,6 @@ to 1 MiB of messages), the flight log's rows since its last flush (a second of s
 from __future__ import annotations
 
 import contextlib
-import csv
 import dataclasses
 import heapq
 import json
@@ -38,6 +37,7 @@ from typing import Any
 
 from arcade import flightlog
 from services import runtime
+from services.csvlog import StreamedCsv
 from services.messages import MESSAGE_TYPES, Message, Setpoint, State
 
 #: A state-setpoint pair is written once a pair this much newer [s] exists (they complete
@@ -92,22 +92,22 @@ class Recorder(runtime.Service):
             self._channels[topic] = self.writer.register_channel(
                 topic=bus.key(topic), message_encoding="json", schema_id=schema
             )
-        self._csv_file = (out / f"flight_log{suffix}.csv").open("w", newline="")
-        self.csv = csv.writer(self._csv_file)
-        self.csv.writerow([*flightlog.columns("quadrotor"), "mode"])
+        self.flight_log = StreamedCsv(
+            out / f"flight_log{suffix}.csv",
+            [*flightlog.columns("quadrotor"), "mode"],
+            on_error=lambda err: self._lost(self.flight_log.path, err),
+        )
         self._states: dict[int, State] = {}
         self._unpaired: dict[float, Setpoint] = {}
         self._rows: list[tuple[float, int, list[Any]]] = []  # heap by stamp, not yet written
         self._n_rows = 0
         self._newest = -float("inf")  # stamp of the newest pair
         self._written = -float("inf")  # stamp of the newest row written
-        self._flushed = -float("inf")  # ... when the file was last flushed
         self._t0: float | None = None
         self.stats["messages"] = dict.fromkeys(MESSAGE_TYPES, 0)
         self.stats.update(rows=0, late_rows=0, unpaired_setpoints=0, unrecorded=0, unwritten_rows=0)
         self.stats["recording_errors"] = {}
         self._mcap_name = self._file.name
-        self._csv_name = self._csv_file.name
         self._closed = False
         for topic in MESSAGE_TYPES:
             bus.subscribe(topic, lambda m, topic=topic: self.record(topic, m), check_order=False)
@@ -172,33 +172,21 @@ class Recorder(runtime.Service):
                     self.log.warning("a state-setpoint pair completed too late for the log")
                 continue
             self._written = stamp
-            if self.csv is None:
-                self.stats["unwritten_rows"] += 1
-                continue
-            try:
-                self.csv.writerow([stamp - t0, *row])
+            if self.flight_log.write(stamp, [stamp - t0, *row]):
                 self.stats["rows"] += 1
-            except OSError as err:
-                self._stop_csv(err)
+            else:
                 self.stats["unwritten_rows"] += 1
-        if self.csv is not None and self._written - self._flushed >= 1.0:
-            try:
-                self._csv_file.flush()
-            except OSError as err:  # the rows since the last flush are lost with it
-                self._stop_csv(err)
-            self._flushed = self._written
 
     # -- a file that cannot be written
     def _stop_mcap(self, err: OSError) -> None:
         self.writer = None
-        self._lost(self._mcap_name, err, self._file)
+        with contextlib.suppress(OSError):  # the buffered bytes cannot go anywhere either
+            self._file.close()
+        self._lost(self._mcap_name, err)
 
-    def _stop_csv(self, err: OSError) -> None:
-        self.csv = None
-        self._lost(self._csv_name, err, self._csv_file)
-
-    def _lost(self, name: str, err: OSError, file: Any) -> None:
-        """Report once that ``name`` is no longer written, and let the file go."""
+    def _lost(self, name: str | Path, err: OSError) -> None:
+        """Report once that ``name`` is no longer written."""
+        name = str(name)
         if name in self.stats["recording_errors"]:
             return
         self.stats["recording_errors"][name] = str(err)
@@ -209,8 +197,6 @@ class Recorder(runtime.Service):
             file=str(name),
             errno=err.errno if err.errno is not None else -1,
         )
-        with contextlib.suppress(OSError):  # the buffered bytes cannot go anywhere either
-            file.close()
 
     def teardown(self) -> None:
         with self._lock:
@@ -227,11 +213,7 @@ class Recorder(runtime.Service):
                     with contextlib.suppress(OSError):  # reported above
                         self._file.close()
                 self._write_rows(float("inf"))
-                if self.csv is not None:
-                    try:
-                        self._csv_file.close()
-                    except OSError as err:
-                        self._stop_csv(err)
+                self.flight_log.close()
 
 
 def main(argv: list[str] | None = None) -> int:

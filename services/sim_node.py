@@ -62,14 +62,16 @@ is published before the first control instant, so the estimator starts initialis
 ``--truth-state`` (diagnostic) publishes the ground-truth state at each control instant
 instead of leaving estimation to the estimator (run without it): the loop then sees what
 the in-process evaluation sees. Ground truth goes to ``<out>/truth.csv`` (the flight-log
-columns of design §5 plus ``ref_px, ref_py, ref_pz``, ``released`` and ``failsafe``), statistics to
+columns of design §5 plus ``ref_px, ref_py, ref_pz``, ``released`` and ``failsafe``), one row
+per control instant, written while flying (:mod:`services.csvlog`: a killed simulator leaves
+all but the last second of it; a file that cannot be written raises a ``fault`` event, the
+flight goes on, and ``unwritten_truth_rows`` counts what is lost), statistics to
 ``<out>/stats/sim.json``.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import re
 import threading
@@ -79,8 +81,9 @@ from pathlib import Path
 
 import numpy as np
 
-from arcade import atomicfile, flightlog
+from arcade import flightlog
 from services import runtime
+from services.csvlog import StreamedCsv
 from services.messages import Command, Event, Imu, Mocap, Setpoint, State
 
 MAX_GYRO = 99.0
@@ -247,7 +250,14 @@ class SimNode(runtime.Service):
         self._flight_stamp = -math.inf  # stamp of the first mission tick
         self._release_at = math.inf  # stamp of a release_payload command
         self._gyro = np.zeros(3)
-        self.rows: list[list[float]] = []
+        self.truth: StreamedCsv | None = None
+        if self.out is not None:
+            Path(self.out).mkdir(parents=True, exist_ok=True)
+            self.truth = StreamedCsv(
+                Path(self.out) / "truth.csv",
+                [*FLIGHT_COLUMNS, "ref_px", "ref_py", "ref_pz", "released", "failsafe"],
+                on_error=self._truth_lost,
+            )
         # Setpoint watchdog: arrival (wall) of the newest setpoint; failsafe hold state.
         self._sp_wall = -math.inf
         self._t_last_sp = 0.0  # lockstep: control instant of the newest setpoint
@@ -439,9 +449,9 @@ class SimNode(runtime.Service):
         x = self.sim.state()
         t = self.sim.time if t is None else t
         ref = self._ref(t)
-        self.rows.append(
-            [t, *x, *u, *ref, float(not self.sim.payload_attached), float(self._hold is not None)]
-        )
+        if self.truth is not None:
+            flags = [float(not self.sim.payload_attached), float(self._hold is not None)]
+            self.truth.write(t, [t, *x, *u, *ref, *flags])
         # In failsafe the vehicle holds its position instead of following the reference.
         goal = ref if self._hold is None else self._hold
         crashed = (
@@ -651,11 +661,22 @@ class SimNode(runtime.Service):
         self.stats["publish_lag"] = runtime.percentiles_ms(self._publish_lag)
         self.stats["hop_setpoint"] = runtime.percentiles_ms(list(self._sp_sub.transit_s))
         self.stats["k_release"] = self.k_release
-        if self.out is not None:
-            with atomicfile.atomic_open(Path(self.out) / "truth.csv", "w", newline="") as f:
-                w = csv.writer(f)
-                w.writerow([*FLIGHT_COLUMNS, "ref_px", "ref_py", "ref_pz", "released", "failsafe"])
-                w.writerows(self.rows)
+        if self.truth is not None:
+            self.truth.close()
+            self.stats["truth_rows"] = self.truth.rows
+            self.stats["unwritten_truth_rows"] = self.truth.unwritten
+
+    def _truth_lost(self, err: OSError) -> None:
+        """The ground truth cannot be written (a full disk): the flight goes on."""
+        self.stats["truth_error"] = str(err)
+        self.event(
+            "fault",
+            f"cannot write {self.truth.path if self.truth else 'truth.csv'}: "
+            f"{err.strerror or err}; ground truth not recorded from here on",
+            "error",
+            file=str(self.truth.path) if self.truth else "truth.csv",
+            errno=err.errno if err.errno is not None else -1,
+        )
 
 
 def _extra(p) -> None:

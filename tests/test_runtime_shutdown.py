@@ -299,7 +299,7 @@ def test_non_finite_physics_is_reported_as_a_crash_not_an_exception(tmp_path):
     node._ref_t, node._ref_p = np.array([0.0, 10.0]), np.array([[0.0, 0.0, 1.0]] * 2)
     node.faults = MocapFaults([], 0)
     node._cond, node._tick_wall, node._answered = threading.Condition(), {}, set()
-    node._hold, node._answered_run, node._t_last_sp, node.rows = None, 0, 0.0, []
+    node._hold, node._answered_run, node._t_last_sp, node.truth = None, 0, 0.0, None
     node._setpoints = {
         k * 0.05: Setpoint(u=[1.0, 0, 0, 0], state_seq=0, stamp=k * 0.05) for k in range(5)
     }

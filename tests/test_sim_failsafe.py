@@ -10,6 +10,7 @@ the failsafe event per instant), and the physics is a vehicle at rest.
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -105,9 +106,13 @@ class ScriptedController:
         return Setpoint(u=[4.9, 0.0, 0.0, 0.0], state_seq=i, stamp=stamp, mode=mode)
 
 
-def make_node(*argv: str, n_steps: int = 30) -> tuple[sim_node.SimNode, LoopbackSession]:
+def make_node(
+    *argv: str, n_steps: int = 30, out: Path | None = None
+) -> tuple[sim_node.SimNode, LoopbackSession]:
     parser = runtime.common_parser("sim", "test")
     sim_node._extra(parser)
+    if out is not None:
+        argv = ("--out", str(out), *argv)
     node = sim_node.SimNode(parser.parse_args(["--vehicle", "test", "--wait-for", "", *argv]))
     session = LoopbackSession(echo=True)
     node.bus = Bus("test", "sim").open(session=session)
@@ -118,6 +123,12 @@ def make_node(*argv: str, n_steps: int = 30) -> tuple[sim_node.SimNode, Loopback
     node.n_steps, node.k_release = n_steps, -1
     node._ref_t, node._ref_p = np.array([0.0, 1e3]), np.array([START, START])
     return node, session
+
+
+def truth_rows(node: sim_node.SimNode) -> np.ndarray:
+    """The rows of the node's ``truth.csv`` once the flight is over."""
+    node.truth.close()
+    return np.loadtxt(node.truth.path, delimiter=",", skiprows=1, ndmin=2)
 
 
 def sim_events(session: LoopbackSession) -> list[Event]:
@@ -136,8 +147,8 @@ LOCKSTEP = ("--lockstep", "--rate", str(1 / PERIOD), "--failsafe-resume", "3")
 
 
 @pytest.mark.parametrize("event_last", [False, True], ids=["event_first", "event_last"])
-def test_lockstep_the_controllers_failsafe_holds_until_it_tracks_again(event_last):
-    node, session = make_node(*LOCKSTEP)
+def test_lockstep_the_controllers_failsafe_holds_until_it_tracks_again(event_last, tmp_path):
+    node, session = make_node(*LOCKSTEP, out=tmp_path)
     # Hover from instant 5; the failsafe comes with the answer to instant 10; tracking
     # from 15, interrupted once by a hover answer at 17.
     ScriptedController(
@@ -159,7 +170,7 @@ def test_lockstep_the_controllers_failsafe_holds_until_it_tracks_again(event_las
     assert node.stats["controller_failsafes"] == 1 and len(node.stats["failsafes"]) == 1
     assert node.stats["failsafes"][0]["controller_reason"] == "hover_timeout"
     assert node.stats["steps"] == 30 and not node.stats["crashed"]
-    held = [row[-1] for row in node.rows]  # the truth log's failsafe column
+    held = list(truth_rows(node)[:, -1])  # the truth log's failsafe column
     assert held == [float(11 <= i < 20) for i in range(30)]
 
 
@@ -202,11 +213,11 @@ def test_lockstep_the_controllers_failsafe_during_a_watchdog_hold_waits_for_trac
     assert node.stats["controller_failsafes"] == 1
 
 
-def test_realtime_the_controllers_failsafe_holds_until_it_tracks_again():
+def test_realtime_the_controllers_failsafe_holds_until_it_tracks_again(tmp_path):
     rate = 100.0
     node, session = make_node(
         "--rate", str(rate), "--preroll", "0", "--substep", "0.005", "--failsafe-after", "30",
-        n_steps=25,
+        n_steps=25, out=tmp_path,
     )  # fmt: skip
     ctrl = ScriptedController(session, hover_between(5, 14), failsafe_at=(0, 10))
     node._realtime()
@@ -221,6 +232,56 @@ def test_realtime_the_controllers_failsafe_holds_until_it_tracks_again():
     # Instant i counts the answer to i - 1: 15, 16, 17 track -> cleared at instant 18.
     assert record["t"] == pytest.approx(9 / rate)
     assert record["cleared_t"] == pytest.approx(17 / rate)
-    held = [row[-1] for row in node.rows]  # row j: instant j + 1
+    held = list(truth_rows(node)[:, -1])  # row j: instant j + 1
     assert held == [float(11 <= j + 1 < 18) for j in range(len(held))]
     assert node.stats["missed_deadlines"] == 0
+
+
+# ------------------------------------------------------------------ the ground-truth log
+
+
+def test_the_ground_truth_is_on_disk_while_flying(tmp_path):
+    """A simulator killed mid-flight leaves its ground truth up to about a second before:
+    the rows are written and flushed (every second of flight time) while flying."""
+    node, session = make_node(*LOCKSTEP, n_steps=60, out=tmp_path)
+    on_disk: dict[int, int] = {}
+    ctrl = ScriptedController(session, lambda i: "track")
+    answer = ctrl.answer
+
+    def answer_and_look(payload: bytes) -> None:
+        i = len(ctrl.instants)
+        if i in (25, 45):  # the rows the file holds now (the flight's rows: 0 .. i - 1)
+            on_disk[i] = len((tmp_path / "truth.csv").read_text().splitlines()) - 1
+        answer(payload)
+
+    session.on_put["arcade/test/imu"] = answer_and_look
+    node._lockstep()
+    assert node.stats["steps"] == 60
+    # Flushed at the rows of t = 0, 1 and 2 s (rows 0, 20, 40), within a row of rounding.
+    assert 20 <= on_disk[25] <= 22 and 40 <= on_disk[45] <= 42
+    node.teardown()
+    assert len(truth_rows(node)) == 60 == node.stats["truth_rows"]
+    assert node.stats["unwritten_truth_rows"] == 0
+
+
+def test_a_full_disk_stops_the_ground_truth_not_the_flight(tmp_path):
+    """``truth.csv`` on /dev/full: every write fails with ENOSPC. The simulator says so
+    once (a ``fault`` event naming the file), flies on and counts the rows it lost."""
+    (tmp_path / "truth.csv").symlink_to("/dev/full")
+    node, session = make_node(*LOCKSTEP, n_steps=60, out=tmp_path)
+    ScriptedController(session, lambda i: "track")
+    node._lockstep()
+    node.teardown()
+    assert node.stats["steps"] == 60 and not node.stats["crashed"]
+    faults = [
+        e
+        for e in (decode("event", p) for p in session.published["arcade/test/event"])
+        if e.kind == "fault"
+    ]
+    assert len(faults) == 1 and faults[0].severity == "error"
+    assert "truth.csv" in faults[0].text and "ground truth not recorded" in faults[0].text
+    assert faults[0].data["file"].endswith("truth.csv") and faults[0].data["errno"] == 28
+    assert "No space left" in node.stats["truth_error"]
+    # The first row was buffered and lost with its failed flush; the 59 after it counted.
+    assert node.stats["truth_rows"] + node.stats["unwritten_truth_rows"] == 60
+    assert node.stats["unwritten_truth_rows"] == 59
