@@ -318,6 +318,12 @@ def sigma_tot2(state: BeamState, z: ArrayLike, sigma_z2: ArrayLike | None = None
     return predict(state, z, sigma_z2).sigma_tot2
 
 
+def map_last_changepoint(state: BeamState) -> Array:
+    """``()`` int32, the latest changepoint step on the most probable history (highest
+    score ``L_{k,h}``, Eq. 7; ``-1``: none)."""
+    return state.last_changepoint[jnp.argmax(state.log_scores)]
+
+
 def marginal_decoder(state: BeamState) -> tuple[Array, Array]:
     """Moment-matched beam-marginal decoder posterior (Eq. 10 mixture over ``theta``).
 
@@ -543,7 +549,7 @@ def _update(
     p1 = jnp.where(accepted, jnp.exp(logp1), 0.0)
     mix = jnp.logaddexp(jnp.log(pi) + ll1, jnp.log1p(-pi) + ll0)
     log_evidence = jax.nn.logsumexp(mix, b=w_prev)
-    prev_map_last = state.last_changepoint[jnp.argmax(prev)]
+    prev_map_last = map_last_changepoint(state)
     info = UpdateInfo(
         p_change=p1,
         cp_prob=w_prev @ p1,

@@ -1,7 +1,11 @@
 """Adapter service: residuals -> ARCADE update (Algorithm 1) -> decoder posterior.
 
 Subscribes ``state`` and ``setpoint``; publishes ``residual`` and ``model`` for every state,
-and an ``event`` (kind ``changepoint``) whenever the MAP history gains a changepoint.
+and an ``event`` (kind ``changepoint``) whenever the MAP history gains a changepoint later
+than any reported before (the MAP history may switch back to a path whose changepoint was
+reported: not reported again, counted in ``changepoint_repeats``). The event names the step
+the changepoint is dated to (``changepoint_step``: evidence can date it a few steps back)
+and the stamp of that transition's newer state (``changepoint_stamp``).
 
 Per state ``k`` (after the first): the transition ``(x_{k-1}, u_{k-1}, x_k)`` with
 ``u_{k-1}`` the setpoint answering state ``k-1`` (lockstep: waited for; realtime: see
@@ -76,6 +80,9 @@ DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "deploy" / "weights" / "
 #: Realtime: the newest earlier setpoint stands in for a missing one up to this many
 #: control periods before the transition's first state (one period, with jitter margin).
 FALLBACK_PERIODS = 1.5
+#: Steps whose stamps are kept to date a changepoint (the MAP history dates one at most a
+#: few steps back).
+STEP_STAMPS = 256
 #: Tempering of the adapter's beam at the calibrated noise (see :func:`stack_knobs`).
 STACK_BETA = 0.05
 
@@ -231,7 +238,8 @@ class Adapter(runtime.Service):
             new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, learner)
             cp = (new.changepoint > 0) & learn
             theta, cov, sig = marginal(new, x, up)
-            return new, dn, pred, new.cp_prob, cp, theta, cov, sig
+            dated = adaptation.map_last_changepoint(new.beam)
+            return new, dn, pred, new.cp_prob, cp, theta, cov, sig, dated
 
         if self.learner is not None:
             self._adapt = jax.jit(adapt)
@@ -242,6 +250,8 @@ class Adapter(runtime.Service):
                 if restored is not None:
                     self.learner = self.learner._replace(beam=restored)
                     self._restored = int(restored.step)
+                    # Its changepoints were reported by the adapter that wrote it.
+                    self._cp_reported = int(adaptation.map_last_changepoint(restored))
                 elif Path(a.checkpoint).is_file():
                     self.log.warning(
                         "checkpoint %s does not match this learner (weights, preset or "
@@ -249,6 +259,7 @@ class Adapter(runtime.Service):
                         a.checkpoint,
                     )
         self._cond = threading.Condition()
+        self._step_stamps: dict[int, float] = {}  # beam step -> stamp of its newer state
         self._setpoints: dict[float, Setpoint] = {}
         self._prev: State | None = None
         self._lat: list[float] = []
@@ -256,6 +267,7 @@ class Adapter(runtime.Service):
             steps=0,
             learned=0,
             changepoints=0,
+            changepoint_repeats=0,
             skipped=0,
             not_applied=0,
             input_fallback=0,
@@ -274,6 +286,7 @@ class Adapter(runtime.Service):
         self.pub_res = bus.publisher("residual")
 
     _restored: int | None = None
+    _cp_reported = -1  # the newest changepoint step reported (the MAP history's dating)
 
     def warmup(self) -> None:
         if self.learner is None:
@@ -416,8 +429,16 @@ class Adapter(runtime.Service):
             var_x = s.cov_diag if s.cov_diag is not None else zeros
             xp, x = _same_hemisphere(prev.x, s.x)
             out = self._adapt(self.learner, xp, sp.u, x, h, learn, var_p, var_x)
-            self.learner, dn, pred, cp_prob, cp, theta, cov, sig = out
+            self.learner, dn, pred, cp_prob, cp, theta, cov, sig, dated = out
             self.stats["learned"] += learn
+            step, dated = int(self.learner.beam.step), int(dated)
+            if learn:
+                self._step_stamps[step] = s.stamp
+                self._step_stamps.pop(step - STEP_STAMPS, None)
+            # The MAP history can switch back to a path whose changepoint was reported.
+            repeat = bool(cp) and dated <= self._cp_reported
+            self.stats["changepoint_repeats"] += repeat
+            cp = bool(cp) and not repeat
             pred_np = type(pred)(*(np.asarray(p, dtype=float) for p in pred))
             pred_np = pred_np._replace(
                 **{
@@ -437,15 +458,26 @@ class Adapter(runtime.Service):
                         stamp=s.stamp,
                     )
                 )
-            if bool(cp):
+            if cp:
+                self._cp_reported = dated
                 self.stats["changepoints"] += 1
+                at = self._step_stamps.get(dated)
+                # Dated to the transition that ended in the state stamped ``at``.
+                dated_at = {} if at is None else {"changepoint_stamp": at}
+                text = "changepoint detected"
+                if at is None:
+                    text += ", dated before the steps kept"
+                elif at < s.stamp:
+                    text += f", dated {s.stamp - at:.2f} s back"
                 self.event(
                     "changepoint",
-                    "changepoint detected",
+                    text,
                     stamp=s.stamp,
                     cp_prob=float(cp_prob),
-                    step=int(self.learner.beam.step),
+                    step=step,
                     state_seq=s.seq,
+                    changepoint_step=dated,
+                    **dated_at,
                 )
         theta, cov, sig = (np.asarray(v, dtype=float) for v in (theta, cov, sig))
         # Huge but finite state variances (a long dropout) must not make the message invalid.
@@ -464,6 +496,7 @@ class Adapter(runtime.Service):
                 resets=self.stats["nonfinite_resets"],
             )
             self.learner = self._prior
+            self._cp_reported, self._step_stamps = -1, {}  # the steps count from 0 again
             return
         self.pub_model.put(
             Model.from_marginal(

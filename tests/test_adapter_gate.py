@@ -20,6 +20,7 @@ from services.messages import Command, Event, Setpoint, State
 
 X_HOVER = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
 Pred = namedtuple("Pred", "mean var")
+Prediction = namedtuple("Prediction", "mean param between noise encoder")
 
 
 class FakeBus:
@@ -57,7 +58,8 @@ def make_adapter(*argv: str) -> mod.Adapter:
     def adapt(learner, xp, up, x, h, learn, var_p, var_x):
         svc.calls.append(SimpleNamespace(up=np.asarray(up), learn=bool(learn), h=h))
         nan = np.full(13, math.nan)  # no residual published: not needed here
-        return learner, nan, Pred(nan, nan), 0.0, False, svc.theta, np.zeros((13, 1, 1)), nan * 0
+        cov = np.zeros((13, 1, 1))
+        return learner, nan, Pred(nan, nan), 0.0, False, svc.theta, cov, nan * 0, -1
 
     svc._adapt = adapt
     svc._marginal = lambda learner, x, u: (np.zeros((13, 1)), np.zeros((13, 1, 1)), np.zeros(13))
@@ -188,6 +190,42 @@ def test_lockstep_waits_for_the_exact_setpoint_only():
     assert svc.stats["input_fallback"] == 0
 
 
+# ------------------------------------------------------------------ changepoint events
+
+
+def test_a_changepoint_is_reported_once_and_dated():
+    """The MAP history gains a changepoint (flag) dated to a step: reported with that
+    step's stamp; a MAP history that switches back to a reported changepoint's path raises
+    the flag again, which is counted, not reported."""
+    svc = make_adapter("--lockstep", "--step-timeout", "0")
+    # Per learning step: (changepoint flag, step the MAP history dates its changepoint to).
+    script = iter([(False, -1), (False, -1), (True, 2), (True, 4), (False, 2), (True, 4)])
+    steps = iter(range(1, 7))
+
+    def adapt(learner, xp, up, x, h, learn, var_p, var_x):
+        cp, dated = next(script)
+        learner = SimpleNamespace(beam=SimpleNamespace(step=next(steps)))
+        z = np.zeros(13)
+        pred = Prediction(z, z, z, z, z)
+        return learner, z, pred, 0.9 * cp, cp, svc.theta, np.zeros((13, 1, 1)), z, dated
+
+    svc._adapt = adapt
+    svc.on_command(start(1.0))
+    for k in range(7):
+        svc.on_setpoint(setpoint(1.0 + 0.05 * k, 5.0, seq=k + 1))
+        svc.on_state(state(1.0 + 0.05 * k, k + 1))
+    reported = svc.bus.events("changepoint")
+    assert [e.data["changepoint_step"] for e in reported] == [2, 4]
+    # Step j is the transition into state j + 1 (stamp 1.0 + 0.05 j).
+    assert [e.data["changepoint_stamp"] for e in reported] == pytest.approx([1.1, 1.2])
+    assert [e.data["step"] for e in reported] == [3, 4]
+    texts = [e.text for e in reported]
+    assert texts == ["changepoint detected, dated 0.05 s back", "changepoint detected"]
+    assert svc.stats["changepoints"] == 2 and svc.stats["changepoint_repeats"] == 1
+    flags = [r.changepoint for r in svc.bus.sent if type(r).__name__ == "Residual"]
+    assert flags == [False, False, True, True, False, False]
+
+
 # ------------------------------------------------------------------ non-finite reset
 
 
@@ -253,7 +291,7 @@ def test_a_checkpoint_that_cannot_be_written_is_said_once_and_adaptation_goes_on
     def adapt(learner, xp, up, x, h, learn, var_p, var_x):  # a finite posterior, recorded
         svc.calls.append(SimpleNamespace(learn=bool(learn)))
         cov = np.zeros((13, 1, 1))
-        return learner, nan, Pred(nan, nan), 0.0, False, svc.theta, cov, zeros
+        return learner, nan, Pred(nan, nan), 0.0, False, svc.theta, cov, zeros, -1
 
     svc._adapt = adapt
     svc.on_command(start(9.0))
