@@ -262,7 +262,7 @@ class Adapter(runtime.Service):
         self._step_stamps: dict[int, float] = {}  # beam step -> stamp of its newer state
         self._setpoints: dict[float, Setpoint] = {}
         self._prev: State | None = None
-        self._lat: list[float] = []
+        self._lat = runtime.LatencySamples()
         self.stats.update(
             steps=0,
             learned=0,
@@ -539,7 +539,7 @@ class Adapter(runtime.Service):
         return np.array([0.57 * 9.81, 0.0, 0.0, 0.0])
 
     def teardown(self) -> None:
-        self.stats["update"] = runtime.percentiles_ms(self._lat)
+        self.stats["update"] = self._lat.summary()
         if self.learner is not None and self.args.checkpoint is not None:
             errors = self.stats.get("checkpoint_errors", 0)
             self._checkpoint()

@@ -227,7 +227,7 @@ class Controller(runtime.Service):
         self._stale_model = False
         self._thrust_hover = float(self.u_hover[0])  # learned while tracking
         self._thrust_samples = 0  # tracking steps averaged into it so far
-        self._solve_s: list[float] = []
+        self._solve_s = runtime.LatencySamples(skip=1)  # the first solve: warm-up
         self.stats.update(
             setpoints=0,
             deadline_misses=0,
@@ -241,7 +241,7 @@ class Controller(runtime.Service):
         )
         bus.subscribe("model", self.on_model)
         self._state_sub = bus.subscribe("state", self.on_state)
-        self._react_s: list[float] = []  # state received -> setpoint put
+        self._react_s = runtime.LatencySamples(skip=1)  # state received -> setpoint put
         self.pub = bus.publisher("setpoint")
 
     def warmup(self) -> None:
@@ -503,12 +503,12 @@ class Controller(runtime.Service):
     _last_stamp = 0.0
 
     def teardown(self) -> None:
-        self.stats["solve"] = runtime.percentiles_ms(self._solve_s[1:])
-        self.stats["solve_samples_ms"] = [1e3 * v for v in self._solve_s[1:]]
+        self.stats["solve"] = self._solve_s.summary()
+        self.stats["solve_samples_ms"] = self._solve_s.samples_ms()
         # The controller's share of sense-to-actuate: the state's bus hop, and from its
         # arrival to the setpoint's put (queue hand-over, solve, encode).
         self.stats["hop_state"] = runtime.percentiles_ms(list(self._state_sub.transit_s))
-        self.stats["react"] = runtime.percentiles_ms(self._react_s[1:])
+        self.stats["react"] = self._react_s.summary()
 
 
 def _extra(p) -> None:

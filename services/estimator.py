@@ -108,7 +108,7 @@ class Estimator(runtime.Service):
         self._requeued: list[Mocap] = []
         self._lock = threading.Lock()
         self._transit: dict[str, Any] = {}  # bus transit times per topic
-        self._proc: list[float] = []  # time spent per control instant [s]
+        self._proc = runtime.LatencySamples()  # time spent per control instant [s]
         self._dropout_reported = False
         self._last_pose: tuple[np.ndarray, np.ndarray] | None = None
         self._frozen = False
@@ -315,7 +315,7 @@ class Estimator(runtime.Service):
         hops = list(self._transit.get("imu", ()))
         self.stats["hop_imu"] = runtime.percentiles_ms(hops)
         self.stats["hop_samples_ms"] = [1e3 * h for h in hops[-20000:]]
-        self.stats["process"] = runtime.percentiles_ms(self._proc)
+        self.stats["process"] = self._proc.summary()
         self.stats["outliers_rejected"] = int(self.filter.rejected)
 
 

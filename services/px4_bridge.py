@@ -206,7 +206,7 @@ class Px4Bridge(runtime.Service):
             mode_changes=0,
             connect=a.connect,
         )
-        self._fwd: list[float] = []
+        self._fwd = runtime.LatencySamples()
 
     def _connect(self) -> None:
         from mavsdk import ComponentType, Configuration, ConnectionResult, Mavsdk
@@ -856,7 +856,7 @@ class Px4Bridge(runtime.Service):
         self.leave_offboard(
             "bridge shutting down", "hold", reason="shutdown", failsafe=False, wait=True
         )
-        self.stats["forward_latency"] = runtime.percentiles_ms(self._fwd)
+        self.stats["forward_latency"] = self._fwd.summary()
         self.stats["final_mode"] = self._telemetry.get("mode")
         self._closed = True  # late bus callbacks must not touch the destroyed plugins
         self.mavsdk.destroy()

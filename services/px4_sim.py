@@ -145,7 +145,7 @@ class Px4SimNode(SimNode):
             "seen_sp": None,
             "linger_until": math.inf,
         }
-        delays: list[float] = []  # control instant -> first new SET_ATTITUDE_TARGET [s]
+        delays = runtime.LatencySamples()  # control instant -> first new SET_ATTITUDE_TARGET [s]
 
         def mono(t_sim: float) -> float:
             return px4.epoch + t_sim  # the vehicle's wall clock, re-anchored after a stall
@@ -178,7 +178,7 @@ class Px4SimNode(SimNode):
                 self._mission0 = t_sim
                 if not self.args.no_start_command:
                     self.bus.put(Command(name="start", args={"t0": stamp}, stamp=stamp))
-                self._flight_stamp = stamp
+                self._mission_started(stamp)
                 self.stats.update(preroll_s=t_sim, offboard_at=t_sim)
             elif k >= 0 and not self._finished:
                 k += 1
@@ -210,8 +210,8 @@ class Px4SimNode(SimNode):
         self.stats["epoch"] = px4.epoch  # the last anchor (moved by overruns)
         self.stats["overruns"] = px4.overruns
         # Simulated time at the chunk that saw the setpoint: resolution one --substep.
-        self.stats["actuation_delay"] = runtime.percentiles_ms(delays)
-        self.stats["actuation_delay_samples_ms"] = [1e3 * d for d in delays]
+        self.stats["actuation_delay"] = delays.summary()
+        self.stats["actuation_delay_samples_ms"] = delays.samples_ms()
 
     def teardown(self) -> None:
         super().teardown()

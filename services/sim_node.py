@@ -246,7 +246,7 @@ class SimNode(runtime.Service):
         self._latest: Setpoint | None = None
         self._tick_wall: dict[float, float] = {}
         self._answered: set[float] = set()
-        self._s2a: list[tuple[float, float]] = []
+        self._s2a = runtime.LatencySamples()  # of the answers to the mission's instants
         self._flight_stamp = -math.inf  # stamp of the first mission tick
         self._release_at = math.inf  # stamp of a release_payload command
         self._gyro = np.zeros(3)
@@ -286,7 +286,7 @@ class SimNode(runtime.Service):
         self._sp_sub = bus.subscribe("setpoint", self.on_setpoint)
         # Events come from several publishers, each with its own clock: no order check.
         bus.subscribe("event", self.on_event, check_order=False)
-        self._publish_lag: list[float] = []  # sample instant -> imu put (realtime)
+        self._publish_lag = runtime.LatencySamples()  # sample instant -> imu put (realtime)
         bus.on_alive_change(self._on_alive)
 
     # -- inputs
@@ -300,7 +300,8 @@ class SimNode(runtime.Service):
             wall = self._tick_wall.get(sp.stamp)
             if wall is not None and sp.stamp not in self._answered:
                 self._answered.add(sp.stamp)
-                self._s2a.append((sp.stamp, now - wall))
+                if sp.stamp >= self._flight_stamp:
+                    self._s2a.append(now - wall)
             self._cond.notify_all()
 
     def on_event(self, e: Event) -> None:
@@ -436,6 +437,13 @@ class SimNode(runtime.Service):
             x = self.sim.state()
             x[6:10] /= np.linalg.norm(x[6:10])
             self.bus.put(State(x=x, meas_stamp=stamp, stamp=stamp))
+
+    def _mission_started(self, stamp: float) -> None:
+        """The mission clock starts at the control instant ``stamp``: sense-to-actuate counts
+        the answers to the mission's instants only (not the pre-roll's)."""
+        with self._cond:
+            self._flight_stamp = stamp
+            self._s2a = runtime.LatencySamples()
 
     def _maybe_release(self, k: int, stamp: float) -> None:
         if (k == self.k_release or stamp >= self._release_at) and self.sim.payload_attached:
@@ -606,7 +614,7 @@ class SimNode(runtime.Service):
                     k, t_start = 0, t_sim
                     self._mission0 = t_start
                     self.bus.put(Command(name="start", args={"t0": stamp}, stamp=stamp))
-                    self._flight_stamp = stamp
+                    self._mission_started(stamp)
                     self.stats["preroll_s"] = t_sim
                 elif k >= 0:
                     k += 1
@@ -653,12 +661,11 @@ class SimNode(runtime.Service):
                 self.stats["overruns"] = self.stats.get("overruns", 0) + 1
 
     def teardown(self) -> None:
-        s2a = [v for stamp, v in self._s2a if stamp >= self._flight_stamp]
-        self.stats["sense_to_actuate"] = runtime.percentiles_ms(s2a)
-        self.stats["s2a_samples_ms"] = [1e3 * v for v in s2a]
+        self.stats["sense_to_actuate"] = self._s2a.summary()
+        self.stats["s2a_samples_ms"] = self._s2a.samples_ms()
         # Shares of sense-to-actuate at the vehicle: sample instant -> imu put, and the
         # setpoint's bus hop back.
-        self.stats["publish_lag"] = runtime.percentiles_ms(self._publish_lag)
+        self.stats["publish_lag"] = self._publish_lag.summary()
         self.stats["hop_setpoint"] = runtime.percentiles_ms(list(self._sp_sub.transit_s))
         self.stats["k_release"] = self.k_release
         if self.truth is not None:

@@ -89,3 +89,39 @@ def test_cpu_wakeup_latency_request_is_held_until_closed_or_refused_aloud(tmp_pa
         fd, result = runtime.cpu_wakeup_latency(5, device=str(tmp_path / "missing"))
     assert fd is None and result["applied"] is False and result["requested_us"] == 5
     assert any("wake-up latency" in r.getMessage() for r in caplog.records)
+
+
+def test_latency_samples_are_exact_below_the_cap():
+    values = [0.001 * (i % 37) for i in range(1000)]
+    lat = runtime.LatencySamples(cap=1000)
+    for v in values:
+        lat.append(v)
+    assert lat.summary() == {**runtime.percentiles_ms(values), "kept": 1000}
+    assert lat.samples_ms() == [1e3 * v for v in values]  # in arrival order
+
+
+def test_latency_samples_stay_bounded_and_unbiased_over_a_long_run():
+    """A drifting latency (0 .. 1 s over the run): the kept samples are a uniform subset of
+    the whole run, not its first or last ``cap``, so the median is the run's (0.5 s);
+    count and maximum are exact, whenever the maximum came."""
+    n, cap = 200_000, 5_000
+    lat = runtime.LatencySamples(cap=cap, seed=3)
+    for i in range(n):
+        lat.append(i / n)
+    lat.append(7.0)  # one outlier after the cap: exact max, at most one kept sample
+    s = lat.summary()
+    assert s["n"] == n + 1 and s["kept"] == cap and len(lat.samples_ms()) == cap
+    assert s["max_ms"] == 7000.0
+    # Binomial standard deviation of a sample median of 5000: 7 ms.
+    assert abs(s["p50_ms"] - 500.0) < 25.0
+    assert abs(s["p99_ms"] - 990.0) < 10.0
+
+
+def test_latency_samples_skip_the_warm_up():
+    lat = runtime.LatencySamples(skip=1)
+    for v in (5.0, 0.002, 0.004):
+        lat.append(v)
+    assert lat.summary() == {"n": 2, "p50_ms": 3.0, "p99_ms": 3.98, "max_ms": 4.0, "kept": 2}
+    assert runtime.LatencySamples().summary() == {
+        "n": 0, "p50_ms": 0.0, "p99_ms": 0.0, "max_ms": 0.0, "kept": 0
+    }  # fmt: skip
