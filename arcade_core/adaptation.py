@@ -184,7 +184,10 @@ class UpdateInfo(NamedTuple):
             is later than the latest changepoint on the previous MAP path, i.e. the most
             probable history has gained a changepoint (possibly dated a few steps back
             when the evidence needed a few observations to accumulate;
-            ``map_last_changepoint`` dates it).
+            ``map_last_changepoint`` dates it). A MAP history that switches to a path with
+            an older changepoint and back raises it again for the same dated step; a
+            consumer that reports changepoints keeps the newest step reported (the adapter
+            service does).
         map_last_changepoint: ``()`` int32, latest changepoint step on the new MAP path
             (``-1``: none).
         log_evidence: ``()`` one-step log predictive density of ``delta_k`` under the
