@@ -344,6 +344,10 @@ class BusOpenError(RuntimeError):
     """The bus session of a service cannot be opened (its configuration or its links)."""
 
 
+class StatsNotWritten(RuntimeError):
+    """``stats/<service>.json`` could not be written (the message says where and why)."""
+
+
 class Service:
     """Base of a service process: subclasses implement :meth:`setup` and may override
     :meth:`warmup`, :meth:`main` (default: wait for the stop signal) and :meth:`teardown`.
@@ -435,7 +439,13 @@ class Service:
             stats["callback_failures"] = rejects.failures
             stats["streams"] = self.bus.stream_stats()
         path = Path(self.out) / "stats" / f"{self.name}.json"
-        atomicfile.write_text(path, jsonout.dumps(stats, indent=1, default=float))
+        try:
+            atomicfile.write_text(path, jsonout.dumps(stats, indent=1, default=float))
+        except OSError as err:  # a full disk after the flight: one line, not a traceback
+            raise StatsNotWritten(
+                f"cannot write {path}: {err.strerror or err}; this run's statistics of "
+                f"{self.name} are lost"
+            ) from None
 
     # -- lifecycle
     def _open_bus(self) -> Bus:
@@ -480,7 +490,7 @@ class Service:
             code = 1
         finally:
             logging.shutdown()
-        return code
+        return 1 if self._stats_lost else code
 
     def _serve(self, bus: Bus, t0: float) -> None:
         """Warm up, announce liveliness (unless a stop came meanwhile) and run."""
@@ -508,6 +518,7 @@ class Service:
         self.main()
 
     _serving = False  # warm-up done, liveliness declared
+    _stats_lost = False  # stats/<name>.json could not be written: the exit code says so
 
     def _shut_down(self, bus: Bus) -> None:
         """Teardown (if the service got to serve), statistics, then the process-wide
@@ -519,6 +530,9 @@ class Service:
         finally:
             try:
                 self.write_stats()
+            except StatsNotWritten as err:  # said here: a teardown error may propagate
+                self.log.error("%s", err)
+                self._stats_lost = True
             finally:
                 if self._gc is not None:
                     self._gc.close()

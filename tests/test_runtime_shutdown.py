@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import logging
 import os
 import select
 import signal
@@ -102,6 +103,31 @@ def test_a_failing_teardown_still_writes_the_statistics(tmp_path):
     stats = json.loads((tmp_path / "stats" / "probe.json").read_text())
     assert stats["teardown_started"] is True and "gc_pauses" in stats
     assert gc.callbacks == before  # the pause hook was removed too
+
+
+def test_statistics_that_cannot_be_written_are_one_error_line_and_the_exit_code(tmp_path, caplog):
+    (tmp_path / "stats").write_text("")  # a file where the folder goes: no file in it
+    probe = Probe(args(tmp_path))
+    with caplog.at_level(logging.ERROR, logger="arcade.probe"):
+        assert probe.run() == 1
+    assert probe.calls == ["setup", "warmup", "ready", "main", "teardown"]
+    (line,) = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert line.getMessage().startswith(f"cannot write {tmp_path / 'stats' / 'probe.json'}: ")
+    assert line.getMessage().endswith("this run's statistics of probe are lost")
+    assert line.exc_info is None  # no traceback: the reason is the line
+
+
+def test_statistics_that_cannot_be_written_do_not_hide_a_failing_teardown(tmp_path, caplog):
+    def fail(p: Probe) -> None:
+        raise ValueError("teardown broke")
+
+    (tmp_path / "stats").write_text("")
+    probe = Probe(args(tmp_path), teardown=fail)
+    with caplog.at_level(logging.ERROR, logger="arcade.probe"):
+        assert probe.run() == 1
+    stats_line, failed = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert "statistics of probe are lost" in stats_line.getMessage()
+    assert failed.getMessage() == "probe failed" and failed.exc_info[0] is ValueError
 
 
 def _state(seq: int, stamp: float, src: str = "estimator/1") -> bytes:
