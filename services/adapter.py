@@ -2,10 +2,11 @@
 
 Subscribes ``state`` and ``setpoint``; publishes ``residual`` and ``model`` for every state,
 and an ``event`` (kind ``changepoint``) whenever the MAP history gains a changepoint later
-than any reported before (the MAP history may switch back to a path whose changepoint was
-reported: not reported again, counted in ``changepoint_repeats``). The event names the step
-the changepoint is dated to (``changepoint_step``: evidence can date it a few steps back)
-and the stamp of that transition's newer state (``changepoint_stamp``).
+than any reported before. (The MAP history can switch to a path whose latest changepoint is
+dated at or before one already reported, and the core's flag rises again: not reported,
+counted in ``changepoint_repeats``.) The event names the step the changepoint is dated to
+(``changepoint_step``: evidence can date it a few steps back) and the stamp of that
+transition's newer state (``changepoint_stamp``).
 
 Per state ``k`` (after the first): the transition ``(x_{k-1}, u_{k-1}, x_k)`` with
 ``u_{k-1}`` the setpoint answering state ``k-1`` (lockstep: waited for; realtime: see
@@ -435,7 +436,8 @@ class Adapter(runtime.Service):
             if learn:
                 self._step_stamps[step] = s.stamp
                 self._step_stamps.pop(step - STEP_STAMPS, None)
-            # The MAP history can switch back to a path whose changepoint was reported.
+            # The MAP history can switch to a path whose changepoint is dated at or before
+            # one already reported: the flag rises again, for nothing new.
             repeat = bool(cp) and dated <= self._cp_reported
             self.stats["changepoint_repeats"] += repeat
             cp = bool(cp) and not repeat
