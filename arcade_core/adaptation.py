@@ -321,6 +321,20 @@ def sigma_tot2(state: BeamState, z: ArrayLike, sigma_z2: ArrayLike | None = None
     return predict(state, z, sigma_z2).sigma_tot2
 
 
+def state_noise_sigma2(
+    sigma2: Array, jacobian: Array, var_prev: Array, var_next: Array, scale: Array
+) -> Array:
+    """Observation-noise variances of Eq. 4 when both states of a transition are estimates.
+
+    The residual ``delta = x_{k+1} - f(x_k, u_k)`` of estimated states carries their noise
+    (errors in variables, first order): ``var_next + J var_prev J^T`` (diagonal; ``J =
+    df/dx`` at ``x_k``), in the units the regression learns in (``delta / scale``), adds to
+    ``sigma2``. All ``(d,)`` but ``jacobian`` ``(d, d)``.
+    """
+    var_res = var_next + jnp.einsum("ij,j,ij->i", jacobian, var_prev, jacobian)
+    return sigma2 + var_res / scale**2
+
+
 def map_last_changepoint(state: BeamState) -> Array:
     """``()`` int32, the latest changepoint step on the most probable history (highest
     score ``L_{k,h}``, Eq. 7; ``-1``: none)."""

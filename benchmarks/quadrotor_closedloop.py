@@ -11,10 +11,13 @@ simulator's sensor-noise seed, the start position (2 cm std in x and y) and the 
 jitter.
 
 Control: one MPC solve per control period ``dt = 0.05 s`` (20 Hz), N = 20 (1 s), Appendix D
-weights, on the ground-truth state; the setpoint is held in between while the simulator
-runs its 500 Hz rate loop and 1 kHz physics. Per method, the whole per-step update
-(learning from the last transition, reference window, MPC solve, warm-start shift) is one
-jitted function, so the Python loop only moves a handful of arrays per step.
+weights, on the ground-truth state (``Runner.fly(..., estimated=True)``: on the state
+estimate the service stack flies, :class:`MocapEstimate`; a diagnostic,
+``python -m benchmarks.quadrotor_variants estimated``); the setpoint is held in between
+while the simulator runs its 500 Hz rate loop and 1 kHz physics. Per method, the whole
+per-step update (learning from the last transition, reference window, MPC solve,
+warm-start shift) is one jitted function, so the Python loop only moves a handful of arrays
+per step.
 
 Learned residual in the MPC (every learned-model method alike: GP, MLP, ours): inside the
 rollout, as Sec. IV writes the model, derivatives included. :func:`run_residual_ablation`
@@ -699,6 +702,59 @@ def initial_learner(name: str, models, dtype) -> Any:
     return BeamLearner(vld, beam, traced_cfg, guard, zero, zero)
 
 
+def per_output_noise(learner: BeamLearner) -> BeamLearner:
+    """``learner`` with one noise variance per output and one covariance per output row, at
+    the prior (Algorithm 1 line 1): what a state estimate's per-component noise needs
+    (:func:`arcade_core.adaptation.state_noise_sigma2`). The same beam while all variances
+    are equal."""
+    cfg, (d, _) = learner.config, learner.vld.theta0.shape
+    dtype = learner.beam.means.dtype
+    vec = cfg._replace(sigma2=jnp.broadcast_to(jnp.asarray(cfg.sigma2, dtype), (d,)))
+    theta0 = learner.beam.prior_mean
+    beam = adaptation.init(theta0, vec._replace(K=int(learner.beam.means.shape[0])))
+    return learner._replace(config=vec, beam=beam)
+
+
+class MocapEstimate:
+    """The state a flight sees: the estimator core (:mod:`arcade_core.estimation`, default
+    :class:`~arcade_core.estimation.FilterConfig`) on the simulator's motion capture and
+    gyro (noise, latency, dropped frames), as the stack's estimator service runs it at
+    each control instant. The first call also takes the frame captured at ``t = 0``, which
+    the stack's simulator publishes before its first control instant."""
+
+    def __init__(self, sim, dtype, step: Callable):
+        from arcade_core import estimation
+
+        self.sim, self.dtype, self._step = sim, dtype, step
+        self.filter = estimation.init(dtype)
+        self.gyro = np.zeros(3)
+        self._first = True
+
+    def __call__(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(x, var)`` at the simulator's current time: estimate and marginal variances."""
+        from arcade_core import estimation
+
+        sim, first, self._first = self.sim, self._first, False
+        until = float("inf") if first else sim.time
+        gyro = sim.gyro.read(until)
+        if gyro:
+            self.gyro = gyro[-1].omega
+        frames = sim.mocap.read(until)[-estimation.MAX_FRAMES :]
+        m, dt = estimation.MAX_FRAMES, np.dtype(self.dtype)
+        stamp, pos = np.zeros(m, dt), np.zeros((m, 3), dt)
+        quat_ = np.tile(np.array([1.0, 0.0, 0.0, 0.0], dt), (m, 1))
+        valid = np.zeros(m, bool)
+        for i, f in enumerate(frames):
+            stamp[i], pos[i], quat_[i], valid[i] = f.stamp, f.position, f.quaternion, True
+        self.filter, out = self._step(
+            self.filter,
+            estimation.Frames(stamp, pos, quat_, valid),
+            np.asarray(sim.time, dt),
+            np.asarray(self.gyro, dt),
+        )
+        return np.asarray(out.x, float), np.asarray(out.var, float)
+
+
 # --------------------------------------------------------------------------- controller
 
 
@@ -831,6 +887,21 @@ class Runner:
         self.dtype = jnp.result_type(float) if dtype is None else dtype
         self.cfg = mpc_config(self.dtype)
         self._steps: dict[str, Callable] = {}
+        self._estimate: Callable | None = None
+        self._jacobian: Callable | None = None
+
+    def _estimation(self) -> tuple[Callable, Callable]:
+        """The jitted estimator step and ``df_nom/dx`` (built once)."""
+        if self._estimate is None:
+            from arcade_core import estimation
+
+            config = estimation.FilterConfig()
+            self._estimate = jax.jit(
+                lambda f, fr, t, w: estimation.fuse_and_predict(f, fr, t, w, config)
+            )
+            self._jacobian = jax.jit(jax.jacfwd(f_nom))
+        assert self._jacobian is not None
+        return self._estimate, self._jacobian
 
     def step_fn(self, name: str) -> Callable:
         if name not in self._steps:
@@ -839,8 +910,15 @@ class Runner:
             )
         return self._steps[name]
 
-    def fly(self, name: str, scenario: Scenario, seed: int = 0) -> Flight:
-        """Fly one trial; returns the log with its metrics."""
+    def fly(self, name: str, scenario: Scenario, seed: int = 0, estimated: bool = False) -> Flight:
+        """Fly one trial; returns the log with its metrics.
+
+        ``estimated``: every method sees the state estimate (:class:`MocapEstimate`) instead
+        of the ground-truth state, as in the service stack; ours and its variants then add
+        the estimate's noise to their observation noise at every step, as the stack's
+        adapter does (:func:`arcade_core.adaptation.state_noise_sigma2`). The metrics are
+        of the true trajectory either way.
+        """
         from simulator import QuadrotorSim
 
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x51]))
@@ -862,6 +940,26 @@ class Runner:
         step = self.step_fn(name)
         dt = self.dtype
         learner = initial_learner(name, self.models, dt)
+        estimate = state_noise = None
+        if estimated:
+            estimate_step, jacobian = self._estimation()
+            estimate = MocapEstimate(sim, dt, estimate_step)
+            x_seen, var = estimate()
+            if isinstance(learner, BeamLearner):
+                learner = per_output_noise(learner)
+                base_sigma2 = learner.config.sigma2
+
+                def state_noise(a, x_prev, u, var_prev, var_next):
+                    sigma2 = adaptation.state_noise_sigma2(
+                        base_sigma2,
+                        jacobian(jnp.asarray(x_prev, dt), jnp.asarray(u, dt)),
+                        jnp.asarray(var_prev, dt),
+                        jnp.asarray(var_next, dt),
+                        a.vld.delta_scale,
+                    )
+                    return a._replace(config=a.config._replace(sigma2=sigma2))
+        else:
+            x_seen, var = x, np.zeros(13)
         p = qd.nominal_params()
         if isinstance(learner, MassOracle):  # what the rotors carry beyond the nominal
             learner = learner._replace(  # mass: the payload and the cable's lumped mass
@@ -871,8 +969,9 @@ class Runner:
         # Warm start and smoothness reference: the nominal hover input (Appendix D U_0).
         u0 = jnp.asarray([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0], dt)
         carry = Carry(
-            learner, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x, dt), jnp.zeros((), bool)
+            learner, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x_seen, dt), jnp.zeros((), bool)
         )
+        x_prev, var_prev = x_seen, var
         u_applied = np.asarray(u0)
         X, U, D, T_ms = (np.zeros((n, 13)), np.zeros((n, 4)), np.zeros((n, 17)), np.zeros(n))
         x_ref_np = np.asarray(x_ref_all[:n])
@@ -883,8 +982,13 @@ class Runner:
                 sim.release_payload()
             X[k] = x
             t0 = time.perf_counter()
+            if state_noise is not None and k > 0:  # the transition x_prev -> x_seen
+                carry = carry._replace(
+                    learner=state_noise(carry.learner, x_prev, u_applied, var_prev, var)
+                )
+            x_prev, var_prev = x_seen, var
             carry, u, diag = step(
-                carry, jnp.asarray(x, dt), jnp.asarray(u_applied, dt), k, x_ref_all, u_ref_all
+                carry, jnp.asarray(x_seen, dt), jnp.asarray(u_applied, dt), k, x_ref_all, u_ref_all
             )
             u = np.asarray(u)
             T_ms[k] = 1e3 * (time.perf_counter() - t0)
@@ -899,6 +1003,7 @@ class Runner:
                 crashed, n_done = True, k + 1
                 break
             x = sim.step(DT)
+            x_seen, var = estimate() if estimate is not None else (x, var)
         t = np.arange(n_done) * DT
         flight = Flight(
             name,

@@ -156,15 +156,10 @@ def adapter_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
     variance differs per component, see :class:`Adapter`): one covariance per output row,
     at the prior (Algorithm 1 line 1). Mathematically the same beam while all variances
     are equal."""
-    import jax.numpy as jnp
-
-    from arcade_core import adaptation
+    from benchmarks import quadrotor_closedloop as cl
 
     learner, method = load_learner(weights, dtype)
-    cfg, d = learner.config, learner.vld.theta0.shape[0]
-    vec = cfg._replace(sigma2=jnp.broadcast_to(jnp.asarray(cfg.sigma2, dtype), (d,)))
-    beam = adaptation.init(learner.vld.theta0, vec._replace(K=int(learner.beam.means.shape[0])))
-    return learner._replace(config=vec, beam=beam), method
+    return cl.per_output_noise(learner), method
 
 
 def learner_features(learner: Any, x: Any, u: Any) -> Any:
@@ -224,10 +219,8 @@ class Adapter(runtime.Service):
             # Estimation noise of the two states enters the residual (errors in variables,
             # first order): its normalised variance adds to the observation noise sigma_j^2.
             J = jax.jacfwd(lambda xx: quadrotor_step(xx, up, params, h))(xp)
-            var_res = var_x + jnp.einsum("ij,j,ij->i", J, var_p, J)
-            learner = learner._replace(
-                config=learner.config._replace(sigma2=base_sigma2 + var_res / vld.delta_scale**2)
-            )
+            sigma2 = adaptation.state_noise_sigma2(base_sigma2, J, var_p, var_x, vld.delta_scale)
+            learner = learner._replace(config=learner.config._replace(sigma2=sigma2))
             pred = adaptation.predict(learner.beam, z, vld.latent_variance(xp, up))
             if exact:
                 new = self.method.learn(learner, xp, up, x)

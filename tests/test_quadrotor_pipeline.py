@@ -9,7 +9,7 @@ import pytest
 
 from arcade.training_quadrotor import QUADROTOR_COMMAND, QUADROTOR_WEIGHTS
 from arcade.weights import load_model, read_header
-from arcade_core import encoder
+from arcade_core import adaptation, encoder
 from arcade_core.dynamics import quaternion as quat
 from benchmarks import quadrotor_closedloop as cl
 from benchmarks import quadrotor_data as qd
@@ -325,3 +325,56 @@ def test_flight_diagnostics_measure_command_jumps_and_changepoints():
     assert m["changepoint_rate"] == pytest.approx(0.3)
     # Methods without a changepoint detector report none, not zero.
     assert np.isnan(cl.flight_metrics(_logged_flight("l1", u, cp))["changepoint_rate"])
+
+
+def test_state_noise_adds_the_estimates_variance_through_the_model():
+    """Errors in variables, first order: the residual of two estimated states has variance
+    ``var_next + J var_prev J^T`` (diagonal), in the regression's units."""
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(13, 13))
+    var_prev, var_next = rng.uniform(0, 1e-3, 13), rng.uniform(0, 1e-3, 13)
+    scale = rng.uniform(0.5, 2.0, 13)
+    brute = np.diag(np.diag(var_next) + J @ np.diag(var_prev) @ J.T) / scale**2
+    got = adaptation.state_noise_sigma2(
+        jnp.full(13, 0.1), jnp.asarray(J), jnp.asarray(var_prev), jnp.asarray(var_next), scale
+    )
+    np.testing.assert_allclose(np.asarray(got), 0.1 + brute, rtol=1e-12)
+
+
+def test_per_output_noise_is_the_same_beam_while_the_variances_are_equal():
+    vld, _, extra = load_model(QUADROTOR_WEIGHTS)
+    models = SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra), closedloop={})
+    a = cl.initial_learner("ours", models, jnp.float64)
+    b = cl.per_output_noise(a)
+    assert b.config.sigma2.shape == (13,) and b.beam.sqrt_covariances.shape[1] == 13
+    method = cl.make_method("ours")
+    rng = np.random.default_rng(1)
+    x = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
+    u = np.array([6.0, 0.0, 0.0, 0.0])
+    for _ in range(5):
+        x_next = x + np.r_[rng.normal(0, 1e-3, 6), np.zeros(7)]
+        a = method.learn(a, jnp.asarray(x), jnp.asarray(u), jnp.asarray(x_next))
+        b = method.learn(b, jnp.asarray(x), jnp.asarray(u), jnp.asarray(x_next))
+    np.testing.assert_allclose(method.model(b)[1], method.model(a)[1], rtol=1e-9, atol=1e-12)
+
+
+def test_the_estimated_state_is_what_the_emulated_motion_capture_allows():
+    """:class:`MocapEstimate` starts on the frame captured at t = 0 and then tracks the
+    hovering vehicle within the emulation's noise (0.3 mm, 0.2 deg; a few ms of latency)."""
+    from simulator import QuadrotorSim
+
+    sim = QuadrotorSim(payload_mass=0.0, seed=3)
+    sim.reset(np.array([0.0, 0.0, 1.0]))
+    runner = cl.Runner(SimpleNamespace(), jnp.float64)
+    estimate = cl.MocapEstimate(sim, jnp.float64, runner._estimation()[0])
+    errors = []
+    for _ in range(40):
+        x, var = estimate()
+        errors.append(x - sim.state())
+        assert np.all(var > 0) and np.all(np.isfinite(x))
+        sim.set_setpoint(np.array([sim.hover_thrust(), 0.0, 0.0, 0.0]))
+        sim.step(cl.DT)
+    e = np.array(errors)
+    assert np.abs(e[0, :3]).max() < 2e-3  # initialised from the first frame
+    assert np.sqrt(np.mean(e[10:, :3] ** 2)) < 1e-3
+    assert np.sqrt(np.mean(e[10:, 3:6] ** 2)) < 0.05
