@@ -493,6 +493,45 @@ def _oracle_section(path: Path) -> list[str]:
     return lines
 
 
+ESTIMATED_COMMAND = (
+    "python -m benchmarks.quadrotor_variants estimated > "
+    f"{(VARIANTS_DIR / 'estimated.json').as_posix()}"
+)
+#: The rows of the stored run flown on the state estimate, in table order.
+ESTIMATED_ROWS = ("l1_estimated", "ours_estimated", "ours_stack_estimated")
+
+
+def _estimated_section(path: Path) -> list[str]:
+    """The stored run on the state estimate (its own command, ~5 min on 2 cores)."""
+    head = ["## Quadrotor: on the state estimate the service stack flies", ""]
+    if not path.is_file():
+        return [*head, f"No results yet: run `{ESTIMATED_COMMAND}`, then `make benchmarks`.", ""]
+    r = json.loads(path.read_text())
+    cells = [
+        {"payload_g": row["payload_g"], "speed_mps": row["speed_mps"], "method": m, **row[m]}
+        for row in r["rows"]
+        for m in ESTIMATED_ROWS
+    ]
+    lines = [
+        *head,
+        f"From `{path.as_posix()}`, written {r['generated']} by `{ESTIMATED_COMMAND}` on "
+        f"{r.get('machine', '?')}, in {r['wall_time_s'] / 60:.0f} min (not re-run by "
+        "`make benchmarks`).",
+        "",
+        "A diagnostic: the evaluation's trials flown on the estimator's output from the "
+        "emulated motion capture and gyro instead of the ground-truth state "
+        "(`Runner.fly(..., estimated=True)`; ours adds the estimate's noise to its "
+        "observation noise, as the stack's adapter does). `ours_stack`: ours with the "
+        "stack's adapter knobs (sigma^2 = 0.1, beta = 0.05). Seeds 0 to "
+        f"{r['trials'] - 1} of `arcade eval quadrotor`, the stored knobs otherwise; best in "
+        "bold; read in `docs/quadrotor-closed-loop.md`.",
+        "",
+    ]
+    for title, key in (("Tracking RMSE (m)", "rmse_m"), ("z-RMSE (m)", "rmse_z_m")):
+        lines += [f"{title}:", "", *_cell_table(cells, key, ".4f", order=ESTIMATED_ROWS), ""]
+    return lines
+
+
 def _quadrotor_section(path: Path) -> list[str]:
     """Tables of the stored quadrotor evaluation (its own command: ~25 min on 2 cores)."""
     head = ["## Quadrotor (`arcade eval quadrotor --json`; paper Sec. V-B, Tables II, III, V)", ""]
@@ -663,6 +702,7 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
     sections += _quadrotor_section(QUADROTOR_DIR / "results.json")
     sections += _variants_section(VARIANTS_DIR / "results.json")
     sections += _oracle_section(VARIANTS_DIR / "oracle.json")
+    sections += _estimated_section(VARIANTS_DIR / "estimated.json")
 
     header = [
         "# ARCADE benchmarks",

@@ -221,6 +221,34 @@ def test_variants_section_keeps_the_run_s_method_order_and_marks_the_best(tmp_pa
     assert "No results yet" in missing and "arcade bench variants" in missing
 
 
+def test_estimated_state_section_compares_the_rows_flown_on_the_estimate(tmp_path):
+    def m(rmse):
+        return {"rmse_m": rmse, "rmse_z_m": rmse / 2, "settling_s": 0.0, "changepoint_rate": 0.1}
+
+    row = {"payload_g": 75.0, "speed_mps": 0.5, "l1": m(0.001), "ours": m(0.002)}
+    row |= {"l1_estimated": m(0.009), "ours_estimated": m(0.04), "ours_stack_estimated": m(0.03)}
+    path = tmp_path / "estimated.json"
+    path.write_text(
+        json.dumps(
+            {
+                "generated": "2026-01-01 00:00",
+                "machine": "test machine",
+                "trials": 3,
+                "rows": [row],
+                "wall_time_s": 300.0,
+            }
+        )
+    )
+    text = "\n".join(report._estimated_section(path))
+    # The truth rows are the evaluation's: not in these tables, nor in the bold.
+    head = "| payload (g) | speed (m/s) | l1_estimated | ours_estimated | ours_stack_estimated |"
+    assert head in text
+    assert "| 75 | 0.5 | **0.0090** | 0.0400 | 0.0300 |" in text
+    assert "Seeds 0 to 2" in text and "in 5 min" in text and "test machine" in text
+    missing = "\n".join(report._estimated_section(tmp_path / "none.json"))
+    assert "No results yet" in missing and "quadrotor_variants estimated" in missing
+
+
 def test_discrepancy_section_names_what_was_found_and_what_was_not():
     result = {
         "minutes_of_data": 10.0,
