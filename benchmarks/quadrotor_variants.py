@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Sequence
 from types import SimpleNamespace
 from typing import Any
 
@@ -124,23 +125,11 @@ def oracle(trials: int = 10) -> dict[str, Any]:
     mean RMSE, z-RMSE and settling time per cell (~10 min on a 2-core CPU)."""
     from benchmarks import quadrotor_closedloop as qc
 
-    m = models()
-    m.closedloop = {}
-    runner = qc.Runner(m)
-    t0 = time.perf_counter()
-    rows = []
     names = ("l1", "ours", qc.ORACLE)
-    keys = ("rmse_m", "rmse_z_m", "settling_s")
-    for pay in qc.PAYLOADS_G:
-        for speed in qc.SPEEDS_MPS:
-            scen = qc.Scenario(payload_g=pay, speed_mps=speed)
-            row: dict[str, Any] = {"payload_g": pay, "speed_mps": speed}
-            for name in names:
-                flights = [runner.fly(name, scen, seed=sd).metrics for sd in range(trials)]
-                row[name] = {k: sum(f[k] for f in flights) / trials for k in keys}
-            rmse = " ".join(f"{n} {row[n]['rmse_m']:.4f}" for n in names)
-            _progress(f"{pay:g} g, {speed:g} m/s: RMSE {rmse}")
-            rows.append(row)
+    t0 = time.perf_counter()
+    rows = _cell_means(
+        [(n, n, {}, False) for n in names], trials, ("rmse_m", "rmse_z_m", "settling_s")
+    )
     return {
         "generated": time.strftime("%Y-%m-%d %H:%M"),
         "machine": machine(),
@@ -149,6 +138,35 @@ def oracle(trials: int = 10) -> dict[str, Any]:
         "rows": rows,
         "wall_time_s": time.perf_counter() - t0,
     }
+
+
+def _cell_means(
+    flown: Sequence[tuple[str, str, dict[str, Any], bool]], trials: int, keys: tuple[str, ...]
+) -> list[dict[str, Any]]:
+    """One row per cell of the evaluation: for each ``(name, method, knobs, estimated)`` of
+    ``flown``, the mean of ``keys`` over the evaluation's seeds ``0 .. trials-1`` (knobs:
+    ``models.closedloop`` overrides of the stored ones; ``estimated``: on the state
+    estimate, :meth:`benchmarks.quadrotor_closedloop.Runner.fly`)."""
+    from benchmarks import quadrotor_closedloop as qc
+
+    m = models()
+    runner = qc.Runner(m)
+    rows = []
+    for pay in qc.PAYLOADS_G:
+        for speed in qc.SPEEDS_MPS:
+            scen = qc.Scenario(payload_g=pay, speed_mps=speed)
+            row: dict[str, Any] = {"payload_g": pay, "speed_mps": speed}
+            for name, method, knobs, estimated in flown:
+                m.closedloop = dict(knobs)
+                flights = [
+                    runner.fly(method, scen, seed=sd, estimated=estimated).metrics
+                    for sd in range(trials)
+                ]
+                row[name] = {k: sum(f[k] for f in flights) / trials for k in keys}
+            rmse = " ".join(f"{n} {row[n]['rmse_m']:.4f}" for n, *_ in flown)
+            _progress(f"{pay:g} g, {speed:g} m/s: RMSE {rmse}")
+            rows.append(row)
+    return rows
 
 
 #: Flown by :func:`estimated_state`: (row name, method, knobs, on the estimated state).
@@ -170,27 +188,9 @@ def estimated_state(trials: int = 3) -> dict[str, Any]:
     cells with the evaluation's seeds ``0 .. trials-1`` and the stored knobs, plus ours with
     the stack's knobs (:data:`ESTIMATED_STATE`): mean RMSE, z-RMSE, settling time and the
     changepoint rate per cell (~10 min on a 2-core CPU)."""
-    from benchmarks import quadrotor_closedloop as qc
-
-    m = models()
-    runner = qc.Runner(m)
     t0 = time.perf_counter()
-    rows = []
     keys = ("rmse_m", "rmse_z_m", "settling_s", "changepoint_rate")
-    for pay in qc.PAYLOADS_G:
-        for speed in qc.SPEEDS_MPS:
-            scen = qc.Scenario(payload_g=pay, speed_mps=speed)
-            row: dict[str, Any] = {"payload_g": pay, "speed_mps": speed}
-            for name, method, knobs, estimated in ESTIMATED_STATE:
-                m.closedloop = dict(knobs)
-                flights = [
-                    runner.fly(method, scen, seed=sd, estimated=estimated).metrics
-                    for sd in range(trials)
-                ]
-                row[name] = {k: sum(f[k] for f in flights) / trials for k in keys}
-            rmse = " ".join(f"{n} {row[n]['rmse_m']:.4f}" for n, *_ in ESTIMATED_STATE)
-            _progress(f"{pay:g} g, {speed:g} m/s: RMSE {rmse}")
-            rows.append(row)
+    rows = _cell_means(ESTIMATED_STATE, trials, keys)
     return {
         "generated": time.strftime("%Y-%m-%d %H:%M"),
         "machine": machine(),

@@ -457,26 +457,39 @@ ORACLE_COMMAND = (
 )
 
 
+def _row_cells(r: dict[str, Any], order: tuple[str, ...]) -> list[dict[str, Any]]:
+    """The cells of a diagnostic run stored by rows (one row per payload and speed, one
+    entry per method of ``order``) in :func:`_cell_table`'s form."""
+    return [
+        {"payload_g": row["payload_g"], "speed_mps": row["speed_mps"], "method": m, **row[m]}
+        for row in r["rows"]
+        for m in order
+    ]
+
+
+def _provenance(path: Path, r: dict[str, Any], command: str) -> str:
+    """Where a stored diagnostic run comes from: file, date, command, machine, time."""
+    when = r.get("generated") or time.strftime(
+        "%Y-%m-%d %H:%M", time.localtime(path.stat().st_mtime)
+    )
+    return (
+        f"From `{path.as_posix()}`, written {when} by `{command}` on "
+        f"{r.get('machine', '?')}, in {r['wall_time_s'] / 60:.0f} min (not re-run by "
+        "`make benchmarks`)."
+    )
+
+
 def _oracle_section(path: Path) -> list[str]:
     """The stored mass-oracle run (its own command, ~8 min on 2 cores)."""
     head = ["## Quadrotor: what knowing the payload would give (mass oracle)", ""]
     if not path.is_file():
         return [*head, f"No results yet: run `{ORACLE_COMMAND}`, then `make benchmarks`.", ""]
     r = json.loads(path.read_text())
-    when = r.get("generated") or time.strftime(
-        "%Y-%m-%d %H:%M", time.localtime(path.stat().st_mtime)
-    )
     order = tuple(r["methods"])
-    cells = [
-        {"payload_g": row["payload_g"], "speed_mps": row["speed_mps"], "method": m, **row[m]}
-        for row in r["rows"]
-        for m in order
-    ]
+    cells = _row_cells(r, order)
     lines = [
         *head,
-        f"From `{path.as_posix()}`, written {when} by `{ORACLE_COMMAND}` on "
-        f"{r.get('machine', '?')}, in {r['wall_time_s'] / 60:.0f} min (not re-run by "
-        "`make benchmarks`).",
+        _provenance(path, r, ORACLE_COMMAND),
         "",
         "`oracle_mass` is a diagnostic, not a method: the nominal model plus what hangs from "
         "the vehicle (payload and cable) as a rigid mass, known exactly and dropped at the "
@@ -507,16 +520,10 @@ def _estimated_section(path: Path) -> list[str]:
     if not path.is_file():
         return [*head, f"No results yet: run `{ESTIMATED_COMMAND}`, then `make benchmarks`.", ""]
     r = json.loads(path.read_text())
-    cells = [
-        {"payload_g": row["payload_g"], "speed_mps": row["speed_mps"], "method": m, **row[m]}
-        for row in r["rows"]
-        for m in ESTIMATED_ROWS
-    ]
+    cells = _row_cells(r, ESTIMATED_ROWS)
     lines = [
         *head,
-        f"From `{path.as_posix()}`, written {r['generated']} by `{ESTIMATED_COMMAND}` on "
-        f"{r.get('machine', '?')}, in {r['wall_time_s'] / 60:.0f} min (not re-run by "
-        "`make benchmarks`).",
+        _provenance(path, r, ESTIMATED_COMMAND),
         "",
         "A diagnostic: the evaluation's trials flown on the estimator's output from the "
         "emulated motion capture and gyro instead of the ground-truth state "
