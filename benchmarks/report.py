@@ -414,19 +414,22 @@ VARIANTS_DIR = RESULTS / "quadrotor_variants"
 VARIANTS_COMMAND = f"arcade bench variants --out {(VARIANTS_DIR / 'results.json').as_posix()}"
 
 
+def _not_yet(head: list[str], command: str) -> list[str]:
+    """A section whose stored run is missing: the command that makes it."""
+    return [*head, f"No results yet: run `{command}`, then `make benchmarks`.", ""]
+
+
 def _variants_section(path: Path) -> list[str]:
     """The stored `arcade bench variants` run (its own command, ~13 min on 2 cores)."""
     head = ["## Quadrotor variants beside ours (`arcade bench variants`)", ""]
     if not path.is_file():
-        return [*head, f"No results yet: run `{VARIANTS_COMMAND}`, then `make benchmarks`.", ""]
+        return _not_yet(head, VARIANTS_COMMAND)
     r = json.loads(path.read_text())
     order = tuple(r["methods"])
     tuned = r.get("tuning", {}).get("chosen", {})
     lines = [
         *head,
-        f"From `{path.as_posix()}`, written {r.get('generated', '?')} by `{VARIANTS_COMMAND}` "
-        f"on {r.get('machine', '?')}, in {r['wall_time_s'] / 60:.0f} min (not re-run by "
-        "`make benchmarks`).",
+        _provenance(path, r, VARIANTS_COMMAND),
         "",
         "`ours_matched` is not the paper's method: ours with an intercept feature, whose MPC "
         "plans only with the thrust-axis part of the learned residual "
@@ -483,7 +486,7 @@ def _oracle_section(path: Path) -> list[str]:
     """The stored mass-oracle run (its own command, ~8 min on 2 cores)."""
     head = ["## Quadrotor: what knowing the payload would give (mass oracle)", ""]
     if not path.is_file():
-        return [*head, f"No results yet: run `{ORACLE_COMMAND}`, then `make benchmarks`.", ""]
+        return _not_yet(head, ORACLE_COMMAND)
     r = json.loads(path.read_text())
     order = tuple(r["methods"])
     cells = _row_cells(r, order)
@@ -518,7 +521,7 @@ def _estimated_section(path: Path) -> list[str]:
     """The stored run on the state estimate (its own command, ~5 min on 2 cores)."""
     head = ["## Quadrotor: on the state estimate the service stack flies", ""]
     if not path.is_file():
-        return [*head, f"No results yet: run `{ESTIMATED_COMMAND}`, then `make benchmarks`.", ""]
+        return _not_yet(head, ESTIMATED_COMMAND)
     r = json.loads(path.read_text())
     cells = _row_cells(r, ESTIMATED_ROWS)
     lines = [
