@@ -50,7 +50,9 @@ class FilterConfig(NamedTuple):
 
     Attributes:
         jerk_psd: white-jerk spectral density of the constant-acceleration model
-            [(m/s^3)^2 / Hz]; trades velocity noise against lag in manoeuvres.
+            [(m/s^3)^2 / Hz]; trades velocity noise against lag in manoeuvres. 20 is
+            tuned for the closed loop (the adaptive controllers on the estimate:
+            ``python -m benchmarks.quadrotor_variants estimator``).
         accel_std: standard deviation of the acceleration at initialisation [m/s^2].
         position_std: mocap position noise [m].
         attitude_gain: complementary-filter gain towards each mocap quaternion, in (0, 1].
@@ -65,7 +67,7 @@ class FilterConfig(NamedTuple):
         gyro_std: gyro noise [rad/s] (reported variance of ``omega``).
     """
 
-    jerk_psd: float = 100.0
+    jerk_psd: float = 20.0
     accel_std: float = 5.0
     position_std: float = 3e-4
     attitude_gain: float = 0.5

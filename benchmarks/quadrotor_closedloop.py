@@ -716,11 +716,11 @@ def per_output_noise(learner: BeamLearner) -> BeamLearner:
 
 
 class MocapEstimate:
-    """The state a flight sees: the estimator core (:mod:`arcade_core.estimation`, default
-    :class:`~arcade_core.estimation.FilterConfig`) on the simulator's motion capture and
-    gyro (noise, latency, dropped frames), as the stack's estimator service runs it at
-    each control instant. The first call also takes the frame captured at ``t = 0``, which
-    the stack's simulator publishes before its first control instant."""
+    """The state a flight sees: the estimator core (:mod:`arcade_core.estimation`, the
+    :class:`~arcade_core.estimation.FilterConfig` of the :class:`Runner`) on the simulator's
+    motion capture and gyro (noise, latency, dropped frames), as the stack's estimator
+    service runs it at each control instant. The first call also takes the frame captured
+    at ``t = 0``, which the stack's simulator publishes before its first control instant."""
 
     def __init__(self, sim, dtype, step: Callable):
         from arcade_core import estimation
@@ -882,9 +882,13 @@ class Flight:
 class Runner:
     """Builds (once) and caches the jitted per-step update of each method."""
 
-    def __init__(self, models, dtype=None):
+    def __init__(self, models, dtype=None, filter_config=None):
+        """``filter_config``: the estimator's settings for flights on the state estimate
+        (:class:`arcade_core.estimation.FilterConfig`; ``None``: its defaults, the
+        estimator service's)."""
         self.models = models
         self.dtype = jnp.result_type(float) if dtype is None else dtype
+        self.filter_config = filter_config
         self.cfg = mpc_config(self.dtype)
         self._steps: dict[str, Callable] = {}
         self._estimate: Callable | None = None
@@ -895,7 +899,9 @@ class Runner:
         if self._estimate is None:
             from arcade_core import estimation
 
-            config = estimation.FilterConfig()
+            config = self.filter_config
+            if config is None:
+                config = estimation.FilterConfig()
             self._estimate = jax.jit(
                 lambda f, fr, t, w: estimation.fuse_and_predict(f, fr, t, w, config)
             )

@@ -41,6 +41,7 @@ again.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import threading
 from typing import Any
@@ -99,7 +100,9 @@ class Estimator(runtime.Service):
         self.est = est
         self.jnp = jnp
         self.dtype = jnp.result_type(float)
-        self.config = est.FilterConfig()
+        a = self.args
+        self.config = est.FilterConfig(jerk_psd=a.jerk_psd, position_std=a.mocap_noise)
+        self.stats["filter"] = {"jerk_psd": a.jerk_psd, "position_std_m": a.mocap_noise}
         self.filter = est.init(self.dtype)
         self._step = jax.jit(_packed_step, static_argnames="config")
         self._pending: list[Mocap] = []
@@ -319,7 +322,34 @@ class Estimator(runtime.Service):
         self.stats["outliers_rejected"] = int(self.filter.rejected)
 
 
+def _positive(text: str) -> float:
+    """An option that must be a finite number above zero."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number above zero, not {text}")
+    return value
+
+
 def _extra(p) -> None:
+    from arcade_core.estimation import FilterConfig
+
+    p.add_argument(
+        "--jerk-psd",
+        type=_positive,
+        default=FilterConfig().jerk_psd,
+        help="white-jerk spectral density of the position filter [(m/s^3)^2/Hz]: lower "
+        "is smoother and later (default %(default)s, tuned for the closed loop by "
+        "`python -m benchmarks.quadrotor_variants estimator`)",
+    )
+    p.add_argument(
+        "--mocap-noise",
+        type=_positive,
+        default=FilterConfig().position_std,
+        help="standard deviation of the motion capture's position noise [m]",
+    )
     p.add_argument(
         "--max-frame-lag",
         type=float,

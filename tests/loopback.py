@@ -142,10 +142,17 @@ def lockstep_estimator() -> tuple[Any, RecordingBus]:
     """The estimator service (lockstep, default screening) set up on a :class:`RecordingBus`."""
     import argparse
 
+    from arcade_core.estimation import FilterConfig
     from services.estimator import Estimator
 
     args = argparse.Namespace(
-        lockstep=True, out=None, max_frame_lag=0.25, stamp_tolerance=0.005, vehicle="test"
+        lockstep=True,
+        out=None,
+        max_frame_lag=0.25,
+        stamp_tolerance=0.005,
+        vehicle="test",
+        jerk_psd=FilterConfig().jerk_psd,
+        mocap_noise=FilterConfig().position_std,
     )
     est = Estimator(args)
     bus = RecordingBus()

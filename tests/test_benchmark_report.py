@@ -249,6 +249,43 @@ def test_estimated_state_section_compares_the_rows_flown_on_the_estimate(tmp_pat
     assert "No results yet" in missing and "quadrotor_variants estimated" in missing
 
 
+def test_estimator_section_tables_the_tuning_and_the_cells_side_by_side(tmp_path):
+    def m(rmse):
+        return {"rmse_m": rmse, "rmse_z_m": rmse / 2, "settling_s": 0.0, "changepoint_rate": 0.1}
+
+    names = ("l1@100", "l1@20", "ours_stack@100", "ours_stack@20")
+    row = {"payload_g": 75.0, "speed_mps": 0.5}
+    row |= {n: m(v) for n, v in zip(names, (0.0087, 0.0067, 0.0462, 0.0343), strict=True)}
+    result = {
+        "generated": "2026-01-01 00:00",
+        "machine": "test machine",
+        "trials": 3,
+        "tuning": {
+            "cell": [150.0, 2.0],
+            "seeds": [999, 998],
+            "grid": [100.0, 20.0, 5.0],
+            "rmse_m": {"l1": [0.0191, 0.0187, 0.1212], "ours_stack": [0.0631, 0.053, 0.0516]},
+            "chosen": 20.0,
+            "hand_set": 100.0,
+            "default": 20.0,
+        },
+        "rows_flown": [{"name": n} for n in names],
+        "rows": [row],
+        "wall_time_s": 480.0,
+    }
+    path = tmp_path / "estimator.json"
+    path.write_text(json.dumps(result))
+    text = "\n".join(report._estimator_section(path))
+    assert "| jerk density | l1 | ours_stack |" in text
+    assert "| 20 (picked) | 0.0187 | 0.0530 |" in text and "| 5 | 0.1212 | 0.0516 |" in text
+    assert "(150, 2: payload g, speed m/s; seeds 999, 998)" in text
+    assert "| payload (g) | speed (m/s) | " + " | ".join(names) + " |" in text
+    assert "| 75 | 0.5 | 0.0087 | **0.0067** | 0.0462 | 0.0343 |" in text
+    assert "hand-set 100" in text and "in 8 min" in text and "test machine" in text
+    missing = "\n".join(report._estimator_section(tmp_path / "none.json"))
+    assert "No results yet" in missing and "quadrotor_variants estimator" in missing
+
+
 def test_discrepancy_section_names_what_was_found_and_what_was_not():
     result = {
         "minutes_of_data": 10.0,

@@ -199,6 +199,40 @@ def test_bad_numbers_are_argument_errors(elsewhere, capsys, argv, message):
         ),
         (["up", "--lockstep", "--payload-g", "5000"], "--payload-g must be below 1059 g"),
         (["demo", "--payload-g", "1059"], "--payload-g must be below 1059 g"),
+        (
+            ["up", "--service-arg=estimator"],
+            "--service-arg estimator: not NAME:ARG (e.g. estimator:--mocap-noise=1e-4)",
+        ),
+        (["up", "--service-arg=planner:--x=1"], "--service-arg planner:--x=1: no service"),
+        (
+            ["up", "--service-arg=bridge:--max-throttle=0.8"],
+            "--service-arg bridge:--max-throttle=0.8: the bridge's options go through --bridge-arg",
+        ),
+        (
+            ["up", "--lockstep", "--service-arg=px4sim:--of-loss-s=2"],
+            "--service-arg px4sim: not a process of this stack (recorder, estimator, adapter,",
+        ),
+        (
+            ["up", "--lockstep", "--service-arg=estimator:--jerk-psd=0"],
+            "--service-arg estimator:--jerk-psd=0: argument --jerk-psd: must be a finite number",
+        ),
+        (
+            ["up", "--lockstep", "--service-arg=controller:--max-model-agee=1"],
+            "--service-arg controller:--max-model-agee=1: unrecognized arguments",
+        ),
+        # What arcade up sets itself, however abbreviated.
+        (
+            ["up", "--lockstep", "--service-arg=estimator:--veh=other"],
+            "--service-arg estimator: --vehicle set by the launcher",
+        ),
+        (
+            ["up", "--lockstep", "--service-arg=sim:--seed=3"],
+            "--service-arg sim: --seed set by the launcher",
+        ),
+        (
+            ["up", "--profile", "px4", "--service-arg=adapter:--checkpoint=x.npz"],
+            "--service-arg adapter: --checkpoint set by the launcher",
+        ),
     ],
 )
 def test_options_that_do_not_fit_together(elsewhere, capsys, monkeypatch, argv, message):
@@ -207,6 +241,35 @@ def test_options_that_do_not_fit_together(elsewhere, capsys, monkeypatch, argv, 
     err = capsys.readouterr().err
     assert err.startswith(f"error: {message}") and err.count("\n") == 1
     assert not (elsewhere / "runs").exists()
+
+
+def test_service_args_reach_their_service_after_the_launcher_s(elsewhere):
+    import argparse
+
+    from arcade.commands.up import (
+        add_arguments,
+        group_service_args,
+        service_args_problem,
+        stack_config,
+    )
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    argv = ["--lockstep", "--service-arg=estimator:--jerk-psd=50"]
+    argv += ["--service-arg=estimator:--mocap-noise", "--service-arg=estimator:1e-4"]
+    argv += ["--service-arg=controller:--max-model-age=1.0"]
+    args = p.parse_args(argv)
+    grouped = group_service_args(args.service_arg)
+    assert grouped == {
+        "estimator": ["--jerk-psd=50", "--mocap-noise", "1e-4"],
+        "controller": ["--max-model-age=1.0"],
+    }
+    cfg = stack_config(args, Path("run"), {}, grouped)
+    assert service_args_problem(cfg) is None
+    est = cfg.args("estimator")
+    assert est[-3:] == ["--jerk-psd=50", "--mocap-noise", "1e-4"] and "--vehicle" in est
+    assert cfg.args("controller")[-1] == "--max-model-age=1.0"
+    assert not any(a.startswith("--jerk-psd") for a in cfg.args("adapter"))
 
 
 # ------------------------------------------------------------------ weights

@@ -107,3 +107,34 @@ def test_frames_waiting_for_imu_are_bounded_and_counted(make):
     assert len(est._pending) == est_service.MAX_PENDING
     assert est.stats["pending_dropped"] == 5
     assert est._pending[0].capture_stamp == pytest.approx(T0 + 5 * MOCAP_DT)  # newest kept
+
+
+def _options(*argv: str):
+    from services import runtime
+
+    parser = runtime.common_parser("estimator", "test")
+    est_service._extra(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_the_filter_s_noise_model_comes_from_the_options():
+    from loopback import RecordingBus
+
+    est = Estimator(_options("--jerk-psd", "7.5", "--mocap-noise", "0.001", "--lockstep"))
+    est.setup(RecordingBus())
+    assert est.config.jerk_psd == 7.5 and est.config.position_std == 0.001
+    assert est.stats["filter"] == {"jerk_psd": 7.5, "position_std_m": 0.001}
+    # Defaults: the core's (tuned for the closed loop).
+    from arcade_core.estimation import FilterConfig
+
+    default = _options()
+    assert default.jerk_psd == FilterConfig().jerk_psd
+    assert default.mocap_noise == FilterConfig().position_std
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "inf", "nan", "high"])
+def test_a_noise_model_that_is_not_a_positive_number_is_refused(value, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        _options("--jerk-psd", value)
+    assert exit_.value.code == 2
+    assert "--jerk-psd: must be a finite number above zero" in capsys.readouterr().err

@@ -378,3 +378,25 @@ def test_the_estimated_state_is_what_the_emulated_motion_capture_allows():
     assert np.abs(e[0, :3]).max() < 2e-3  # initialised from the first frame
     assert np.sqrt(np.mean(e[10:, :3] ** 2)) < 1e-3
     assert np.sqrt(np.mean(e[10:, 3:6] ** 2)) < 0.05
+
+
+def test_the_estimator_tuning_does_not_sacrifice_one_method_for_another():
+    from benchmarks.quadrotor_variants import least_worst_loss
+
+    # b's best value (5) costs a 6x; 20 costs each method at most 3 %.
+    scores = {
+        "a": {100.0: 0.0191, 20.0: 0.0187, 10.0: 0.0193, 5.0: 0.1212},
+        "b": {100.0: 0.0631, 20.0: 0.0530, 10.0: 0.0523, 5.0: 0.0516},
+    }
+    assert least_worst_loss(scores) == 20.0
+    # A tie goes to the larger value (the less lagging filter).
+    assert least_worst_loss({"a": {30.0: 1.0, 20.0: 1.0}}) == 30.0
+    # One method: its best value.
+    assert least_worst_loss({"b": scores["b"]}) == 5.0
+
+
+def test_ours_stack_flies_the_adapter_s_knobs():
+    from benchmarks.quadrotor_variants import STACK_KNOBS
+    from services.adapter import stack_knobs
+
+    assert stack_knobs() == STACK_KNOBS

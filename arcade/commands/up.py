@@ -28,8 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "flight_log.csv and bus.mcap (open it in Foxglove Studio). Crashes, restarts,\n"
         "failsafes and degraded modes are shown as they happen. Options that do not fit\n"
         "together and a --weights file that does not load are refused (exit code 2)\n"
-        "before anything starts. Service options (e.g. the controller's --max-model-age)\n"
-        "are set with `python -m services NAME` or StackConfig.extra from Python.\n"
+        "before anything starts. A service's own options (`python -m services NAME\n"
+        "--help`) go through --service-arg, e.g. --service-arg estimator:--mocap-noise=1e-4\n"
+        "(StackConfig.extra from Python).\n"
         "The clock is real time unless --lockstep is given. Without --out the run folder\n"
         "is made under $ARCADE_RUNS (default runs/)."
     )
@@ -116,6 +117,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "prior)",
     )
     p.add_argument("--x64", action="store_true", help="compute in float64")
+    p.add_argument(
+        "--service-arg",
+        action="append",
+        default=[],
+        metavar="NAME:ARG",
+        help="an option of one service of the stack, e.g. "
+        "--service-arg=estimator:--jerk-psd=50 or controller:--max-model-age=1.0 "
+        "(repeatable; `python -m services NAME --help` lists them); parsed as the service "
+        "parses it before anything starts; the options the launcher sets (vehicle, bus, "
+        "run folder, rate, plan, weights, ...) are refused, and the bridge's go through "
+        "--bridge-arg",
+    )
     p.add_argument(
         "--no-realtime-priority",
         dest="realtime_priority",
@@ -260,6 +273,78 @@ def bus_configs(directory: Path, processes: tuple[str, ...]) -> dict[str, Path] 
     return files
 
 
+def group_service_args(values: list[str]) -> dict[str, list[str]] | str:
+    """``--service-arg NAME:ARG`` values grouped by service (in order), or why not."""
+    from services.__main__ import SERVICES
+
+    grouped: dict[str, list[str]] = {}
+    for value in values:
+        name, sep, arg = value.partition(":")
+        if not sep or not arg:
+            return f"--service-arg {value}: not NAME:ARG (e.g. estimator:--mocap-noise=1e-4)"
+        if name == "bridge":
+            return f"--service-arg {value}: the bridge's options go through --bridge-arg"
+        if name not in SERVICES:
+            known = ", ".join(s for s in SERVICES if s != "bridge")
+            return f"--service-arg {value}: no service {name!r} (services: {known})"
+        grouped.setdefault(name, []).append(arg)
+    return grouped
+
+
+def service_parser(name: str) -> argparse.ArgumentParser:
+    """The options of service ``name`` as ``python -m services NAME`` parses them, raising
+    ``ValueError`` (one line) instead of exiting."""
+    import importlib
+
+    from services import runtime
+    from services.__main__ import SERVICES
+
+    parser = runtime.common_parser(name, name)
+    extra = getattr(importlib.import_module(SERVICES[name]), "_extra", None)
+    if extra is not None:
+        extra(parser)
+
+    def refuse(message: str) -> None:  # instead of printing the usage and exiting
+        raise ValueError(message)
+
+    parser.error = refuse  # type: ignore[method-assign]
+    return parser
+
+
+def options_given(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
+    """The options (long spelling, e.g. ``--max-model-age``) that ``argv`` sets, however
+    abbreviated; ``ValueError`` if ``parser`` refuses ``argv``."""
+    unset = object()
+    actions = [a for a in parser._actions if a.option_strings and a.dest != "help"]
+    ns = argparse.Namespace(**{a.dest: unset for a in actions})
+    parser.parse_args(argv, namespace=ns)
+    return {a.option_strings[-1] for a in actions if getattr(ns, a.dest) is not unset}
+
+
+def service_args_problem(cfg) -> str | None:
+    """Why ``cfg.extra`` (from ``--service-arg``) would not start: a service this stack
+    does not run, an option its service refuses, or one the launcher sets itself."""
+    import dataclasses
+
+    running = cfg.services()
+    own = dataclasses.replace(cfg, extra={})
+    for name, argv in cfg.extra.items():
+        if name not in running:
+            return f"--service-arg {name}: not a process of this stack ({', '.join(running)})"
+        parser = service_parser(name)
+        try:
+            given = options_given(parser, argv)
+        except ValueError as err:
+            return f"--service-arg {name}:{' '.join(argv)}: {err}"
+        clash = sorted(given & options_given(parser, own.args(name)))
+        if clash:
+            return (
+                f"--service-arg {name}: {', '.join(clash)} set by the launcher (from "
+                "arcade up's own options), not through --service-arg"
+            )
+    return None
+
+
 def out_problem(out: Path | None) -> str | None:
     """Why the run folder (``--out``, else one under the runs root) cannot be made, or None."""
     from arcade.runs import check_output_dir, check_runs_root
@@ -293,6 +378,32 @@ def weights_problem(path: Path | None) -> tuple[str, int] | None:
     return (f"--weights {problem}", 2) if path is not None else (problem, 1)
 
 
+def stack_config(args: argparse.Namespace, out: Path, configs: dict[str, Path], extra):
+    """The stack's :class:`deploy.launcher.StackConfig` from ``arcade up``'s options (run
+    folder, weights, checkpoint and bus configurations made absolute)."""
+    from arcade.demo_stack import free_hub
+    from deploy.launcher import StackConfig
+
+    return StackConfig(
+        out=out,
+        profile=args.profile,
+        lockstep=args.lockstep,
+        vehicle=args.vehicle,
+        hub=args.hub or free_hub(),  # unused with bus configurations
+        rate=args.rate,
+        duration=args.duration,
+        payload_g=args.payload_g,
+        speed=args.speed,
+        seed=args.seed,
+        x64=args.x64,
+        weights=args.weights,
+        checkpoint=args.checkpoint,
+        realtime_priority=args.realtime_priority,
+        bus_configs=configs,
+        extra=dict(extra),
+    )
+
+
 def run(args: argparse.Namespace) -> int:
 
     def say(msg: str) -> None:
@@ -322,29 +433,27 @@ def run(args: argparse.Namespace) -> int:
         say(f"error: {bad_weights[0]}")
         return bad_weights[1]
 
+    grouped = group_service_args(args.service_arg)
+    if isinstance(grouped, str):
+        say(f"error: {grouped}")
+        return 2
+    if grouped:
+        probe = stack_config(args, args.out or Path("runs", "up"), configs, grouped)
+        if args.profile == "px4":
+            from deploy import px4_profile
+
+            probe = px4_profile.config_from_args(args, probe)
+        problem = service_args_problem(probe)
+        if problem is not None:
+            say(f"error: {problem}")
+            return 2
+
     import zenoh
 
-    from arcade.demo_stack import free_hub
     from arcade.runs import new_run_dir
-    from deploy.launcher import StackConfig, StackError, last_output, run_flight, sigterm_interrupts
+    from deploy.launcher import StackError, last_output, run_flight, sigterm_interrupts
 
-    cfg = StackConfig(
-        out=args.out or new_run_dir("up"),
-        profile=args.profile,
-        lockstep=args.lockstep,
-        vehicle=args.vehicle,
-        hub=args.hub or free_hub(),  # unused with bus configurations
-        rate=args.rate,
-        duration=args.duration,
-        payload_g=args.payload_g,
-        speed=args.speed,
-        seed=args.seed,
-        x64=args.x64,
-        weights=args.weights,
-        checkpoint=args.checkpoint,
-        realtime_priority=args.realtime_priority,
-        bus_configs=configs,
-    )  # run folder, weights, checkpoint and bus configurations made absolute
+    cfg = stack_config(args, args.out or new_run_dir("up"), configs, grouped)
 
     last = [-1.0]
 
