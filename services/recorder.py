@@ -20,8 +20,11 @@ A file that cannot be written (a full disk, a removed drive) stops being written
 recorder nor the flight: a ``fault`` event names the file and the error, the other file
 goes on, and what is not recorded from then on is counted (``unrecorded`` messages,
 ``unwritten_rows``); ``recording_errors`` in the statistics keeps each file's error. What
-was buffered when the write failed is lost with the file: the MCAP writer's open chunk (up
-to 1 MiB of messages), the flight log's rows since its last flush (a second of stamps).
+was buffered when the write failed is lost with the file: the MCAP writer's open chunk (at
+most :data:`MCAP_FLUSH_S` of messages), the flight log's rows since its last flush (a second
+of stamps). A killed recorder loses the same: both files are flushed while flying, and what
+reached the disk reads back (the MCAP file without its summary index: by a linear scan,
+e.g. ``mcap.stream_reader.StreamReader`` or the ``mcap`` command line's ``recover``).
 """
 
 from __future__ import annotations
@@ -45,6 +48,9 @@ from services.messages import MESSAGE_TYPES, Message, Setpoint, State
 REORDER_S = 1.0
 #: Setpoints kept while waiting for their state.
 MAX_UNPAIRED = 256
+#: The MCAP writer's open chunk is written out at least this often [s of receive time]
+#: (else it waits for 1 MiB of messages, about 2 s of the demo, lost if the recorder dies).
+MCAP_FLUSH_S = 1.0
 
 _JSON_TYPES = {"float": "number", "int": "integer", "bool": "boolean", "str": "string"}
 
@@ -84,6 +90,8 @@ class Recorder(runtime.Service):
         self._file = (out / f"bus{suffix}.mcap").open("wb")
         self.writer = Writer(self._file)
         self.writer.start(profile="", library="arcade")
+        self._clock = time.monotonic  # of the chunk flushes
+        self._flushed = self._clock()
         self._channels: dict[str, int] = {}
         for topic, cls in MESSAGE_TYPES.items():
             schema = self.writer.register_schema(
@@ -126,6 +134,10 @@ class Recorder(runtime.Service):
                         publish_time=min(int(m.stamp * 1e9), 2**64 - 1),
                         sequence=m.seq % 2**32,
                     )
+                    now = self._clock()
+                    if now - self._flushed >= MCAP_FLUSH_S:
+                        self._flushed = now
+                        self.writer.flush()  # the open chunk, to the disk
                 except OSError as err:
                     self._stop_mcap(err)
             if self.writer is None:

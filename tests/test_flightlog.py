@@ -173,6 +173,42 @@ def test_recorder_keeps_the_newest_unpaired_setpoints_and_counts_the_rest(tmp_pa
     assert len(read_log(tmp_path / "flight_log.csv", "quadrotor").t) == 30
 
 
+def _messages_on_disk(path) -> int:
+    """Messages a linear scan reads from an MCAP file as it is on the disk now (no summary
+    yet: what a killed recorder leaves), up to where it ends."""
+    from mcap.exceptions import McapError
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    n = 0
+    with open(path, "rb") as f:
+        try:
+            for record in StreamReader(f, emit_chunks=False).records:
+                n += isinstance(record, Message)
+        except (McapError, EOFError):  # the end of what was written
+            pass
+    return n
+
+
+def test_a_killed_recorder_loses_at_most_the_last_second_of_the_bus_log(tmp_path):
+    from services.recorder import MCAP_FLUSH_S
+
+    assert MCAP_FLUSH_S == 1.0
+    rec = _recorder(tmp_path)
+    clock = [0.0]
+    rec._clock, rec._flushed = (lambda: clock[0]), 0.0
+    for k in range(60):  # 3.5 s of messages, far less than the writer's 1 MiB chunk
+        clock[0] = k * 0.06
+        s, sp = _pair(100.0 + k * 0.05)
+        rec.record("state", s)
+        rec.record("setpoint", sp)
+    # Not torn down (a kill): the flushed chunks are on the disk, the open one is not.
+    # Flushes at 1.02, 2.04 and 3.06 s: up to the state of pair 51.
+    assert _messages_on_disk(tmp_path / "bus.mcap") == 2 * 51 + 1
+    rec.teardown()
+    assert _messages_on_disk(tmp_path / "bus.mcap") == 120
+
+
 class _EventBus:
     """The bus a service publishes its events on: every record kept."""
 
