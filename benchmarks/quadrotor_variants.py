@@ -131,13 +131,20 @@ def oracle(trials: int = 10) -> dict[str, Any]:
         [(n, n, {}, False) for n in names], trials, ("rmse_m", "rmse_z_m", "settling_s")
     )
     return {
-        "generated": time.strftime("%Y-%m-%d %H:%M"),
-        "machine": machine(),
-        "trials": trials,
+        **_run_header(trials),
         "methods": list(names),
         "rows": rows,
         "wall_time_s": time.perf_counter() - t0,
     }
+
+
+def _run_header(trials: int) -> dict[str, Any]:
+    """When, where and with how many trials a stored diagnostic run was flown."""
+    return {"generated": time.strftime("%Y-%m-%d %H:%M"), "machine": machine(), "trials": trials}
+
+
+#: Per-cell means of the runs on the state estimate.
+ESTIMATE_KEYS = ("rmse_m", "rmse_z_m", "settling_s", "changepoint_rate")
 
 
 def _cell_means(
@@ -197,12 +204,9 @@ def estimated_state(trials: int = 3) -> dict[str, Any]:
     the stack's knobs (:data:`ESTIMATED_STATE`): mean RMSE, z-RMSE, settling time and the
     changepoint rate per cell (~5 min on a 2-core CPU)."""
     t0 = time.perf_counter()
-    keys = ("rmse_m", "rmse_z_m", "settling_s", "changepoint_rate")
-    rows = _cell_means(ESTIMATED_STATE, trials, keys)
+    rows = _cell_means(ESTIMATED_STATE, trials, ESTIMATE_KEYS)
     return {
-        "generated": time.strftime("%Y-%m-%d %H:%M"),
-        "machine": machine(),
-        "trials": trials,
+        **_run_header(trials),
         "rows_flown": [
             {"name": n, "method": meth, "knobs": k, "estimated": e}
             for n, meth, k, e in ESTIMATED_STATE
@@ -272,12 +276,9 @@ def estimator_tuning(trials: int = 3) -> dict[str, Any]:
         for name, method, knobs in ESTIMATOR_METHODS
         for psd in dict.fromkeys((HAND_SET_JERK_PSD, chosen))
     ]
-    keys = ("rmse_m", "rmse_z_m", "settling_s", "changepoint_rate")
-    rows = _cell_means(flown, trials, keys)
+    rows = _cell_means(flown, trials, ESTIMATE_KEYS)
     return {
-        "generated": time.strftime("%Y-%m-%d %H:%M"),
-        "machine": machine(),
-        "trials": trials,
+        **_run_header(trials),
         "tuning": {
             "cell": list(qc.TUNING_CELL),
             "seeds": list(qc.TUNING_SEEDS),

@@ -470,6 +470,14 @@ def _row_cells(r: dict[str, Any], order: tuple[str, ...]) -> list[dict[str, Any]
     ]
 
 
+def _rmse_tables(cells: list[dict[str, Any]], order: tuple[str, ...]) -> list[str]:
+    """The tracking RMSE and z-RMSE tables of a stored diagnostic run, best in bold."""
+    lines: list[str] = []
+    for title, key in (("Tracking RMSE (m)", "rmse_m"), ("z-RMSE (m)", "rmse_z_m")):
+        lines += [f"{title}:", "", *_cell_table(cells, key, ".4f", order=order), ""]
+    return lines
+
+
 def _provenance(path: Path, r: dict[str, Any], command: str) -> str:
     """Where a stored diagnostic run comes from: file, date, command, machine, time."""
     when = r.get("generated") or time.strftime(
@@ -501,12 +509,7 @@ def _oracle_section(path: Path) -> list[str]:
         f"the stored knobs; mean over {r['trials']} trials per cell; best in bold.",
         "",
     ]
-    for title, key, fmt in (
-        ("Tracking RMSE (m)", "rmse_m", ".4f"),
-        ("z-RMSE (m)", "rmse_z_m", ".4f"),
-    ):
-        lines += [f"{title}:", "", *_cell_table(cells, key, fmt, order=order), ""]
-    return lines
+    return lines + _rmse_tables(cells, order)
 
 
 ESTIMATED_COMMAND = (
@@ -537,9 +540,7 @@ def _estimated_section(path: Path) -> list[str]:
         "bold; read in `docs/quadrotor-closed-loop.md`.",
         "",
     ]
-    for title, key in (("Tracking RMSE (m)", "rmse_m"), ("z-RMSE (m)", "rmse_z_m")):
-        lines += [f"{title}:", "", *_cell_table(cells, key, ".4f", order=ESTIMATED_ROWS), ""]
-    return lines
+    return lines + _rmse_tables(cells, ESTIMATED_ROWS)
 
 
 ESTIMATOR_COMMAND = (
@@ -585,9 +586,7 @@ def _estimator_section(path: Path) -> list[str]:
         "stored knobs otherwise; best in bold; read in `docs/quadrotor-closed-loop.md`.",
         "",
     ]
-    for title, key in (("Tracking RMSE (m)", "rmse_m"), ("z-RMSE (m)", "rmse_z_m")):
-        lines += [f"{title}:", "", *_cell_table(cells, key, ".4f", order=order), ""]
-    return lines
+    return lines + _rmse_tables(cells, order)
 
 
 def _quadrotor_section(path: Path) -> list[str]:
