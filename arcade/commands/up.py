@@ -22,6 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "  arcade up --profile px4 --connect serial:///dev/ttyACM0:921600\n"
         "                                              a real PX4 (asks before arming)\n"
         "  arcade up --profile px4 --simulate --arm   the same chain against a simulated PX4\n"
+        "  arcade up --profile px4 --service-arg estimator:--mocap-noise=1e-4\n"
+        "                                              your motion capture's noise [m]\n"
         "  arcade up --lockstep --bus-configs deploy/my-router\n"
         "                                              every process a client of a router\n"
         "The run folder gets logs/<service>.log, stats/, events.jsonl, truth.csv,\n"
