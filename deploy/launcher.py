@@ -53,6 +53,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,6 +73,9 @@ REALTIME_PRIORITY = {"sim": 30, "estimator": 25, "controller": 20}
 NICE = {"recorder": 5}
 #: ... and idle CPUs that poll instead of sleeping (PM QoS; ``runtime.cpu_wakeup_latency``).
 CPU_WAKEUP_LATENCY_US = 0
+#: Event records kept in memory (``Stack.events``, the newest; ``events.jsonl`` has them
+#: all): a PX4 flight alone sends a ``vehicle_status`` event twice a second.
+EVENTS_KEPT = 10_000
 
 
 @dataclass
@@ -305,7 +309,9 @@ class Stack:
         self.services = services if services is not None else config.services()
         self.procs: dict[str, subprocess.Popen] = {}
         self.restarts: dict[str, int] = dict.fromkeys(self.services, 0)
-        self.events: list[dict[str, Any]] = []
+        #: The newest :data:`EVENTS_KEPT` event records; ``events_dropped`` counts the older.
+        self.events: deque[dict[str, Any]] = deque(maxlen=EVENTS_KEPT)
+        self.events_dropped = 0
         self._events_lock = threading.Lock()
         #: Why ``events.jsonl`` is no longer written (a full disk), or None.
         self.events_file_error: str | None = None
@@ -453,7 +459,7 @@ class Stack:
     def _record(self, rec: dict[str, Any]) -> None:
         recs = [rec]
         with self._events_lock:
-            self.events.append(rec)
+            self._keep(rec)
             if self.events_file_error is None:
                 try:
                     with (self.out / "events.jsonl").open("a") as f:
@@ -466,15 +472,21 @@ class Stack:
                         "kind": "fault",
                         "severity": "error",
                         "text": f"cannot write events.jsonl: {err.strerror or err}; events "
-                        "from here on are only shown (and kept in Stack.events)",
+                        f"from here on are only shown (and the newest {EVENTS_KEPT} kept in "
+                        "Stack.events)",
                         "data": {"file": str(self.out / "events.jsonl")},
                     }
-                    self.events.append(lost)
+                    self._keep(lost)
                     recs.append(lost)
         if self._on_event_cb is not None:
             for r in recs:
                 with contextlib.suppress(Exception):
                     self._on_event_cb(r)
+
+    def _keep(self, rec: dict[str, Any]) -> None:
+        if len(self.events) == self.events.maxlen:
+            self.events_dropped += 1
+        self.events.append(rec)
 
     def _on_event(self, e: Any) -> None:
         if e.src.startswith("launcher/"):

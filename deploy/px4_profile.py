@@ -25,13 +25,15 @@ resumes on ``failsafe_cleared`` (emitted by the bridge whenever offboard is enga
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from deploy.launcher import CPU_WAKEUP_LATENCY_US, REALTIME_PRIORITY, StackConfig
+from deploy.launcher import CPU_WAKEUP_LATENCY_US, EVENTS_KEPT, REALTIME_PRIORITY, StackConfig
 
 #: Start order; stop order: the bridge first (it leaves offboard -> Hold), recorder last.
 PX4_SERVICES = ("recorder", "estimator", "adapter", "controller", "bridge")
@@ -101,28 +103,36 @@ class Px4StackConfig(StackConfig):
 
 
 class EventWaiter:
-    """Collects the launcher's event records (pass as ``on_event``) and waits for one."""
+    """Collects the launcher's event records (pass as ``on_event``) and waits for one.
 
-    def __init__(self) -> None:
-        self.events: list[dict[str, Any]] = []
+    Records are numbered from 0 as they arrive; the newest ``keep`` are kept (a PX4 flight
+    sends a ``vehicle_status`` event twice a second for as long as it runs)."""
+
+    def __init__(self, keep: int = EVENTS_KEPT) -> None:
+        self.events: deque[dict[str, Any]] = deque(maxlen=keep)
+        self.count = 0  # records received
         self._cond = threading.Condition()
 
     def __call__(self, rec: dict[str, Any]) -> None:
         with self._cond:
             self.events.append(rec)
+            self.count += 1
             self._cond.notify_all()
 
     def mark(self) -> int:
+        """The number the next record will have."""
         with self._cond:
-            return len(self.events)
+            return self.count
 
     def wait(
         self, pred: Callable[[dict[str, Any]], bool], timeout: float, after: int = 0
     ) -> dict[str, Any] | None:
-        """The first record from index ``after`` on that satisfies ``pred`` (or None)."""
+        """The first record numbered ``after`` or later that satisfies ``pred`` (or None);
+        of the records no longer kept, none."""
 
         def find() -> dict[str, Any] | None:
-            return next((r for r in self.events[after:] if pred(r)), None)
+            skip = max(0, after - (self.count - len(self.events)))
+            return next((r for r in itertools.islice(self.events, skip, None) if pred(r)), None)
 
         with self._cond:
             self._cond.wait_for(lambda: find() is not None, timeout)

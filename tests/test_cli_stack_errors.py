@@ -104,7 +104,24 @@ def test_a_full_disk_does_not_stop_the_supervision(tmp_path):
         ("launcher", "fault", "cannot write events.jsonl"),
         ("launcher", "info", "a later event"),
     ], kinds
-    assert stack.events == shown and "No space left on device" in stack.events_file_error
+    assert list(stack.events) == shown and "No space left on device" in stack.events_file_error
+
+
+def test_the_supervisor_keeps_the_newest_events_in_memory_and_all_on_disk(tmp_path, monkeypatch):
+    """A long flight's events (a PX4 flight: a vehicle_status twice a second) do not grow
+    the launcher's memory: the newest are kept, the older counted, events.jsonl has all."""
+    import json
+
+    from deploy import launcher
+
+    monkeypatch.setattr(launcher, "EVENTS_KEPT", 5)
+    stack = Stack(StackConfig(out=tmp_path))
+    for k in range(8):
+        stack.emit("info", f"event {k}")
+    assert [r["text"] for r in stack.events] == [f"event {k}" for k in range(3, 8)]
+    assert stack.events_dropped == 3
+    lines = (tmp_path / "events.jsonl").read_text().splitlines()
+    assert [json.loads(line)["text"] for line in lines] == [f"event {k}" for k in range(8)]
 
 
 def test_service_out_of_restarts_error_quotes_its_output(tmp_path):

@@ -478,3 +478,18 @@ def test_the_bridge_tells_a_rejoining_adapter_whether_offboard_flies_the_setpoin
     b._on_alive_change("adapter", True)
     starts = [c.args for c in b.bus.sent if isinstance(c, Command)]
     assert starts == [{"t0": t0, "flying": True}, {"t0": t0, "flying": False}]
+
+
+def test_the_event_waiter_keeps_the_newest_records_and_numbers_them_all():
+    from deploy.px4_profile import EventWaiter
+
+    events = EventWaiter(keep=3)
+    for k in range(5):
+        events({"kind": "info", "n": k})
+    assert events.mark() == 5 and [r["n"] for r in events.events] == [2, 3, 4]
+    n_is = lambda k: lambda r: r["n"] == k  # noqa: E731
+    assert events.wait(n_is(0), 0.0) is None  # no longer kept
+    assert events.wait(n_is(3), 0.0)["n"] == 3
+    assert events.wait(n_is(3), 0.0, after=4) is None  # numbered before the mark
+    assert events.wait(lambda r: True, 0.0, after=4)["n"] == 4
+    assert events.wait(lambda r: True, 0.0, after=1)["n"] == 2  # the oldest kept
