@@ -380,6 +380,27 @@ def test_the_estimated_state_is_what_the_emulated_motion_capture_allows():
     assert np.sqrt(np.mean(e[10:, 3:6] ** 2)) < 0.05
 
 
+def test_a_runner_flies_the_estimator_settings_it_is_given():
+    """``Runner(filter_config=...)`` reaches the estimate: at hover a lower jerk density
+    gives a smoother velocity, on the same emulated frames."""
+    from arcade_core.estimation import FilterConfig
+    from simulator import QuadrotorSim
+
+    def velocity_noise(jerk_psd: float) -> float:
+        sim = QuadrotorSim(payload_mass=0.0, seed=3)
+        sim.reset(np.array([0.0, 0.0, 1.0]))
+        runner = cl.Runner(SimpleNamespace(), jnp.float64, FilterConfig(jerk_psd=jerk_psd))
+        estimate = cl.MocapEstimate(sim, jnp.float64, runner._estimation()[0])
+        errors = []
+        for _ in range(40):
+            errors.append(estimate()[0][3:6] - sim.state()[3:6])
+            sim.set_setpoint(np.array([sim.hover_thrust(), 0.0, 0.0, 0.0]))
+            sim.step(cl.DT)
+        return float(np.sqrt(np.mean(np.array(errors[10:]) ** 2)))
+
+    assert velocity_noise(1.0) < 0.5 * velocity_noise(100.0)
+
+
 def test_the_estimator_tuning_does_not_sacrifice_one_method_for_another():
     from benchmarks.quadrotor_variants import least_worst_loss
 
