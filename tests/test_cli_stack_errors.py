@@ -275,18 +275,22 @@ def test_service_args_reach_their_service_after_the_launcher_s(elsewhere):
     argv = ["--lockstep", "--service-arg=estimator:--jerk-psd=50"]
     argv += ["--service-arg=estimator:--mocap-noise", "--service-arg=estimator:1e-4"]
     argv += ["--service-arg=controller:--max-model-age=1.0"]
+    argv += ["--service-arg=adapter:--log-level=DEBUG"]  # set by the launcher, yet allowed
     args = p.parse_args(argv)
     grouped = group_service_args(args.service_arg)
     assert grouped == {
         "estimator": ["--jerk-psd=50", "--mocap-noise", "1e-4"],
         "controller": ["--max-model-age=1.0"],
+        "adapter": ["--log-level=DEBUG"],
     }
     cfg = stack_config(args, Path("run"), {}, grouped)
     assert service_args_problem(cfg) is None
     est = cfg.args("estimator")
     assert est[-3:] == ["--jerk-psd=50", "--mocap-noise", "1e-4"] and "--vehicle" in est
     assert cfg.args("controller")[-1] == "--max-model-age=1.0"
-    assert not any(a.startswith("--jerk-psd") for a in cfg.args("adapter"))
+    adapter = cfg.args("adapter")
+    assert not any(a.startswith("--jerk-psd") for a in adapter)
+    assert adapter.index("--log-level") < adapter.index("--log-level=DEBUG")  # the last wins
 
 
 # ------------------------------------------------------------------ weights

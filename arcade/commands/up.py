@@ -128,8 +128,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--service-arg=estimator:--jerk-psd=50 or controller:--max-model-age=1.0 "
         "(repeatable; `python -m services NAME --help` lists them); parsed as the service "
         "parses it before anything starts; the options the launcher sets (vehicle, bus, "
-        "run folder, rate, plan, weights, ...) are refused, and the bridge's go through "
-        "--bridge-arg",
+        "run folder, rate, plan, weights, ...) are refused but --log-level, and the "
+        "bridge's go through --bridge-arg",
     )
     p.add_argument(
         "--no-realtime-priority",
@@ -323,6 +323,11 @@ def options_given(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
     return {a.option_strings[-1] for a in actions if getattr(ns, a.dest) is not unset}
 
 
+#: Options the launcher sets that ``--service-arg`` may still set for one service (the
+#: service's own value comes last and wins).
+OVERRIDABLE = frozenset({"--log-level"})
+
+
 def service_args_problem(cfg) -> str | None:
     """Why ``cfg.extra`` (from ``--service-arg``) would not start: a service this stack
     does not run, an option its service refuses, or one the launcher sets itself."""
@@ -338,7 +343,7 @@ def service_args_problem(cfg) -> str | None:
             given = options_given(parser, argv)
         except ValueError as err:
             return f"--service-arg {name}:{' '.join(argv)}: {err}"
-        clash = sorted(given & options_given(parser, own.args(name)))
+        clash = sorted((given & options_given(parser, own.args(name))) - OVERRIDABLE)
         if clash:
             return (
                 f"--service-arg {name}: {', '.join(clash)} set by the launcher (from "
