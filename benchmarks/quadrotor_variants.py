@@ -14,6 +14,7 @@ results.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -232,9 +233,13 @@ def least_worst_loss(scores: dict[str, dict[float, float]]) -> float:
     ``scores[method][value]``: a score to minimise (the mean tracking RMSE). A method's
     loss at a value is its score there over its best score on the grid; the choice
     minimises the largest loss over the methods, so no method is sacrificed for another
-    (one estimator serves every controller). Ties go to the larger value (less lag)."""
+    (one estimator serves every controller). Ties go to the larger value (less lag). A
+    crashed setting scores ``inf``; a method that crashed at every value is an error."""
     values = sorted(next(iter(scores.values())), reverse=True)
     best = {m: min(s.values()) for m, s in scores.items()}
+    for m, b in best.items():
+        if not math.isfinite(b):
+            raise ValueError(f"{m} has no finite score on the grid: nothing to tune")
     worst = {v: max(s[v] / best[m] for m, s in scores.items()) for v in values}
     return min(values, key=lambda v: worst[v])  # min keeps the first: the larger value
 
@@ -247,7 +252,7 @@ def estimator_tuning(trials: int = 3) -> dict[str, Any]:
     :data:`JERK_PSD_GRID`; :func:`least_worst_loss` picks the value. Then both fly the nine
     cells (the evaluation's seeds ``0 .. trials-1``, the stored knobs otherwise) with
     :data:`HAND_SET_JERK_PSD` and with the value picked, side by side: mean RMSE, z-RMSE,
-    settling time and changepoint rate per cell (~8 min on a 2-core CPU)."""
+    settling time and changepoint rate per cell (~6 min on a 2-core CPU)."""
     from arcade_core import estimation
     from benchmarks import quadrotor_closedloop as qc
 
@@ -308,7 +313,7 @@ if __name__ == "__main__":
         "ablation of ours_matched's two changes (seeds 0-2, ~7 min), the mass oracle "
         "beside L1 and ours (10 seeds, ~10 min), or L1 and ours on the estimated state "
         "beside the ground-truth state (seeds 0-2, ~5 min), or the estimator's jerk density "
-        "tuned for the closed loop (seeds 0-2, ~8 min).",
+        "tuned for the closed loop (seeds 0-2, ~6 min).",
     )
     runs = {
         "ablation": ablation,

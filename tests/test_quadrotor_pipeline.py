@@ -1,5 +1,6 @@
 """Quadrotor pipeline: expert-flight data, shipped VLD weights, a short closed-loop flight."""
 
+import math
 from types import SimpleNamespace
 
 import jax
@@ -414,6 +415,10 @@ def test_the_estimator_tuning_does_not_sacrifice_one_method_for_another():
     assert least_worst_loss({"a": {30.0: 1.0, 20.0: 1.0}}) == 30.0
     # One method: its best value.
     assert least_worst_loss({"b": scores["b"]}) == 5.0
+    # A crashed setting is never picked; a method that always crashed cannot be tuned.
+    assert least_worst_loss({"a": {20.0: 2.0, 10.0: math.inf}}) == 20.0
+    with pytest.raises(ValueError, match="a has no finite score"):
+        least_worst_loss({"a": {20.0: math.inf}, "b": {20.0: 1.0}})
 
 
 def test_ours_stack_flies_the_adapter_s_knobs():
