@@ -103,6 +103,11 @@ class Estimator(runtime.Service):
         a = self.args
         self.config = est.FilterConfig(jerk_psd=a.jerk_psd, position_std=a.mocap_noise)
         self.stats["filter"] = {"jerk_psd": a.jerk_psd, "position_std_m": a.mocap_noise}
+        self.log.info(
+            "filter: jerk density %g (m/s^3)^2/Hz, mocap noise %g mm",
+            a.jerk_psd,
+            1e3 * a.mocap_noise,
+        )
         self.filter = est.init(self.dtype)
         self._step = jax.jit(_packed_step, static_argnames="config")
         self._pending: list[Mocap] = []
