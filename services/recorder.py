@@ -49,7 +49,8 @@ REORDER_S = 1.0
 #: Setpoints kept while waiting for their state.
 MAX_UNPAIRED = 256
 #: The MCAP writer's open chunk is written out at least this often [s of receive time]
-#: (else it waits for 1 MiB of messages, about 2 s of the demo, lost if the recorder dies).
+#: (else it waits for 1 MiB of messages, uncompressed: about 2 s of a realtime flight, lost
+#: if the recorder dies).
 MCAP_FLUSH_S = 1.0
 
 _JSON_TYPES = {"float": "number", "int": "integer", "bool": "boolean", "str": "string"}
