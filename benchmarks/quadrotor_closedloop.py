@@ -264,6 +264,9 @@ class Scenario:
     laps: float = 2.0
     release_fraction: float = 0.95  # of the first lap; a negative value: no release
     cable_length_m: float | None = None
+    #: Transport delay of every setpoint to the rate loop (``QuadrotorSim``'s
+    #: ``command_delay_s``); the evaluation's cells fly without one.
+    command_delay_s: float = 0.0
 
     @property
     def figure_eight(self) -> FigureEight:
@@ -941,6 +944,7 @@ class Runner:
             payload_mass=scenario.payload_g / 1000.0,
             cable_length=scenario.cable_length_m,
             seed=sim_seed,
+            command_delay_s=scenario.command_delay_s,
         )
         x = sim.reset(np.asarray(scenario.start) + offset)
         step = self.step_fn(name)
@@ -1100,6 +1104,7 @@ def tune(
     progress: Callable[[str], None] = lambda msg: None,
     runner: Runner | None = None,
     methods: Sequence[str] = METHODS,
+    command_delay_s: float = 0.0,
 ) -> dict[str, Any]:
     """Pick the adaptive methods' knobs on the tuning cell (the flights of
     :data:`TUNING_SEEDS` per grid value, lowest mean tracking RMSE wins; crashes are
@@ -1115,10 +1120,11 @@ def tune(
     knob tuned first is tuned again at the others' choice, so the result does not hinge on
     the order. ``rmse_m`` holds each knob's scores in the last pass, ``rmse_m_by_pass`` in
     every pass. The nominal MPC has nothing to tune. Only the knobs of ``methods`` are
-    tuned; the others keep their :data:`TUNED_DEFAULTS`.
+    tuned; the others keep their :data:`TUNED_DEFAULTS`. ``command_delay_s``: the tuning
+    flights' setpoint delay (:class:`Scenario`).
     """
     runner = runner or Runner(models)
-    scen = Scenario(payload_g=TUNING_CELL[0], speed_mps=TUNING_CELL[1])
+    scen = Scenario(*TUNING_CELL, command_delay_s=command_delay_s)
     grids = {k: g for k, g in TUNING_GRIDS.items() if TUNING_METHOD[k] in methods}
     knobs_by_method: dict[str, list[str]] = {}
     for knob in grids:

@@ -19,7 +19,7 @@ import sys
 import time
 from collections.abc import Sequence
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, NamedTuple
 
 from arcade import jsonout
 from benchmarks.common import machine
@@ -148,36 +148,49 @@ def _run_header(trials: int) -> dict[str, Any]:
 ESTIMATE_KEYS = ("rmse_m", "rmse_z_m", "settling_s", "changepoint_rate")
 
 
+class Flown(NamedTuple):
+    """One row of :func:`_cell_means`: its name, the method and its knobs
+    (``models.closedloop`` overrides of the stored ones), the state it flies on (``False``:
+    the ground-truth state; ``True``: the state estimate with the estimator's defaults; a
+    :class:`arcade_core.estimation.FilterConfig`: the estimate with those settings) and the
+    setpoints' transport delay (:class:`benchmarks.quadrotor_closedloop.Scenario`)."""
+
+    name: str
+    method: str
+    knobs: dict[str, Any]
+    state: Any = False
+    command_delay_s: float = 0.0
+
+
 def _cell_means(
-    flown: Sequence[tuple[str, str, dict[str, Any], Any]], trials: int, keys: tuple[str, ...]
+    flown: Sequence[Sequence[Any]], trials: int, keys: tuple[str, ...]
 ) -> list[dict[str, Any]]:
-    """One row per cell of the evaluation: for each ``(name, method, knobs, state)`` of
-    ``flown``, the mean of ``keys`` over the evaluation's seeds ``0 .. trials-1`` (knobs:
-    ``models.closedloop`` overrides of the stored ones; ``state``: ``False`` for the
-    ground-truth state, ``True`` for the state estimate with the estimator's defaults, or
-    the :class:`arcade_core.estimation.FilterConfig` of the estimate;
-    :meth:`benchmarks.quadrotor_closedloop.Runner.fly`)."""
+    """One row per cell of the evaluation: for each :class:`Flown` row of ``flown`` (or a
+    tuple of its fields), the mean of ``keys`` over the evaluation's seeds
+    ``0 .. trials-1`` (:meth:`benchmarks.quadrotor_closedloop.Runner.fly`)."""
     from benchmarks import quadrotor_closedloop as qc
 
     m = models()
     runners: dict[Any, qc.Runner] = {}
     rows = []
+    flown = [Flown(*f) for f in flown]
     for pay in qc.PAYLOADS_G:
         for speed in qc.SPEEDS_MPS:
-            scen = qc.Scenario(payload_g=pay, speed_mps=speed)
             row: dict[str, Any] = {"payload_g": pay, "speed_mps": speed}
-            for name, method, knobs, state in flown:
-                m.closedloop = dict(knobs)
-                config = None if isinstance(state, bool) else state
+            for f in flown:
+                scen = qc.Scenario(pay, speed, command_delay_s=f.command_delay_s)
+                m.closedloop = dict(f.knobs)
+                config = None if isinstance(f.state, bool) else f.state
                 if config not in runners:
                     runners[config] = qc.Runner(m, filter_config=config)
-                runner = runners[config]
                 flights = [
-                    runner.fly(method, scen, seed=sd, estimated=state is not False).metrics
+                    runners[config]
+                    .fly(f.method, scen, seed=sd, estimated=f.state is not False)
+                    .metrics
                     for sd in range(trials)
                 ]
-                row[name] = {k: sum(f[k] for f in flights) / trials for k in keys}
-            rmse = " ".join(f"{n} {row[n]['rmse_m']:.4f}" for n, *_ in flown)
+                row[f.name] = {k: sum(fl[k] for fl in flights) / trials for k in keys}
+            rmse = " ".join(f"{f.name} {row[f.name]['rmse_m']:.4f}" for f in flown)
             _progress(f"{pay:g} g, {speed:g} m/s: RMSE {rmse}")
             rows.append(row)
     return rows
@@ -302,6 +315,73 @@ def estimator_tuning(trials: int = 3) -> dict[str, Any]:
     }
 
 
+#: Setpoint transport delays flown on the tuning cell [s] (:func:`command_delay`).
+DELAY_GRID_S = (0.0, 0.01, 0.02, 0.03)
+#: The delay the knobs are re-tuned at and the nine cells are flown with [s]: what the
+#: simulated PX4 chain adds (``actuation_delay`` in ``stats/px4sim.json``: median 15-20 ms
+#: per flight, 99th percentile 25 ms).
+PX4_LIKE_DELAY_S = 0.02
+#: The methods of :func:`command_delay`: (row name, method, knobs) at the stored knobs.
+DELAY_METHODS = (("l1", "l1", {}), ("ours", "ours", {}), ("ours_stack", "ours", STACK_KNOBS))
+
+
+def command_delay(trials: int = 3) -> dict[str, Any]:
+    """What a transport delay between the controller and the rate loop costs each method.
+
+    The evaluation applies each setpoint at the instant of the state it was computed from;
+    a real offboard link cannot (:class:`benchmarks.quadrotor_closedloop.Scenario`'s
+    ``command_delay_s``). On the tuning cell (its four seeds) L1, ours and ours with the
+    stack's knobs fly with each delay of :data:`DELAY_GRID_S`, at the stored knobs. Then L1
+    and ours are tuned again by the evaluation's protocol with :data:`PX4_LIKE_DELAY_S`,
+    and the nine cells (the evaluation's seeds ``0 .. trials-1``) are flown without and
+    with that delay: L1 and ours at the stored knobs, and each at its re-tuned knobs where
+    they differ. Mean RMSE, z-RMSE, settling time and changepoint rate per cell (~8 min
+    on a 2-core CPU)."""
+    from benchmarks import quadrotor_closedloop as qc
+
+    t0 = time.perf_counter()
+    m = models()
+    runner = qc.Runner(m)
+    sensitivity: dict[str, list[float]] = {name: [] for name, *_ in DELAY_METHODS}
+    for delay in DELAY_GRID_S:
+        scen = qc.Scenario(*qc.TUNING_CELL, command_delay_s=delay)
+        for name, method, knobs in DELAY_METHODS:
+            m.closedloop = dict(knobs)
+            rmse = [runner.fly(method, scen, seed=sd).metrics["rmse_m"] for sd in qc.TUNING_SEEDS]
+            sensitivity[name].append(sum(rmse) / len(rmse))
+        _progress(
+            f"tuning cell, delay {1e3 * delay:g} ms: RMSE "
+            + " ".join(f"{n} {v[-1]:.4f}" for n, v in sensitivity.items())
+        )
+    m.closedloop = {}
+    tuned = qc.tune(m, _progress, runner, METHODS, command_delay_s=PX4_LIKE_DELAY_S)
+    stored = qc.knobs_of({}, METHODS)
+    flown: list[Flown] = []
+    for delay in (0.0, PX4_LIKE_DELAY_S):
+        at = f"@{1e3 * delay:g}ms"
+        flown += [Flown(f"{meth}{at}", meth, {}, False, delay) for meth in METHODS]
+    for meth in METHODS:
+        retuned = {k: v for k, v in tuned["chosen"].items() if qc.TUNING_METHOD[k] == meth}
+        if any(retuned[k] != stored[k] for k in retuned):
+            name = f"{meth}_retuned@{1e3 * PX4_LIKE_DELAY_S:g}ms"
+            flown.append(Flown(name, meth, retuned, False, PX4_LIKE_DELAY_S))
+    rows = _cell_means(flown, trials, ESTIMATE_KEYS)
+    return {
+        **_run_header(trials),
+        "sensitivity": {
+            "cell": list(qc.TUNING_CELL),
+            "seeds": list(qc.TUNING_SEEDS),
+            "delays_s": list(DELAY_GRID_S),
+            "knobs": {n: qc.knobs_of(k, (meth,)) for n, meth, k in DELAY_METHODS},
+            "rmse_m": sensitivity,
+        },
+        "tuning": {"command_delay_s": PX4_LIKE_DELAY_S, "stored": stored, **tuned},
+        "rows_flown": [f._asdict() for f in flown],
+        "rows": rows,
+        "wall_time_s": time.perf_counter() - t0,
+    }
+
+
 if __name__ == "__main__":
     import argparse
 
@@ -312,14 +392,16 @@ if __name__ == "__main__":
         description="In-process diagnostics of the closed loop, JSON on stdout: the "
         "ablation of ours_matched's two changes (seeds 0-2, ~7 min), the mass oracle "
         "beside L1 and ours (10 seeds, ~10 min), or L1 and ours on the estimated state "
-        "beside the ground-truth state (seeds 0-2, ~5 min), or the estimator's jerk density "
-        "tuned for the closed loop (seeds 0-2, ~6 min).",
+        "beside the ground-truth state (seeds 0-2, ~5 min), the estimator's jerk density "
+        "tuned for the closed loop (seeds 0-2, ~6 min), or what a setpoint delay costs "
+        "L1 and ours, with their knobs tuned again at 20 ms (seeds 0-2, ~8 min).",
     )
     runs = {
         "ablation": ablation,
         "oracle": oracle,
         "estimated": estimated_state,
         "estimator": estimator_tuning,
+        "delay": command_delay,
     }
     parser.add_argument("run", nargs="?", choices=tuple(runs), default="ablation")
     args = parser.parse_args()

@@ -239,7 +239,9 @@ class SimNode(runtime.Service):
             payload_mass=self.scen.payload_g / 1000.0,
             cable_length=self.scen.cable_length_m,
             seed=self.trial.sim_seed,
+            command_delay_s=a.command_delay,
         )
+        self.stats["command_delay_s"] = a.command_delay
         self.sim.reset(np.asarray(self.scen.start) + self.trial.start_offset)
         self._cond = threading.Condition()
         self._setpoints: dict[float, Setpoint] = {}
@@ -734,6 +736,14 @@ def _extra(p) -> None:
         help="consecutive answered control instants that end the failsafe",
     )
     p.add_argument(
+        "--command-delay",
+        type=_delay,
+        default=0.0,
+        metavar="S",
+        help="emulate the link to the autopilot: every setpoint reaches the rate loop "
+        "this much later (whole ms; up to 1 s) [s]; the simulated PX4 has its own",
+    )
+    p.add_argument(
         "--mocap-fault",
         action="append",
         type=_mocap_fault,
@@ -742,6 +752,17 @@ def _extra(p) -> None:
         help="inject a mocap fault: dropout@T+D, freeze@T+D, "
         "outliers@T+D,p=P,m=M, clockjump@T[+D],offset=S (mission time)",
     )
+
+
+def _delay(text: str) -> float:
+    """A delay in [0, 1] s."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be a number of seconds in [0, 1], not {text}")
+    return value
 
 
 def _mocap_fault(spec: str) -> MocapFault:

@@ -17,11 +17,18 @@ command with the motor time constant (exact first-order discretisation; motor la
 here rather than with MuJoCo actuator dynamics so that thrust effects can act on the
 lagged thrust), effects scale the thrust and add drag, MuJoCo integrates, and the sensors
 sample the new state.
+
+``command_delay_s`` delays every setpoint as a whole (thrust and body rates) between
+:meth:`QuadrotorSim.set_setpoint` and the rate loop: the transport delay of the link from
+the control computer to the autopilot (serial or radio, the autopilot's own scheduling),
+which the offboard interface adds in front of the vehicle. It is a property of the link,
+not of the vehicle, so it is an argument, not an effect of the discrepancy library.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +69,8 @@ class QuadrotorSim:
         mocap, gyro: sensor settings.
         seed: seeds all sensor noise.
         timestep: physics step [s].
+        command_delay_s: transport delay of every setpoint [s], rounded to whole physics
+            steps (module docstring); 0: a setpoint acts from the next physics step.
     """
 
     def __init__(
@@ -76,6 +85,7 @@ class QuadrotorSim:
         gyro: GyroConfig | None = None,
         seed: int = 0,
         timestep: float = 0.001,
+        command_delay_s: float = 0.0,
     ):
         self.vehicle = vehicle if isinstance(vehicle, dict) else load_vehicle(vehicle)
         #: Motors follow the rate loop only while enabled (an autopilot's armed state).
@@ -100,6 +110,12 @@ class QuadrotorSim:
         self.model = mujoco.MjModel.from_xml_string(xml)
         self.data = mujoco.MjData(self.model)
         self.dt = float(self.model.opt.timestep)
+        if not (math.isfinite(command_delay_s) and 0.0 <= command_delay_s <= 1.0):
+            raise ValueError(f"command_delay_s must be in [0, 1] s, got {command_delay_s}")
+        #: Setpoint transport delay in physics steps; setpoints in flight, with the step
+        #: from which each one acts (oldest first).
+        self.command_delay_steps = round(command_delay_s / self.dt)
+        self._in_flight: deque[tuple[int, np.ndarray]] = deque()
         self.gravity = -float(self.model.opt.gravity[2])
         m = self.model
         self._airframe = m.body("airframe").id
@@ -194,6 +210,7 @@ class QuadrotorSim:
         self._t_goal = 0.0
         hover_cmd = self.hover_thrust() / self._thrust_gain
         self._setpoint = np.array([min(hover_cmd, 4.0 * self.max_thrust), 0.0, 0.0, 0.0])
+        self._in_flight.clear()
         self._thrust_cmd = np.full(4, min(hover_cmd / 4.0, self.max_thrust))
         self._thrust = self._thrust_cmd.copy()
         self._saturation = np.zeros(3)
@@ -208,17 +225,24 @@ class QuadrotorSim:
     # ------------------------------------------------------------------ inputs
 
     def set_setpoint(self, u) -> np.ndarray:
-        """Set ``[thrust N, roll, pitch, yaw rate rad/s]``; returns it clamped to the limits."""
+        """Set ``[thrust N, roll, pitch, yaw rate rad/s]``; returns it clamped to the limits.
+
+        With a ``command_delay_s`` it reaches the rate loop that much later (until then
+        the rate loop follows the setpoints sent before it)."""
         u = np.asarray(u, dtype=float).reshape(-1)
         if u.shape != (4,) or not np.all(np.isfinite(u)):
             raise ValueError(f"setpoint must be 4 finite numbers, got {u!r}")
-        self._setpoint = np.concatenate(
+        clamped = np.concatenate(
             [
                 [min(max(u[0], 0.0), 4.0 * self.max_thrust)],
                 np.clip(u[1:], -self.max_rate, self.max_rate),
             ]
         )
-        return self._setpoint.copy()
+        if self.command_delay_steps == 0:
+            self._setpoint = clamped
+        else:
+            self._in_flight.append((self._k + self.command_delay_steps, clamped))
+        return clamped.copy()
 
     @property
     def setpoint(self) -> np.ndarray:
@@ -293,6 +317,8 @@ class QuadrotorSim:
             )
         mujoco.mj_step(m, d)
         self._k += 1
+        while self._in_flight and self._in_flight[0][0] <= self._k:  # due from now on
+            self._setpoint = self._in_flight.popleft()[1]
         t = self._k * self.dt
         self.mocap.observe(t, d.qpos[0:3], d.qpos[3:7])
         self.gyro.observe(t, d.qvel[3:6])

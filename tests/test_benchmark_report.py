@@ -286,6 +286,43 @@ def test_estimator_section_tables_the_tuning_and_the_cells_side_by_side(tmp_path
     assert "No results yet" in missing and "quadrotor_variants estimator" in missing
 
 
+def test_delay_section_tables_the_sensitivity_the_retuning_and_the_cells(tmp_path):
+    def m(rmse):
+        return {"rmse_m": rmse, "rmse_z_m": rmse / 2, "settling_s": 0.0, "changepoint_rate": 0.1}
+
+    names = ("l1@0ms", "ours@0ms", "l1@20ms", "ours@20ms", "ours_retuned@20ms")
+    row = {"payload_g": 75.0, "speed_mps": 0.5}
+    row |= {n: m(v) for n, v in zip(names, (0.004, 0.003, 0.0045, 0.08, 0.017), strict=True)}
+    result = {
+        "generated": "2026-01-01 00:00",
+        "machine": "test machine",
+        "trials": 3,
+        "sensitivity": {
+            "cell": [150.0, 2.0],
+            "seeds": [999, 998],
+            "delays_s": [0.0, 0.01, 0.02],
+            "knobs": {"l1": {"l1_a_s": -0.1}, "ours": {"ours_sigma2": 0.0001}},
+            "rmse_m": {"l1": [0.0175, 0.02, 0.0258], "ours": [0.0411, 0.09, 0.1039]},
+        },
+        "tuning": {"command_delay_s": 0.02, "chosen": {"ours_sigma2": 0.1, "l1_a_s": -0.1}},
+        "rows_flown": [{"name": n} for n in names],
+        "rows": [row],
+        "wall_time_s": 900.0,
+    }
+    path = tmp_path / "delay.json"
+    path.write_text(json.dumps(result))
+    text = "\n".join(report._delay_section(path))
+    assert "| delay (ms) | l1 | ours |" in text
+    assert "| 0 | 0.0175 | 0.0411 |" in text and "| 20 | 0.0258 | 0.1039 |" in text
+    assert "l1: l1_a_s = -0.1; ours: ours_sigma2 = 0.0001" in text
+    assert "with 20 ms: ours_sigma2 = 0.1, l1_a_s = -0.1" in text
+    assert "| payload (g) | speed (m/s) | " + " | ".join(names) + " |" in text
+    assert "| 75 | 0.5 | 0.0040 | **0.0030** | 0.0045 | 0.0800 | 0.0170 |" in text
+    assert "in 15 min" in text and "test machine" in text
+    missing = "\n".join(report._delay_section(tmp_path / "none.json"))
+    assert "No results yet" in missing and "quadrotor_variants delay" in missing
+
+
 def test_discrepancy_section_names_what_was_found_and_what_was_not():
     result = {
         "minutes_of_data": 10.0,

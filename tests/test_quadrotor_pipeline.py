@@ -426,3 +426,59 @@ def test_ours_stack_flies_the_adapter_s_knobs():
     from services.adapter import stack_knobs
 
     assert stack_knobs() == STACK_KNOBS
+
+
+class _RecordingRunner:
+    """Stands in for :class:`Runner`: records what it is asked to fly, scores it by delay."""
+
+    def __init__(self, *args, **kwargs):
+        self.flown: list[tuple[str, cl.Scenario]] = []
+
+    def fly(self, method, scenario, seed=0, estimated=False):
+        self.flown.append((method, scenario))
+        rmse = 0.01 + scenario.command_delay_s
+        return SimpleNamespace(metrics={"rmse_m": rmse, "rmse_z_m": rmse})
+
+
+def test_the_delay_diagnostic_flies_each_row_with_its_setpoint_delay(monkeypatch):
+    from benchmarks import quadrotor_variants as qv
+
+    runners: list[_RecordingRunner] = []
+
+    def runner(*args, **kwargs):
+        runners.append(_RecordingRunner())
+        return runners[-1]
+
+    monkeypatch.setattr(cl, "Runner", runner)
+    monkeypatch.setattr(qv, "models", lambda: SimpleNamespace(closedloop={}))
+    rows = qv._cell_means(
+        [qv.Flown("l1@0ms", "l1", {}), qv.Flown("l1@20ms", "l1", {}, False, 0.02)],
+        1,
+        ("rmse_m",),
+    )
+    assert len(rows) == 9 and len(runners) == 1  # one runner for the ground-truth rows
+    assert rows[0]["l1@0ms"]["rmse_m"] == pytest.approx(0.01)
+    assert rows[0]["l1@20ms"]["rmse_m"] == pytest.approx(0.03)
+    # The tuning flies its cell with the delay it is given.
+    tuning = _RecordingRunner()
+    models = SimpleNamespace(closedloop={})
+    cl.tune(models, runner=tuning, methods=("l1",), command_delay_s=0.02)
+    scenarios = {s for _, s in tuning.flown}
+    assert {s.command_delay_s for s in scenarios} == {0.02}
+    assert {(s.payload_g, s.speed_mps) for s in scenarios} == {cl.TUNING_CELL}
+
+
+def test_a_runner_flies_the_scenarios_setpoint_delay(monkeypatch):
+    import simulator
+
+    class Built(Exception):
+        pass
+
+    def build(**kwargs):
+        raise Built(kwargs["command_delay_s"])
+
+    monkeypatch.setattr(simulator, "QuadrotorSim", build)
+    scen = cl.Scenario(takeoff_s=0.25, hover_s=0.25, release_fraction=-1.0, command_delay_s=0.02)
+    with pytest.raises(Built) as built:
+        cl.Runner(SimpleNamespace(closedloop={}), jnp.float64).fly("nominal", scen)
+    assert built.value.args == (0.02,)

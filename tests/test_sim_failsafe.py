@@ -285,3 +285,16 @@ def test_a_full_disk_stops_the_ground_truth_not_the_flight(tmp_path):
     # The first row was buffered and lost with its failed flush; the 59 after it counted.
     assert node.stats["truth_rows"] + node.stats["unwritten_truth_rows"] == 60
     assert node.stats["unwritten_truth_rows"] == 59
+
+
+def test_the_simulator_service_emulates_the_links_command_delay():
+    parser = runtime.common_parser("sim", "test")
+    sim_node._extra(parser)
+    for argv, steps in ((["--command-delay", "0.015"], 15), ([], 0)):
+        node = sim_node.SimNode(parser.parse_args(["--vehicle", "test", *argv]))
+        node.setup(Bus("test", "sim").open(session=LoopbackSession(echo=True)))
+        assert node.sim.command_delay_steps == steps
+        assert node.stats["command_delay_s"] == steps / 1000
+    for bad in ("-0.01", "2", "nan", "soon"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--command-delay", bad])

@@ -106,6 +106,41 @@ def test_setpoint_is_clamped_and_validated():
         sim.set_setpoint([1.0, 0, 0])
 
 
+def test_a_command_delay_applies_each_setpoint_that_much_later_and_in_order():
+    sim = QuadrotorSim(gyro=QUIET_GYRO, command_delay_s=0.02)
+    hover = sim.setpoint
+    first = sim.set_setpoint([9.0, 0.5, 0.0, 0.0])  # clamped and returned at once
+    sim.step(0.010)
+    second = sim.set_setpoint([8.0, 0.0, -0.5, 0.0])
+    sim.step(0.009)
+    np.testing.assert_array_equal(sim.setpoint, hover)  # 19 ms: the link still holds it
+    sim.step(0.001)
+    np.testing.assert_array_equal(sim.setpoint, first)
+    sim.step(0.009)
+    np.testing.assert_array_equal(sim.setpoint, first)
+    sim.step(0.001)
+    np.testing.assert_array_equal(sim.setpoint, second)
+    # The rotors and the vehicle respond no earlier than the delay.
+    quiet = QuadrotorSim(gyro=QUIET_GYRO, command_delay_s=0.02)
+    x0 = quiet.state()
+    quiet.set_setpoint([12.0, 0.0, 0.0, 0.0])
+    quiet.step(0.02)
+    np.testing.assert_allclose(quiet.rotor_thrusts(), quiet.hover_thrust() / 4, rtol=1e-9)
+    np.testing.assert_allclose(quiet.state()[3:6], x0[3:6], atol=1e-9)
+    quiet.step(0.01)
+    assert quiet.state()[5] > 0.01
+    # A reset drops what is in flight; without a delay a setpoint acts at once.
+    sim.set_setpoint([4.0, 0.0, 0.0, 0.0])
+    sim.reset()
+    sim.step(0.05)
+    np.testing.assert_allclose(sim.setpoint[0], sim.hover_thrust())
+    now = QuadrotorSim(gyro=QUIET_GYRO)
+    np.testing.assert_array_equal(now.set_setpoint([9.0, 0, 0, 0]), now.setpoint)
+    for bad in (-0.001, float("nan"), 2.0):
+        with pytest.raises(ValueError, match="command_delay_s"):
+            QuadrotorSim(command_delay_s=bad)
+
+
 # ---------------------------------------------------------------- mixer
 
 
