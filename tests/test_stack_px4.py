@@ -32,6 +32,7 @@ from __future__ import annotations
 import csv
 import json
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -285,9 +286,21 @@ def test_operator_hold_pauses_learning_until_offboard_is_engaged_again(tmp_path)
         assert "under a failsafe" in waiting["text"], waiting
         assert events.wait(_learning(True), 0.0, after=m) is None
         # Arming again waits for a steady setpoint stream (1 s) while PX4 holds: the
-        # adapter sees states it must not learn from.
-        _engage(events, cfg)
-        assert events.wait(_from("bridge", "failsafe_cleared"), 0.0, after=n) is not None
+        # adapter sees states it must not learn from. Then it learns: its model's step
+        # count (the learned steps) moves on from where the hold left it.
+        with Bus(cfg.vehicle, "operator", cfg.bus_config("operator")) as bus:
+            first_step: list[int] = []
+            learned = threading.Event()
+
+            def on_model(model) -> None:
+                first_step[:] = first_step or [model.step]
+                if model.step > first_step[0]:
+                    learned.set()
+
+            bus.subscribe("model", on_model)
+            _engage(events, cfg)
+            assert events.wait(_from("bridge", "failsafe_cleared"), 0.0, after=n) is not None
+            assert learned.wait(10.0), f"no learned step after engaging (step {first_step})"
         stack.stop()
     assert stack.restarts["adapter"] == 1
     adapter = json.loads((tmp_path / "stats" / "adapter.json").read_text())  # the restarted one
