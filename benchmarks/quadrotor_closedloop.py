@@ -323,10 +323,13 @@ def _reference(path, times):
     return jax.vmap(lambda t: flat_state(path, t, params))(times)
 
 
-def reference(scenario: Scenario, n_steps: int, N: int) -> tuple[Array, Array]:
-    """Flat reference states (n_steps + N + 1, 13) and inputs at every control instant."""
+def reference(
+    scenario: Scenario, n_steps: int, N: int, offset_s: float = 0.0
+) -> tuple[Array, Array]:
+    """Flat reference states (n_steps + N + 1, 13) and inputs at every control instant
+    (``offset_s`` later: the instants a delayed setpoint starts to act at)."""
     dtype = jnp.result_type(float)
-    times = jnp.arange(n_steps + N + 1, dtype=dtype) * DT
+    times = jnp.arange(n_steps + N + 1, dtype=dtype) * DT + offset_s
     path = jax.tree.map(lambda a: jnp.asarray(a, dtype), scenario.path())
     return _reference(path, times)
 
@@ -803,7 +806,9 @@ def thrust_reference(step_fn, model, x_ref: Array, u_ref: Array) -> Array:
     return jax.vmap(one)(x_ref[:-1], u_ref)
 
 
-def make_controller_step(method: Method, cfg: mpc.MPCConfig, hold_residual: bool = False):
+def make_controller_step(
+    method: Method, cfg: mpc.MPCConfig, hold_residual: bool = False, delay_s: float = 0.0
+):
     """The jitted per-step update of one method (see module docstring).
 
     ``step(carry, x, u_applied, k, x_ref_all, u_ref_all) -> (carry, u, diag)`` where
@@ -815,7 +820,16 @@ def make_controller_step(method: Method, cfg: mpc.MPCConfig, hold_residual: bool
     warm start and held per stage during the solve (:func:`arcade_core.mpc.residual_along`,
     module docstring); ``False`` (default, Sec. IV): it sits inside the rollout,
     derivatives included.
+
+    ``delay_s`` (a diagnostic, :meth:`Runner.fly`'s ``compensate_delay``): the setpoint
+    reaches the vehicle that much later, and the method learns and plans from the state
+    predicted over the delay instead of ``x``: one RK4 step of the nominal model with the
+    input the MPC planned for the period in flight (L1's baseline input, without the
+    correction that cancels what the nominal model lacks). Each input then acts over
+    exactly the period between two such states. ``x_ref_all``, ``u_ref_all`` must be the
+    reference ``delay_s`` later (:func:`reference`'s ``offset_s``).
     """
+    params = qd.nominal_params()
     staged = method.learned and hold_residual
     if staged:
         controller = mpc.make_controller(mpc.staged_residual_step(f_nom), cfg, staged=True)
@@ -824,6 +838,8 @@ def make_controller_step(method: Method, cfg: mpc.MPCConfig, hold_residual: bool
     N = cfg.N
 
     def step(carry: Carry, x, u_applied, k, x_ref_all, u_ref_all):
+        if delay_s > 0.0:
+            x = quadrotor_step(x, carry.u_mpc, params, delay_s)
         x_ref = jax.lax.dynamic_slice_in_dim(x_ref_all, k, N + 1)
         # The quaternion in the reference's hemisphere: the cost and the model see R^4.
         x = x.at[6:10].set(quat.align(x[6:10], x_ref[0, 6:10]))
@@ -893,7 +909,7 @@ class Runner:
         self.dtype = jnp.result_type(float) if dtype is None else dtype
         self.filter_config = filter_config
         self.cfg = mpc_config(self.dtype)
-        self._steps: dict[str, Callable] = {}
+        self._steps: dict[tuple[str, float], Callable] = {}
         self._estimate: Callable | None = None
         self._jacobian: Callable | None = None
 
@@ -912,21 +928,33 @@ class Runner:
         assert self._jacobian is not None
         return self._estimate, self._jacobian
 
-    def step_fn(self, name: str) -> Callable:
-        if name not in self._steps:
-            self._steps[name] = make_controller_step(
-                make_method(name), self.cfg, hold_residual=name.endswith(HELD)
+    def step_fn(self, name: str, delay_s: float = 0.0) -> Callable:
+        """The jitted step of method ``name`` (:func:`make_controller_step`)."""
+        key = (name, delay_s)
+        if key not in self._steps:
+            self._steps[key] = make_controller_step(
+                make_method(name), self.cfg, hold_residual=name.endswith(HELD), delay_s=delay_s
             )
-        return self._steps[name]
+        return self._steps[key]
 
-    def fly(self, name: str, scenario: Scenario, seed: int = 0, estimated: bool = False) -> Flight:
+    def fly(
+        self,
+        name: str,
+        scenario: Scenario,
+        seed: int = 0,
+        estimated: bool = False,
+        compensate_delay: bool = False,
+    ) -> Flight:
         """Fly one trial; returns the log with its metrics.
 
         ``estimated``: every method sees the state estimate (:class:`MocapEstimate`) instead
         of the ground-truth state, as in the service stack; ours and its variants then add
         the estimate's noise to their observation noise at every step, as the stack's
-        adapter does (:func:`arcade_core.adaptation.state_noise_sigma2`). The metrics are
-        of the true trajectory either way.
+        adapter does (:func:`arcade_core.adaptation.state_noise_sigma2`).
+        ``compensate_delay``: the method knows the scenario's ``command_delay_s`` and
+        learns and plans from the state predicted over it, against the reference that much
+        later (:func:`make_controller_step`'s ``delay_s``). The metrics are of the true
+        trajectory against the reference at the control instants either way.
         """
         from simulator import QuadrotorSim
 
@@ -940,6 +968,10 @@ class Runner:
             k_release = -1
         N = self.cfg.N
         x_ref_all, u_ref_all = reference(scenario, n, N)
+        delay = scenario.command_delay_s if compensate_delay else 0.0
+        x_ref_ctrl, u_ref_ctrl = (
+            reference(scenario, n, N, delay) if delay else (x_ref_all, u_ref_all)
+        )
         sim = QuadrotorSim(
             payload_mass=scenario.payload_g / 1000.0,
             cable_length=scenario.cable_length_m,
@@ -947,7 +979,7 @@ class Runner:
             command_delay_s=scenario.command_delay_s,
         )
         x = sim.reset(np.asarray(scenario.start) + offset)
-        step = self.step_fn(name)
+        step = self.step_fn(name, delay)
         dt = self.dtype
         learner = initial_learner(name, self.models, dt)
         estimate = state_noise = None
@@ -998,7 +1030,12 @@ class Runner:
                 )
             x_prev, var_prev = x_seen, var
             carry, u, diag = step(
-                carry, jnp.asarray(x_seen, dt), jnp.asarray(u_applied, dt), k, x_ref_all, u_ref_all
+                carry,
+                jnp.asarray(x_seen, dt),
+                jnp.asarray(u_applied, dt),
+                k,
+                x_ref_ctrl,
+                u_ref_ctrl,
             )
             u = np.asarray(u)
             T_ms[k] = 1e3 * (time.perf_counter() - t0)

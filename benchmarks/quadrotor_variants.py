@@ -144,6 +144,13 @@ def _run_header(trials: int) -> dict[str, Any]:
     return {"generated": time.strftime("%Y-%m-%d %H:%M"), "machine": machine(), "trials": trials}
 
 
+def _tuning_flights() -> dict[str, Any]:
+    """The tuning cell and its seeds, as a stored run records the flights it scored there."""
+    from benchmarks import quadrotor_closedloop as qc
+
+    return {"cell": list(qc.TUNING_CELL), "seeds": list(qc.TUNING_SEEDS)}
+
+
 #: Per-cell means of the runs on the state estimate.
 ESTIMATE_KEYS = ("rmse_m", "rmse_z_m", "settling_s", "changepoint_rate")
 
@@ -152,14 +159,16 @@ class Flown(NamedTuple):
     """One row of :func:`_cell_means`: its name, the method and its knobs
     (``models.closedloop`` overrides of the stored ones), the state it flies on (``False``:
     the ground-truth state; ``True``: the state estimate with the estimator's defaults; a
-    :class:`arcade_core.estimation.FilterConfig`: the estimate with those settings) and the
-    setpoints' transport delay (:class:`benchmarks.quadrotor_closedloop.Scenario`)."""
+    :class:`arcade_core.estimation.FilterConfig`: the estimate with those settings), the
+    setpoints' transport delay (:class:`benchmarks.quadrotor_closedloop.Scenario`) and
+    whether the method compensates it (``Runner.fly``'s ``compensate_delay``)."""
 
     name: str
     method: str
     knobs: dict[str, Any]
     state: Any = False
     command_delay_s: float = 0.0
+    compensate_delay: bool = False
 
 
 def _cell_means(
@@ -185,7 +194,13 @@ def _cell_means(
                     runners[config] = qc.Runner(m, filter_config=config)
                 flights = [
                     runners[config]
-                    .fly(f.method, scen, seed=sd, estimated=f.state is not False)
+                    .fly(
+                        f.method,
+                        scen,
+                        seed=sd,
+                        estimated=f.state is not False,
+                        compensate_delay=f.compensate_delay,
+                    )
                     .metrics
                     for sd in range(trials)
                 ]
@@ -298,8 +313,7 @@ def estimator_tuning(trials: int = 3) -> dict[str, Any]:
     return {
         **_run_header(trials),
         "tuning": {
-            "cell": list(qc.TUNING_CELL),
-            "seeds": list(qc.TUNING_SEEDS),
+            **_tuning_flights(),
             "grid": list(JERK_PSD_GRID),
             "rmse_m": {n: [s[v] for v in JERK_PSD_GRID] for n, s in scores.items()},
             "chosen": chosen,
@@ -334,9 +348,11 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
     stack's knobs fly with each delay of :data:`DELAY_GRID_S`, at the stored knobs. Then L1
     and ours are tuned again by the evaluation's protocol with :data:`PX4_LIKE_DELAY_S`,
     and the nine cells (the evaluation's seeds ``0 .. trials-1``) are flown without and
-    with that delay: L1 and ours at the stored knobs, and each at its re-tuned knobs where
-    they differ. Mean RMSE, z-RMSE, settling time and changepoint rate per cell (~8 min
-    on a 2-core CPU)."""
+    with that delay: L1 and ours at the stored knobs, each at its re-tuned knobs where
+    they differ, and each at the stored knobs compensating the delay (``_compensated``:
+    planning from the state predicted over it, ``Runner.fly``'s ``compensate_delay``).
+    Mean RMSE, z-RMSE, settling time and changepoint rate per cell (~11 min on a 2-core
+    CPU)."""
     from benchmarks import quadrotor_closedloop as qc
 
     t0 = time.perf_counter()
@@ -365,12 +381,14 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
         if any(retuned[k] != stored[k] for k in retuned):
             name = f"{meth}_retuned@{1e3 * PX4_LIKE_DELAY_S:g}ms"
             flown.append(Flown(name, meth, retuned, False, PX4_LIKE_DELAY_S))
+    for meth in METHODS:
+        name = f"{meth}_compensated@{1e3 * PX4_LIKE_DELAY_S:g}ms"
+        flown.append(Flown(name, meth, {}, False, PX4_LIKE_DELAY_S, True))
     rows = _cell_means(flown, trials, ESTIMATE_KEYS)
     return {
         **_run_header(trials),
         "sensitivity": {
-            "cell": list(qc.TUNING_CELL),
-            "seeds": list(qc.TUNING_SEEDS),
+            **_tuning_flights(),
             "delays_s": list(DELAY_GRID_S),
             "knobs": {n: qc.knobs_of(k, (meth,)) for n, meth, k in DELAY_METHODS},
             "rmse_m": sensitivity,
@@ -394,7 +412,8 @@ if __name__ == "__main__":
         "beside L1 and ours (10 seeds, ~10 min), or L1 and ours on the estimated state "
         "beside the ground-truth state (seeds 0-2, ~5 min), the estimator's jerk density "
         "tuned for the closed loop (seeds 0-2, ~6 min), or what a setpoint delay costs "
-        "L1 and ours, with their knobs tuned again at 20 ms (seeds 0-2, ~8 min).",
+        "L1 and ours, with their knobs tuned again at 20 ms and with the delay "
+        "compensated (seeds 0-2, ~11 min).",
     )
     runs = {
         "ablation": ablation,

@@ -478,6 +478,11 @@ def _rmse_tables(cells: list[dict[str, Any]], order: tuple[str, ...]) -> list[st
     return lines
 
 
+def _flown_order(r: dict[str, Any]) -> tuple[str, ...]:
+    """The rows of a stored diagnostic run, in the order they were flown."""
+    return tuple(row["name"] for row in r["rows_flown"])
+
+
 def _provenance(path: Path, r: dict[str, Any], command: str) -> str:
     """Where a stored diagnostic run comes from: file, date, command, machine, time."""
     when = r.get("generated") or time.strftime(
@@ -557,7 +562,7 @@ def _estimator_section(path: Path) -> list[str]:
     r = json.loads(path.read_text())
     tuning = r["tuning"]
     names = list(tuning["rmse_m"])
-    order = tuple(row["name"] for row in r["rows_flown"])
+    order = _flown_order(r)
     cells = _row_cells(r, order)
     cell = ", ".join(f"{v:g}" for v in tuning["cell"])
     lines = [
@@ -595,14 +600,14 @@ DELAY_COMMAND = (
 
 
 def _delay_section(path: Path) -> list[str]:
-    """The stored command-delay diagnostic (its own command, ~8 min on 2 cores)."""
+    """The stored command-delay diagnostic (its own command, ~11 min on 2 cores)."""
     head = ["## Quadrotor: a delay between the controller and the rate loop", ""]
     if not path.is_file():
         return _not_yet(head, DELAY_COMMAND)
     r = json.loads(path.read_text())
     sens, tuning = r["sensitivity"], r["tuning"]
     names = list(sens["rmse_m"])
-    order = tuple(row["name"] for row in r["rows_flown"])
+    order = _flown_order(r)
     cell = ", ".join(f"{v:g}" for v in sens["cell"])
     delay_ms = 1e3 * tuning["command_delay_s"]
     knobs = "; ".join(
@@ -629,7 +634,9 @@ def _delay_section(path: Path) -> list[str]:
         "",
         f"Tuned again by the evaluation's protocol with {delay_ms:g} ms: {chosen}. The nine "
         f"cells without and with {delay_ms:g} ms (`name@delay`; `_retuned`: the knobs tuned "
-        f"at {delay_ms:g} ms, where they differ from the stored ones), seeds 0 to "
+        f"at {delay_ms:g} ms, where they differ from the stored ones; `_compensated`: the "
+        "stored knobs, learning and planning from the state predicted over the delay), "
+        "seeds 0 to "
         f"{r['trials'] - 1} of `arcade eval quadrotor`; best in bold; read in "
         "`docs/quadrotor-closed-loop.md`.",
         "",

@@ -434,9 +434,9 @@ class _RecordingRunner:
     def __init__(self, *args, **kwargs):
         self.flown: list[tuple[str, cl.Scenario]] = []
 
-    def fly(self, method, scenario, seed=0, estimated=False):
+    def fly(self, method, scenario, seed=0, estimated=False, compensate_delay=False):
         self.flown.append((method, scenario))
-        rmse = 0.01 + scenario.command_delay_s
+        rmse = 0.01 + scenario.command_delay_s + 0.1 * compensate_delay
         return SimpleNamespace(metrics={"rmse_m": rmse, "rmse_z_m": rmse})
 
 
@@ -451,14 +451,16 @@ def test_the_delay_diagnostic_flies_each_row_with_its_setpoint_delay(monkeypatch
 
     monkeypatch.setattr(cl, "Runner", runner)
     monkeypatch.setattr(qv, "models", lambda: SimpleNamespace(closedloop={}))
-    rows = qv._cell_means(
-        [qv.Flown("l1@0ms", "l1", {}), qv.Flown("l1@20ms", "l1", {}, False, 0.02)],
-        1,
-        ("rmse_m",),
-    )
+    flown = [
+        qv.Flown("l1@0ms", "l1", {}),
+        qv.Flown("l1@20ms", "l1", {}, False, 0.02),
+        qv.Flown("l1_compensated@20ms", "l1", {}, False, 0.02, True),
+    ]
+    rows = qv._cell_means(flown, 1, ("rmse_m",))
     assert len(rows) == 9 and len(runners) == 1  # one runner for the ground-truth rows
     assert rows[0]["l1@0ms"]["rmse_m"] == pytest.approx(0.01)
     assert rows[0]["l1@20ms"]["rmse_m"] == pytest.approx(0.03)
+    assert rows[0]["l1_compensated@20ms"]["rmse_m"] == pytest.approx(0.13)
     # The tuning flies its cell with the delay it is given.
     tuning = _RecordingRunner()
     models = SimpleNamespace(closedloop={})
@@ -482,3 +484,38 @@ def test_a_runner_flies_the_scenarios_setpoint_delay(monkeypatch):
     with pytest.raises(Built) as built:
         cl.Runner(SimpleNamespace(closedloop={}), jnp.float64).fly("nominal", scen)
     assert built.value.args == (0.02,)
+
+
+def test_a_compensated_delay_plans_from_the_state_predicted_over_it():
+    """With ``delay_s`` the step answers ``x`` as the plain step answers the state one RK4
+    step of the nominal model later under the input in flight (the MPC's own last input),
+    and the reference for it is the same path that much later."""
+    from arcade_core.dynamics.quadrotor import quadrotor_step
+
+    runner = cl.Runner(SimpleNamespace(closedloop={}), jnp.float64)
+    scen = cl.Scenario(command_delay_s=0.02)
+    # One control period of offset is the next control instant's reference.
+    x_ref_all, u_ref_all = cl.reference(scen, 40, runner.cfg.N)
+    x_late, u_late = cl.reference(scen, 40, runner.cfg.N, cl.DT)
+    np.testing.assert_allclose(x_late[:-1], x_ref_all[1:], atol=1e-12)
+    np.testing.assert_allclose(u_late[:-1], u_ref_all[1:], atol=1e-9)
+    x_ref_d, u_ref_d = cl.reference(scen, 40, runner.cfg.N, 0.02)
+    x = np.asarray(x_ref_all[5]) + np.r_[0.05, -0.03, -0.1, 0.3, 0.0, 0.2, np.zeros(7)]
+    u_in_flight = jnp.asarray([6.5, 0.2, -0.1, 0.0])
+    carry = cl.Carry(
+        cl.initial_learner("nominal", runner.models, jnp.float64),
+        jnp.broadcast_to(u_in_flight, (runner.cfg.N, 4)),
+        u_in_flight,
+        jnp.asarray(x),
+        jnp.ones((), bool),
+    )
+    x_pred = quadrotor_step(jnp.asarray(x), u_in_flight, cl.qd.nominal_params(), 0.02)
+    _, u_comp, _ = runner.step_fn("nominal", 0.02)(
+        carry, jnp.asarray(x), u_in_flight, 5, x_ref_d, u_ref_d
+    )
+    _, u_plain, _ = runner.step_fn("nominal")(carry, x_pred, u_in_flight, 5, x_ref_d, u_ref_d)
+    _, u_naive, _ = runner.step_fn("nominal")(
+        carry, jnp.asarray(x), u_in_flight, 5, x_ref_d, u_ref_d
+    )
+    np.testing.assert_allclose(np.asarray(u_comp), np.asarray(u_plain), rtol=1e-9, atol=1e-9)
+    assert np.max(np.abs(np.asarray(u_comp) - np.asarray(u_naive))) > 1e-3
