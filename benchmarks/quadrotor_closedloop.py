@@ -1142,6 +1142,7 @@ def tune(
     runner: Runner | None = None,
     methods: Sequence[str] = METHODS,
     command_delay_s: float = 0.0,
+    compensate_delay: bool = False,
 ) -> dict[str, Any]:
     """Pick the adaptive methods' knobs on the tuning cell (the flights of
     :data:`TUNING_SEEDS` per grid value, lowest mean tracking RMSE wins; crashes are
@@ -1158,7 +1159,8 @@ def tune(
     the order. ``rmse_m`` holds each knob's scores in the last pass, ``rmse_m_by_pass`` in
     every pass. The nominal MPC has nothing to tune. Only the knobs of ``methods`` are
     tuned; the others keep their :data:`TUNED_DEFAULTS`. ``command_delay_s``: the tuning
-    flights' setpoint delay (:class:`Scenario`).
+    flights' setpoint delay (:class:`Scenario`), compensated by the methods with
+    ``compensate_delay`` (:meth:`Runner.fly`).
     """
     runner = runner or Runner(models)
     scen = Scenario(*TUNING_CELL, command_delay_s=command_delay_s)
@@ -1177,7 +1179,12 @@ def tune(
             progress(f"tuning {method}: {knob} = {value:g}")
             flown[key] = float(
                 np.mean(
-                    [runner.fly(method, scen, seed=sd).metrics["rmse_m"] for sd in TUNING_SEEDS]
+                    [
+                        runner.fly(
+                            method, scen, seed=sd, compensate_delay=compensate_delay
+                        ).metrics["rmse_m"]
+                        for sd in TUNING_SEEDS
+                    ]
                 )
             )
         return flown[key]

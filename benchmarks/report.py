@@ -600,7 +600,7 @@ DELAY_COMMAND = (
 
 
 def _delay_section(path: Path) -> list[str]:
-    """The stored command-delay diagnostic (its own command, ~11 min on 2 cores)."""
+    """The stored command-delay diagnostic (its own command, ~15 min on 2 cores)."""
     head = ["## Quadrotor: a delay between the controller and the rate loop", ""]
     if not path.is_file():
         return _not_yet(head, DELAY_COMMAND)
@@ -629,15 +629,19 @@ def _delay_section(path: Path) -> list[str]:
     for i, d in enumerate(sens["delays_s"]):
         vals = " | ".join(f"{sens['rmse_m'][n][i]:.4f}" for n in names)
         lines.append(f"| {1e3 * d:g} | {vals} |")
-    chosen = ", ".join(f"{k} = {v:g}" for k, v in tuning["chosen"].items())
+
+    def knobs(t: dict[str, Any]) -> str:
+        return ", ".join(f"{k} = {v:g}" for k, v in t["chosen"].items())
+
+    compensated = r.get("tuning_compensated")
+    also = f"; compensating it: {knobs(compensated)}" if compensated else ""
     lines += [
         "",
-        f"Tuned again by the evaluation's protocol with {delay_ms:g} ms: {chosen}. The nine "
-        f"cells without and with {delay_ms:g} ms (`name@delay`; `_retuned`: the knobs tuned "
-        f"at {delay_ms:g} ms, where they differ from the stored ones; `_compensated`: the "
-        "stored knobs, learning and planning from the state predicted over the delay), "
-        "seeds 0 to "
-        f"{r['trials'] - 1} of `arcade eval quadrotor`; best in bold; read in "
+        f"Tuned again by the evaluation's protocol with {delay_ms:g} ms: {knobs(tuning)}"
+        f"{also}. The nine cells without and with {delay_ms:g} ms (`name@delay`; "
+        "`_compensated`: learning and planning from the state predicted over the delay; "
+        "`_retuned`: the knobs tuned again, where they differ from the stored ones), seeds "
+        f"0 to {r['trials'] - 1} of `arcade eval quadrotor`; best in bold; read in "
         "`docs/quadrotor-closed-loop.md`.",
         "",
     ]

@@ -305,6 +305,7 @@ def test_delay_section_tables_the_sensitivity_the_retuning_and_the_cells(tmp_pat
             "rmse_m": {"l1": [0.0175, 0.02, 0.0258], "ours": [0.0411, 0.09, 0.1039]},
         },
         "tuning": {"command_delay_s": 0.02, "chosen": {"ours_sigma2": 0.1, "l1_a_s": -0.1}},
+        "tuning_compensated": {"chosen": {"ours_sigma2": 0.001, "l1_a_s": -0.1}},
         "rows_flown": [{"name": n} for n in names],
         "rows": [row],
         "wall_time_s": 900.0,
@@ -315,7 +316,9 @@ def test_delay_section_tables_the_sensitivity_the_retuning_and_the_cells(tmp_pat
     assert "| delay (ms) | l1 | ours |" in text
     assert "| 0 | 0.0175 | 0.0411 |" in text and "| 20 | 0.0258 | 0.1039 |" in text
     assert "l1: l1_a_s = -0.1; ours: ours_sigma2 = 0.0001" in text
-    assert "with 20 ms: ours_sigma2 = 0.1, l1_a_s = -0.1" in text
+    assert (
+        "with 20 ms: ours_sigma2 = 0.1, l1_a_s = -0.1; compensating it: ours_sigma2 = 0.001" in text
+    )
     assert "| payload (g) | speed (m/s) | " + " | ".join(names) + " |" in text
     assert "| 75 | 0.5 | 0.0040 | **0.0030** | 0.0045 | 0.0800 | 0.0170 |" in text
     assert "in 15 min" in text and "test machine" in text

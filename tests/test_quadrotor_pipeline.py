@@ -184,7 +184,7 @@ def test_tuning_flies_only_the_methods_asked_for():
     flown = set()
 
     class FakeRunner:
-        def fly(self, method, scenario, seed):
+        def fly(self, method, scenario, seed, compensate_delay=False):
             flown.add(method)
             s2 = models.closedloop["ours_matched_sigma2"]
             return SimpleNamespace(metrics={"rmse_m": abs(np.log(s2 / 1e-2))})
@@ -227,7 +227,7 @@ def test_tuning_passes_until_no_knob_changes():
     flights = []
 
     class FakeRunner:
-        def fly(self, method, scenario, seed):
+        def fly(self, method, scenario, seed, compensate_delay=False):
             k = dict(models.closedloop)
             flights.append(
                 (method, seed, *(v for n, v in sorted(k.items()) if cl.TUNING_METHOD[n] == method))
@@ -432,10 +432,10 @@ class _RecordingRunner:
     """Stands in for :class:`Runner`: records what it is asked to fly, scores it by delay."""
 
     def __init__(self, *args, **kwargs):
-        self.flown: list[tuple[str, cl.Scenario]] = []
+        self.flown: list[tuple[str, cl.Scenario, bool]] = []
 
     def fly(self, method, scenario, seed=0, estimated=False, compensate_delay=False):
-        self.flown.append((method, scenario))
+        self.flown.append((method, scenario, compensate_delay))
         rmse = 0.01 + scenario.command_delay_s + 0.1 * compensate_delay
         return SimpleNamespace(metrics={"rmse_m": rmse, "rmse_z_m": rmse})
 
@@ -461,13 +461,21 @@ def test_the_delay_diagnostic_flies_each_row_with_its_setpoint_delay(monkeypatch
     assert rows[0]["l1@0ms"]["rmse_m"] == pytest.approx(0.01)
     assert rows[0]["l1@20ms"]["rmse_m"] == pytest.approx(0.03)
     assert rows[0]["l1_compensated@20ms"]["rmse_m"] == pytest.approx(0.13)
-    # The tuning flies its cell with the delay it is given.
-    tuning = _RecordingRunner()
-    models = SimpleNamespace(closedloop={})
-    cl.tune(models, runner=tuning, methods=("l1",), command_delay_s=0.02)
-    scenarios = {s for _, s in tuning.flown}
-    assert {s.command_delay_s for s in scenarios} == {0.02}
-    assert {(s.payload_g, s.speed_mps) for s in scenarios} == {cl.TUNING_CELL}
+    # The tuning flies its cell with the delay it is given, compensated if it is told so.
+    for compensate in (False, True):
+        tuning = _RecordingRunner()
+        models = SimpleNamespace(closedloop={})
+        cl.tune(
+            models,
+            runner=tuning,
+            methods=("l1",),
+            command_delay_s=0.02,
+            compensate_delay=compensate,
+        )
+        scenarios = {s for _, s, _ in tuning.flown}
+        assert {s.command_delay_s for s in scenarios} == {0.02}
+        assert {(s.payload_g, s.speed_mps) for s in scenarios} == {cl.TUNING_CELL}
+        assert {c for *_, c in tuning.flown} == {compensate}
 
 
 def test_a_runner_flies_the_scenarios_setpoint_delay(monkeypatch):
