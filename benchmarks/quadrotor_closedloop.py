@@ -954,9 +954,13 @@ class Runner:
         ``compensate_delay``: the method knows the scenario's ``command_delay_s`` and
         learns and plans from the state predicted over it, against the reference that much
         later (:func:`make_controller_step`'s ``delay_s``). The metrics are of the true
-        trajectory against the reference at the control instants either way.
+        trajectory against the reference at the control instants either way. The two do
+        not combine: the estimate's noise would have to be carried through the prediction.
         """
         from simulator import QuadrotorSim
+
+        if estimated and compensate_delay:
+            raise ValueError("compensate_delay flies on the ground-truth state only")
 
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x51]))
         sim_seed = int(rng.integers(2**31))

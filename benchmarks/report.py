@@ -483,6 +483,21 @@ def _flown_order(r: dict[str, Any]) -> tuple[str, ...]:
     return tuple(row["name"] for row in r["rows_flown"])
 
 
+def _tuning_cell_words(rec: dict[str, Any]) -> str:
+    """The tuning cell and seeds a stored run scored its grid on, in words."""
+    cell = ", ".join(f"{v:g}" for v in rec["cell"])
+    return f"({cell}: payload g, speed m/s; seeds {', '.join(map(str, rec['seeds']))})"
+
+
+def _grid_table(column: str, labels: list[str], rmse: dict[str, list[float]]) -> list[str]:
+    """Mean tracking RMSE per grid value (rows ``labels``) and method (``rmse``'s keys)."""
+    names = list(rmse)
+    lines = ["| " + column + " | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    for i, label in enumerate(labels):
+        lines.append(f"| {label} | " + " | ".join(f"{rmse[n][i]:.4f}" for n in names) + " |")
+    return lines
+
+
 def _provenance(path: Path, r: dict[str, Any], command: str) -> str:
     """Where a stored diagnostic run comes from: file, date, command, machine, time."""
     when = r.get("generated") or time.strftime(
@@ -561,10 +576,8 @@ def _estimator_section(path: Path) -> list[str]:
         return _not_yet(head, ESTIMATOR_COMMAND)
     r = json.loads(path.read_text())
     tuning = r["tuning"]
-    names = list(tuning["rmse_m"])
     order = _flown_order(r)
-    cells = _row_cells(r, order)
-    cell = ", ".join(f"{v:g}" for v in tuning["cell"])
+    labels = [f"{v:g}" + (" (picked)" if v == tuning["chosen"] else "") for v in tuning["grid"]]
     lines = [
         *head,
         _provenance(path, r, ESTIMATOR_COMMAND),
@@ -572,26 +585,19 @@ def _estimator_section(path: Path) -> list[str]:
         "The estimator's constant-acceleration model (`FilterConfig.jerk_psd`, the service's "
         "`--jerk-psd`) trades the velocity's noise against its lag. L1 and ours with the "
         "stack's adapter knobs (`ours_stack`) fly on the state estimate on the tuning cell "
-        f"({cell}: payload g, speed m/s; seeds {', '.join(map(str, tuning['seeds']))}); the "
+        f"{_tuning_cell_words(tuning)}; the "
         "value picked minimises the larger of the two methods' RMSE over its best on the "
         "grid (one estimator serves every controller). Mean tracking RMSE (m) on the "
         "tuning cell:",
         "",
-        "| jerk density | " + " | ".join(names) + " |",
-        "|---|" + "---|" * len(names),
-    ]
-    for i, v in enumerate(tuning["grid"]):
-        mark = " (picked)" if v == tuning["chosen"] else ""
-        vals = " | ".join(f"{tuning['rmse_m'][n][i]:.4f}" for n in names)
-        lines.append(f"| {v:g}{mark} | {vals} |")
-    lines += [
+        *_grid_table("jerk density", labels, tuning["rmse_m"]),
         "",
         f"The nine cells with the hand-set {tuning['hand_set']:g} and the value picked "
         f"(`name@value`), seeds 0 to {r['trials'] - 1} of `arcade eval quadrotor`, the "
         "stored knobs otherwise; best in bold; read in `docs/quadrotor-closed-loop.md`.",
         "",
     ]
-    return lines + _rmse_tables(cells, order)
+    return lines + _rmse_tables(_row_cells(r, order), order)
 
 
 DELAY_COMMAND = (
@@ -608,7 +614,6 @@ def _delay_section(path: Path) -> list[str]:
     sens, tuning = r["sensitivity"], r["tuning"]
     names = list(sens["rmse_m"])
     order = _flown_order(r)
-    cell = ", ".join(f"{v:g}" for v in sens["cell"])
     delay_ms = 1e3 * tuning["command_delay_s"]
     knobs = "; ".join(
         f"{n}: " + ", ".join(f"{k} = {v:g}" for k, v in sens["knobs"][n].items()) for n in names
@@ -620,15 +625,10 @@ def _delay_section(path: Path) -> list[str]:
         "The evaluation applies each setpoint at the instant of the state it was computed "
         "from; an offboard link to an autopilot delays it (`Scenario.command_delay_s`, the "
         "simulator's `command_delay_s`). Mean tracking RMSE (m) on the tuning cell "
-        f"({cell}: payload g, speed m/s; seeds {', '.join(map(str, sens['seeds']))}) at the "
-        f"stored knobs ({knobs}):",
+        f"{_tuning_cell_words(sens)} at the stored knobs ({knobs}):",
         "",
-        "| delay (ms) | " + " | ".join(names) + " |",
-        "|---|" + "---|" * len(names),
+        *_grid_table("delay (ms)", [f"{1e3 * d:g}" for d in sens["delays_s"]], sens["rmse_m"]),
     ]
-    for i, d in enumerate(sens["delays_s"]):
-        vals = " | ".join(f"{sens['rmse_m'][n][i]:.4f}" for n in names)
-        lines.append(f"| {1e3 * d:g} | {vals} |")
 
     def knobs(t: dict[str, Any]) -> str:
         return ", ".join(f"{k} = {v:g}" for k, v in t["chosen"].items())

@@ -273,6 +273,17 @@ def test_mpc_input_bounds_are_what_the_simulated_vehicle_executes():
     np.testing.assert_allclose(sim.set_setpoint(too_much), cfg.u_max)
 
 
+def _nominal_carry(runner: cl.Runner, x, u, started: bool) -> cl.Carry:
+    """The nominal MPC's carry at state ``x``, ``u`` warm-started and in flight."""
+    return cl.Carry(
+        cl.initial_learner("nominal", runner.models, jnp.float64),
+        jnp.broadcast_to(u, (runner.cfg.N, 4)),
+        u,
+        jnp.asarray(x),
+        jnp.asarray(started),
+    )
+
+
 def test_controller_step_does_not_depend_on_the_quaternion_sign():
     """q and -q are one attitude: the MPC step must answer both with the same input.
 
@@ -284,13 +295,7 @@ def test_controller_step_does_not_depend_on_the_quaternion_sign():
     x_ref_all, u_ref_all = cl.reference(cl.Scenario(), 40, runner.cfg.N)
     x = np.asarray(x_ref_all[0]) + np.r_[0.05, -0.03, -0.1, 0.1, 0.0, 0.0, np.zeros(7)]
     u0 = jnp.asarray([5.6, 0.0, 0.0, 0.0])
-    carry = cl.Carry(
-        cl.initial_learner("nominal", runner.models, jnp.float64),
-        jnp.broadcast_to(u0, (runner.cfg.N, 4)),
-        u0,
-        jnp.asarray(x),
-        jnp.zeros((), bool),
-    )
+    carry = _nominal_carry(runner, x, u0, started=False)
     flipped = x.copy()
     flipped[6:10] *= -1.0
     _, u_pos, _ = step(carry, jnp.asarray(x), u0, 0, x_ref_all, u_ref_all)
@@ -489,9 +494,13 @@ def test_a_runner_flies_the_scenarios_setpoint_delay(monkeypatch):
 
     monkeypatch.setattr(simulator, "QuadrotorSim", build)
     scen = cl.Scenario(takeoff_s=0.25, hover_s=0.25, release_fraction=-1.0, command_delay_s=0.02)
+    runner = cl.Runner(SimpleNamespace(closedloop={}), jnp.float64)
     with pytest.raises(Built) as built:
-        cl.Runner(SimpleNamespace(closedloop={}), jnp.float64).fly("nominal", scen)
+        runner.fly("nominal", scen)
     assert built.value.args == (0.02,)
+    # The compensation is of the ground-truth state: with the estimate it is refused.
+    with pytest.raises(ValueError, match="ground-truth state only"):
+        runner.fly("nominal", scen, estimated=True, compensate_delay=True)
 
 
 def test_a_compensated_delay_plans_from_the_state_predicted_over_it():
@@ -510,13 +519,7 @@ def test_a_compensated_delay_plans_from_the_state_predicted_over_it():
     x_ref_d, u_ref_d = cl.reference(scen, 40, runner.cfg.N, 0.02)
     x = np.asarray(x_ref_all[5]) + np.r_[0.05, -0.03, -0.1, 0.3, 0.0, 0.2, np.zeros(7)]
     u_in_flight = jnp.asarray([6.5, 0.2, -0.1, 0.0])
-    carry = cl.Carry(
-        cl.initial_learner("nominal", runner.models, jnp.float64),
-        jnp.broadcast_to(u_in_flight, (runner.cfg.N, 4)),
-        u_in_flight,
-        jnp.asarray(x),
-        jnp.ones((), bool),
-    )
+    carry = _nominal_carry(runner, x, u_in_flight, started=True)
     x_pred = quadrotor_step(jnp.asarray(x), u_in_flight, cl.qd.nominal_params(), 0.02)
     _, u_comp, _ = runner.step_fn("nominal", 0.02)(
         carry, jnp.asarray(x), u_in_flight, 5, x_ref_d, u_ref_d
