@@ -106,8 +106,11 @@ def run_demo(
     extra: dict[str, list[str]] | None = None,
     truth_state: bool = False,
     hub: str | None = None,
+    link_delay_s: float = 0.0,
 ) -> dict[str, Any]:
-    """Fly the demo through the stack; writes the run folder and returns the summary."""
+    """Fly the demo through the stack; writes the run folder and returns the summary.
+    ``link_delay_s``: the link delay the controller and the adapter compensate
+    (``arcade up --link-delay``)."""
     from tqdm import tqdm
 
     from benchmarks.quadrotor_closedloop import Scenario
@@ -128,6 +131,7 @@ def run_demo(
         weights=weights,
         extra=dict(extra or {}),
         truth_state=truth_state,
+        link_delay_s=link_delay_s,
     )
     out = cfg.out  # absolute: where the services write, whatever the working directory
 

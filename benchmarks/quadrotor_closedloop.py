@@ -118,7 +118,7 @@ from arcade import atomicfile
 from arcade_core import adaptation, encoder, metrics, mpc
 from arcade_core.baselines import gp, l1, mlp
 from arcade_core.dynamics import quaternion as quat
-from arcade_core.dynamics.quadrotor import quadrotor_step
+from arcade_core.dynamics.quadrotor import predict_over_delay, quadrotor_step
 from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff, flat_state
 from benchmarks import quadrotor_data as qd
 from benchmarks.common import machine
@@ -912,6 +912,7 @@ class Runner:
         self._steps: dict[tuple[str, float], Callable] = {}
         self._estimate: Callable | None = None
         self._jacobian: Callable | None = None
+        self._predict_var: Callable | None = None
 
     def _estimation(self) -> tuple[Callable, Callable]:
         """The jitted estimator step and ``df_nom/dx`` (built once)."""
@@ -927,6 +928,15 @@ class Runner:
             self._jacobian = jax.jit(jax.jacfwd(f_nom))
         assert self._jacobian is not None
         return self._estimate, self._jacobian
+
+    def _predict(self, x, var, u, delay: float):
+        """The diagonal variance of the state predicted over ``delay``
+        (:func:`arcade_core.dynamics.predict_over_delay`; jitted once)."""
+        if self._predict_var is None:
+            self._predict_var = jax.jit(
+                lambda x, var, u, d: predict_over_delay(x, var, u, qd.nominal_params(), d)[1]
+            )
+        return self._predict_var(x, var, u, delay)
 
     def step_fn(self, name: str, delay_s: float = 0.0) -> Callable:
         """The jitted step of method ``name`` (:func:`make_controller_step`)."""
@@ -953,14 +963,12 @@ class Runner:
         adapter does (:func:`arcade_core.adaptation.state_noise_sigma2`).
         ``compensate_delay``: the method knows the scenario's ``command_delay_s`` and
         learns and plans from the state predicted over it, against the reference that much
-        later (:func:`make_controller_step`'s ``delay_s``). The metrics are of the true
-        trajectory against the reference at the control instants either way. The two do
-        not combine: the estimate's noise would have to be carried through the prediction.
+        later (:func:`make_controller_step`'s ``delay_s``); on the estimate, its variance is
+        carried through the prediction (:func:`arcade_core.dynamics.predict_over_delay`)
+        before it enters the observation noise. The metrics are of the true trajectory
+        against the reference at the control instants either way.
         """
         from simulator import QuadrotorSim
-
-        if estimated and compensate_delay:
-            raise ValueError("compensate_delay flies on the ground-truth state only")
 
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x51]))
         sim_seed = int(rng.integers(2**31))
@@ -1028,9 +1036,15 @@ class Runner:
                 sim.release_payload()
             X[k] = x
             t0 = time.perf_counter()
+            x_from = x_prev
+            if delay and state_noise is not None:  # learned: the states predicted over it
+                var = self._predict(
+                    jnp.asarray(x_seen, dt), jnp.asarray(var, dt), carry.u_mpc, delay
+                )
+                x_from = carry.x_prev
             if state_noise is not None and k > 0:  # the transition x_prev -> x_seen
                 carry = carry._replace(
-                    learner=state_noise(carry.learner, x_prev, u_applied, var_prev, var)
+                    learner=state_noise(carry.learner, x_from, u_applied, var_prev, var)
                 )
             x_prev, var_prev = x_seen, var
             carry, u, diag = step(
@@ -1147,6 +1161,7 @@ def tune(
     methods: Sequence[str] = METHODS,
     command_delay_s: float = 0.0,
     compensate_delay: bool = False,
+    estimated: bool = False,
 ) -> dict[str, Any]:
     """Pick the adaptive methods' knobs on the tuning cell (the flights of
     :data:`TUNING_SEEDS` per grid value, lowest mean tracking RMSE wins; crashes are
@@ -1164,7 +1179,8 @@ def tune(
     every pass. The nominal MPC has nothing to tune. Only the knobs of ``methods`` are
     tuned; the others keep their :data:`TUNED_DEFAULTS`. ``command_delay_s``: the tuning
     flights' setpoint delay (:class:`Scenario`), compensated by the methods with
-    ``compensate_delay`` (:meth:`Runner.fly`).
+    ``compensate_delay``; ``estimated``: the methods fly on the state estimate
+    (:meth:`Runner.fly`).
     """
     runner = runner or Runner(models)
     scen = Scenario(*TUNING_CELL, command_delay_s=command_delay_s)
@@ -1185,7 +1201,11 @@ def tune(
                 np.mean(
                     [
                         runner.fly(
-                            method, scen, seed=sd, compensate_delay=compensate_delay
+                            method,
+                            scen,
+                            seed=sd,
+                            estimated=estimated,
+                            compensate_delay=compensate_delay,
                         ).metrics["rmse_m"]
                         for sd in TUNING_SEEDS
                     ]

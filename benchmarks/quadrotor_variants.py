@@ -407,6 +407,87 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
     }
 
 
+#: Setpoint delays of :func:`link_delay` [s]: none, the simulated PX4 link's, and beyond.
+LINK_DELAYS_S = (0.0, 0.02, 0.03, 0.04)
+#: Flown by :func:`link_delay`, on the state estimate: (name, method, knobs).
+LINK_METHODS = (("ours_stack", "ours", STACK_KNOBS), ("l1", "l1", {}))
+
+
+def link_delay(trials: int = 3) -> dict[str, Any]:
+    """What the service stack flies behind a link that delays its setpoints, and what
+    compensating the delay gives (``arcade up --link-delay``).
+
+    Everything on the state estimate, as in the stack. First ours with the stack's adapter
+    knobs and L1 at its stored knobs on the tuning cell (its four seeds) with each delay of
+    :data:`LINK_DELAYS_S`, without and with compensation (``Runner.fly``'s
+    ``compensate_delay``: the stack's controller and adapter given ``--link-delay``; at
+    0 ms the two are one flight). Then L1 and ours tuned again by the evaluation's protocol
+    in the stack's condition (the estimate, :data:`PX4_LIKE_DELAY_S`, compensated), and the
+    nine cells (the evaluation's seeds ``0 .. trials-1``) in that condition: ours at the
+    stack's knobs, L1 at its stored knobs, and each at its re-tuned knobs where they differ.
+    Mean RMSE, z-RMSE, settling time and changepoint rate (~40 min on a 2-core CPU)."""
+    from benchmarks import quadrotor_closedloop as qc
+
+    t0 = time.perf_counter()
+    m = models()
+    runner = qc.Runner(m)
+    keys = ("rmse_m", "rmse_z_m", "changepoint_rate")
+    sensitivity: dict[str, dict[str, list[float]]] = {}
+    for name, method, knobs in LINK_METHODS:
+        m.closedloop = dict(knobs)
+        for delay in LINK_DELAYS_S:
+            for compensate in (False, True):
+                key = f"{name}_compensated" if compensate else name
+                row = sensitivity.setdefault(key, {k: [] for k in keys})
+                if compensate and delay == 0.0:  # nothing to compensate: the same flight
+                    for k in keys:
+                        row[k].append(sensitivity[name][k][-1])
+                    continue
+                scen = qc.Scenario(*qc.TUNING_CELL, command_delay_s=delay)
+                flights = [
+                    runner.fly(
+                        method, scen, seed=sd, estimated=True, compensate_delay=compensate
+                    ).metrics
+                    for sd in qc.TUNING_SEEDS
+                ]
+                for k in keys:
+                    row[k].append(sum(f[k] for f in flights) / len(flights))
+                _progress(f"{key}, delay {1e3 * delay:g} ms: RMSE {row['rmse_m'][-1]:.4f}")
+    m.closedloop = {}
+    tuning = qc.tune(
+        m,
+        _progress,
+        runner,
+        METHODS,
+        PX4_LIKE_DELAY_S,
+        compensate_delay=True,
+        estimated=True,
+    )
+    at = f"_compensated@{1e3 * PX4_LIKE_DELAY_S:g}ms"
+    flown = [
+        Flown(f"ours_stack{at}", "ours", STACK_KNOBS, True, PX4_LIKE_DELAY_S, True),
+        Flown(f"l1{at}", "l1", {}, True, PX4_LIKE_DELAY_S, True),
+    ]
+    starting = {"ours": STACK_KNOBS, "l1": qc.knobs_of({}, ("l1",))}
+    for meth in METHODS:
+        retuned = {k: v for k, v in tuning["chosen"].items() if qc.TUNING_METHOD[k] == meth}
+        if any(retuned[k] != starting[meth][k] for k in retuned):
+            flown.append(Flown(f"{meth}_retuned{at}", meth, retuned, True, PX4_LIKE_DELAY_S, True))
+    return {
+        **_run_header(trials),
+        "sensitivity": {
+            **_tuning_flights(),
+            "delays_s": list(LINK_DELAYS_S),
+            "knobs": {n: qc.knobs_of(k, (meth,)) for n, meth, k in LINK_METHODS},
+            "rows": sensitivity,
+        },
+        "tuning": {"command_delay_s": PX4_LIKE_DELAY_S, **tuning},
+        "rows_flown": [f._asdict() for f in flown],
+        "rows": _cell_means(flown, trials, ESTIMATE_KEYS),
+        "wall_time_s": time.perf_counter() - t0,
+    }
+
+
 if __name__ == "__main__":
     import argparse
 
@@ -416,11 +497,13 @@ if __name__ == "__main__":
         prog="python -m benchmarks.quadrotor_variants",
         description="In-process diagnostics of the closed loop, JSON on stdout: the "
         "ablation of ours_matched's two changes (seeds 0-2, ~7 min), the mass oracle "
-        "beside L1 and ours (10 seeds, ~10 min), or L1 and ours on the estimated state "
+        "beside L1 and ours (10 seeds, ~10 min), L1 and ours on the estimated state "
         "beside the ground-truth state (seeds 0-2, ~5 min), the estimator's jerk density "
-        "tuned for the closed loop (seeds 0-2, ~6 min), or what a setpoint delay costs "
+        "tuned for the closed loop (seeds 0-2, ~6 min), what a setpoint delay costs "
         "L1 and ours, with their knobs tuned again at 20 ms and with the delay "
-        "compensated (seeds 0-2, ~15 min).",
+        "compensated (seeds 0-2, ~15 min), or what it costs the stack's knobs on the "
+        "state estimate with and without compensation, with L1 and ours tuned again "
+        "in that condition (seeds 0-2, ~40 min).",
     )
     runs = {
         "ablation": ablation,
@@ -428,6 +511,7 @@ if __name__ == "__main__":
         "estimated": estimated_state,
         "estimator": estimator_tuning,
         "delay": command_delay,
+        "link": link_delay,
     }
     parser.add_argument("run", nargs="?", choices=tuple(runs), default="ablation")
     args = parser.parse_args()

@@ -97,6 +97,9 @@ class StackConfig:
     hover_s: float | None = None
     origin: tuple[float, float] = (0.0, 0.0)
     x64: bool = False
+    #: The link's setpoint delay that the controller and the adapter compensate [s]
+    #: (``--link-delay``; 0: none).
+    link_delay_s: float = 0.0
     #: Realtime clock: SCHED_FIFO for the sense-to-actuate path (``REALTIME_PRIORITY``)
     #: and a CPU wake-up latency request (``CPU_WAKEUP_LATENCY_US``).
     realtime_priority: bool = True
@@ -220,6 +223,8 @@ class StackConfig:
             own += ["--weights", str(self.weights)]
         if service == "adapter":
             own += ["--checkpoint", str(self.checkpoint_path())]
+        if service in ("adapter", "controller"):  # one value on both, never one alone
+            own += ["--link-delay", f"{self.link_delay_s:g}"]
         if service == "sim":
             own += ["--ready-timeout", f"{self.ready_timeout:g}"]
             consumers = [s for s in self.services() if s != "sim"]  # incl. the recorder

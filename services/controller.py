@@ -17,6 +17,12 @@ between-hypothesis parts of the beam mixture exactly (``z^T Sigma_j z`` of the
 moment-matched covariance) and the encoder part from the marginal mean (the mixture's
 encoder part also counts the spread of the hypotheses' means: slightly less caution).
 
+With ``--link-delay D`` (the link delays every setpoint by ``D``, less than one period)
+the step plans from the state predicted ``D`` ahead with the setpoint in flight (the last
+MPC input; after a hover setpoint still the MPC's last one) against the reference ``D``
+later, as the adapter started with the same ``D`` learns
+(:func:`arcade_core.dynamics.predict_over_delay`).
+
 Lockstep: the solve waits for the model that answers the same state (``--model-timeout``)
 while the adapter is alive (its liveliness token); without it, the newest model is used.
 Realtime: the newest model is used. Models are ordered by their ``stamp`` (the stamp of the
@@ -179,7 +185,10 @@ class Controller(runtime.Service):
         self.ref_dt = cl.DT
         t_end = a.duration if a.duration is not None else scen.t_end
         self.n_ref = math.ceil(t_end / cl.DT - 1e-9) + 1
-        self.x_ref_all, self.u_ref_all = cl.reference(scen, self.n_ref, N)
+        # With a link delay the plan starts where the setpoint will act: the reference
+        # that much later, from the state predicted over it (``make_controller_step``).
+        delay = a.link_delay
+        self.x_ref_all, self.u_ref_all = cl.reference(scen, self.n_ref, N, delay)
         weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
         self.weights = weights
         self.learner0 = None
@@ -187,13 +196,15 @@ class Controller(runtime.Service):
         no_learn = {"learn": lambda learner, x_prev, u_prev, x: learner}
         self._step_nominal = jax.jit(
             with_finite_flag(
-                cl.make_controller_step(cl.make_method("nominal")._replace(**no_learn), cfg)
+                cl.make_controller_step(
+                    cl.make_method("nominal")._replace(**no_learn), cfg, delay_s=delay
+                )
             )
         )
         self._learner_nominal = jnp.zeros((), dtype)
         if weights.is_file():
             self.learner0, method = load_learner(weights, dtype)
-            step = cl.make_controller_step(method._replace(**no_learn), cfg)
+            step = cl.make_controller_step(method._replace(**no_learn), cfg, delay_s=delay)
 
             def learned(carry, x, k, theta, cov, x_ref_all, u_ref_all):
                 learner = carry[0]
@@ -514,6 +525,7 @@ class Controller(runtime.Service):
 def _extra(p) -> None:
     runtime.add_plan_arguments(p)
     runtime.add_weights_argument(p)
+    runtime.add_link_delay_argument(p)
     p.add_argument(
         "--model-timeout",
         type=float,

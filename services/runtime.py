@@ -655,6 +655,11 @@ def main_for(
     args = parser.parse_args(argv)
     if args.bus_config is not None and args.hub is not None:
         parser.error("--hub and --bus-config exclude each other (the file names the endpoints)")
+    if getattr(args, "link_delay", 0.0) >= 1.0 / args.rate:
+        parser.error(
+            f"--link-delay {args.link_delay:g} s: must be shorter than the control period "
+            f"({1.0 / args.rate:g} s at --rate {args.rate:g})"
+        )
     setup_logging(cls.name, args.out, args.log_level)
     # `kill -USR1 <pid>` writes every thread's Python stack to stderr (<service>.out):
     # what a hung service is doing, without stopping it.
@@ -687,6 +692,32 @@ def add_weights_argument(p: argparse.ArgumentParser) -> None:
         default=None,
         help="VLD weights (default deploy/weights/quadrotor_vld.eqx)",
     )
+
+
+def add_link_delay_argument(p: argparse.ArgumentParser) -> None:
+    """The link's delay, shared by the controller and the adapter (same value on both: the
+    controller plans from the state the adapter learns from)."""
+    p.add_argument(
+        "--link-delay",
+        type=link_delay,
+        default=0.0,
+        metavar="S",
+        help="compensate the delay from a state's sample instant to when its setpoint "
+        "acts on the vehicle's rate loop, shorter than one control period: plan and learn "
+        "from the state predicted that far ahead with the setpoint in flight [s] "
+        "(default: 0, none)",
+    )
+
+
+def link_delay(text: str) -> float:
+    """A link delay in [0, 1) s (``--link-delay``; the control period bounds it further)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be a number of seconds in [0, 1), not {text}")
+    return value
 
 
 # ----------------------------------------------------------------------- flight plan

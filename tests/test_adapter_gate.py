@@ -190,6 +190,52 @@ def test_lockstep_waits_for_the_exact_setpoint_only():
     assert svc.stats["input_fallback"] == 0
 
 
+def test_with_a_link_delay_it_learns_between_the_states_predicted_over_it():
+    """``--link-delay``: the setpoint answering state ``k-1`` is in flight at state ``k``;
+    each state is learned as its prediction over the delay with that setpoint, variance
+    included, and the first transition (no setpoint in flight known) is skipped."""
+    from arcade.vehicle import load_vehicle, quadrotor_params
+    from arcade_core.dynamics import predict_over_delay
+
+    svc = make_adapter("--lockstep", "--link-delay", "0.02")
+    seen = []
+    stub = svc._adapt
+
+    def adapt(learner, xp, up, x, h, learn, var_p, var_x):
+        seen.append([np.asarray(a, float) for a in (xp, up, x, var_p, var_x)])
+        return stub(learner, xp, up, x, h, learn, var_p, var_x)
+
+    svc._adapt = adapt
+    params = quadrotor_params(load_vehicle())
+    var = np.full(13, 1e-6)
+    xs = [X_HOVER + k * np.r_[0.05, 0, 0, 1.0, 0, 0, np.zeros(7)] for k in range(4)]
+    thrusts = [5.0, 6.0, 7.0, 8.0]
+    for k, (x, thrust) in enumerate(zip(xs, thrusts, strict=True)):
+        svc.on_state(State(x=x, cov_diag=var, stamp=1.0 + 0.05 * k, seq=k + 1, src="estimator/1"))
+        svc.on_setpoint(setpoint(1.0 + 0.05 * k, thrust, seq=k + 1))
+    assert svc.stats["skipped"] == 1 and len(seen) == 2
+    for k, (xp, up, x, var_p, var_x) in enumerate(seen, start=1):
+        u = [np.r_[t, 0.0, 0.0, 0.0] for t in thrusts]
+        want_p = predict_over_delay(xs[k], var, u[k - 1], params, 0.02)
+        want = predict_over_delay(xs[k + 1], var, u[k], params, 0.02)
+        np.testing.assert_allclose(up, u[k])
+        for got, expected in ((xp, want_p[0]), (var_p, want_p[1]), (x, want[0]), (var_x, want[1])):
+            np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-15)
+    # The prediction moved the states: the delay is not ignored.
+    assert seen[0][0][0] > xs[1][0] + 0.015
+
+
+def test_link_delay_must_be_shorter_than_the_control_period(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        runtime.main_for(mod.Adapter, ["--rate", "50", "--link-delay", "0.02"], mod._extra)
+    assert exit_.value.code == 2
+    assert "--link-delay 0.02 s: must be shorter than the control period" in capsys.readouterr().err
+    parser = runtime.common_parser("adapter", "test")
+    mod._extra(parser)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--link-delay", "-0.01"])
+
+
 # ------------------------------------------------------------------ changepoint events
 
 

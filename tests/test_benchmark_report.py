@@ -326,6 +326,48 @@ def test_delay_section_tables_the_sensitivity_the_retuning_and_the_cells(tmp_pat
     assert "No results yet" in missing and "quadrotor_variants delay" in missing
 
 
+def test_link_section_tables_each_delay_with_and_without_compensation(tmp_path):
+    def m(rmse):
+        return {"rmse_m": rmse, "rmse_z_m": rmse / 2, "settling_s": 0.0, "changepoint_rate": 0.1}
+
+    names = ("ours_stack_compensated@20ms", "l1_compensated@20ms", "l1_retuned_compensated@20ms")
+    row = {"payload_g": 175.0, "speed_mps": 2.5}
+    row |= {n: m(v) for n, v in zip(names, (0.06, 0.2, 0.05), strict=True)}
+    result = {
+        "generated": "2026-01-01 00:00",
+        "machine": "test machine",
+        "trials": 3,
+        "sensitivity": {
+            "cell": [150.0, 2.0],
+            "seeds": [999, 998, 997, 996],
+            "delays_s": [0.0, 0.02],
+            "knobs": {"ours_stack": {"ours_sigma2": 0.1}, "l1": {"l1_a_s": -0.1}},
+            "rows": {
+                "ours_stack": {"rmse_m": [0.053, 0.081], "rmse_z_m": [0.022, 0.04]},
+                "ours_stack_compensated": {"rmse_m": [0.053, 0.057], "rmse_z_m": [0.022, 0.025]},
+            },
+        },
+        "tuning": {"command_delay_s": 0.02, "chosen": {"l1_a_s": -2.0, "ours_sigma2": 0.1}},
+        "rows_flown": [{"name": n} for n in names],
+        "rows": [row],
+        "wall_time_s": 2700.0,
+    }
+    path = tmp_path / "link.json"
+    path.write_text(json.dumps(result))
+    text = "\n".join(report._link_section(path))
+    assert "| delay (ms) | ours_stack | ours_stack_compensated |" in text
+    assert "| 0 | 0.0530 | 0.0530 |" in text and "| 20 | 0.0810 | 0.0570 |" in text
+    assert "| 20 | 0.0400 | 0.0250 |" in text  # the z-RMSE table
+    assert "ours_stack: ours_sigma2 = 0.1; l1: l1_a_s = -0.1" in text
+    assert "(150, 2: payload g, speed m/s; seeds 999, 998, 997, 996)" in text
+    assert "(the estimate, 20 ms, compensated): l1_a_s = -2, ours_sigma2 = 0.1" in text
+    assert "| payload (g) | speed (m/s) | " + " | ".join(names) + " |" in text
+    assert "| 175 | 2.5 | 0.0600 | 0.2000 | **0.0500** |" in text
+    assert "in 45 min" in text and "test machine" in text
+    missing = "\n".join(report._link_section(tmp_path / "none.json"))
+    assert "No results yet" in missing and "quadrotor_variants link" in missing
+
+
 def test_discrepancy_section_names_what_was_found_and_what_was_not():
     result = {
         "minutes_of_data": 10.0,

@@ -62,6 +62,17 @@ def test_relative_paths_reach_the_services_absolute(elsewhere):
     for service in ("adapter", "controller"):
         assert _value(cfg.args(service), "--weights") == str(here / "w.eqx")
     assert _value(cfg.args("adapter"), "--checkpoint") == str(here / "c.npz")
+    # One link delay for the two services that compensate it, and none for the others.
+    delayed = StackConfig(out=Path("r4"), link_delay_s=0.02)
+    for service in delayed.services():
+        args = delayed.args(service)
+        if service in ("adapter", "controller"):
+            assert _value(args, "--link-delay") == "0.02"
+        else:
+            assert "--link-delay" not in args
+    assert _value(cfg.args("controller"), "--link-delay") == "0"
+    px4 = Px4StackConfig(out=Path("r5"), simulate=True, link_delay_s=0.018)
+    assert [_value(px4.args(s), "--link-delay") for s in ("adapter", "controller")] == ["0.018"] * 2
     # The run's own checkpoint lies in the absolute run folder too.
     assert StackConfig(out="r2").checkpoint_path() == here / "r2" / "adapter_checkpoint.npz"
     px4 = Px4StackConfig(out=Path("r3"), simulate=True)
@@ -159,6 +170,7 @@ def test_last_output_without_traceback_is_the_last_lines(tmp_path):
         (["up", "--duration", "-1"], "argument --duration: must be a finite number > 0"),
         (["up", "--payload-g", "inf"], "argument --payload-g: must be a finite number >= 0"),
         (["up", "--seed", "-1"], "argument --seed: must be at least 0"),
+        (["up", "--link-delay", "-0.01"], "argument --link-delay: must be a finite number >= 0"),
         (["demo", "--speed", "0"], "argument --speed: must be a finite number > 0"),
         (["demo", "--payload-g", "-5"], "argument --payload-g: must be a finite number >= 0"),
         (["demo", "--seed", "x"], "argument --seed: not an integer"),
@@ -249,6 +261,19 @@ def test_bad_numbers_are_argument_errors(elsewhere, capsys, argv, message):
         (
             ["up", "--profile", "px4", "--service-arg=adapter:--checkpoint=x.npz"],
             "--service-arg adapter: --checkpoint set by the launcher",
+        ),
+        # The controller and the adapter compensate one link delay, never one of them alone.
+        (
+            ["up", "--lockstep", "--service-arg=controller:--link-delay=0.02"],
+            "--service-arg controller: --link-delay set by the launcher",
+        ),
+        (
+            ["up", "--lockstep", "--link-delay", "0.05"],
+            "--link-delay 0.05 s: must be shorter than the control period (0.05 s at --rate 20)",
+        ),
+        (
+            ["up", "--rate", "50", "--link-delay", "0.03"],
+            "--link-delay 0.03 s: must be shorter than the control period (0.02 s at --rate 50)",
         ),
     ],
 )

@@ -157,3 +157,30 @@ def test_one_state_stamped_in_the_future_does_not_stamp_every_later_setpoint(par
     stamps = [sp.stamp for sp in svc.bus.setpoints()]
     assert stamps == [10.0, 10.02, 10.02, 1e6, 10.05, 10.10]
     assert svc.stats["stamp_reanchored"] == 1
+
+
+def test_a_link_delay_plans_from_the_predicted_state_against_the_later_reference(
+    parser, monkeypatch
+):
+    """``--link-delay``: the controller's step is the in-process compensated step
+    (``make_controller_step``'s ``delay_s``, tested in test_quadrotor_pipeline) and its
+    reference the plan that much later."""
+    from benchmarks import quadrotor_closedloop as cl
+
+    built = []
+
+    def make_step(method, cfg, hold_residual=False, delay_s=0.0):
+        built.append(delay_s)
+        return lambda *args: None
+
+    monkeypatch.setattr(cl, "make_controller_step", make_step)
+    plain = make_controller(parser)
+    delayed = make_controller(parser, "--link-delay", "0.02")
+    assert built == [0.0, 0.02]
+    scen = runtime.scenario(delayed.args)
+    want = cl.reference(scen, delayed.n_ref, delayed.cfg.N, 0.02)
+    for got, expected, before in zip(
+        (delayed.x_ref_all, delayed.u_ref_all), want, (plain.x_ref_all, plain.u_ref_all)
+    ):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(expected))
+        assert np.max(np.abs(np.asarray(got) - np.asarray(before))) > 1e-3

@@ -19,6 +19,7 @@ from arcade_core.dynamics import (
     cartpole_true_step,
     hover_input,
     hover_state,
+    predict_over_delay,
     quadrotor_deriv,
     quadrotor_step,
     quaternion,
@@ -136,6 +137,34 @@ def test_body_rate_step_is_first_order_lag():
         np.testing.assert_allclose(x[10:13], expected, rtol=2e-6)
     # After 4 time constants the rates are within 2 % of the setpoint.
     assert np.all(np.abs(np.asarray(x[10:13]) - np.asarray(u[1:])) < 0.02 * np.abs(u[1:]))
+
+
+def test_predicting_over_a_link_delay_carries_the_state_and_its_variance():
+    q = quaternion.from_rpy(0.1, -0.2, 0.3)
+    x = jnp.concatenate(
+        [jnp.array([0.3, -0.2, 1.1, 1.5, -0.4, 0.2]), q, jnp.array([0.4, -0.3, 0.2])]
+    )
+    u = jnp.array([6.2, 0.5, -0.2, 0.1])
+    var = jnp.linspace(1e-6, 1.3e-5, 13)
+    x_d, var_d = predict_over_delay(x, var, u, QUAD, 0.02)
+    # The state: one RK4 step of the nominal model over the delay with the input in flight.
+    np.testing.assert_allclose(x_d, quadrotor_step(x, u, QUAD, 0.02), rtol=1e-13, atol=1e-15)
+    # Its variance, to first order: against a central-difference Jacobian of that step.
+    eps = 1e-6
+    cols = [
+        (quadrotor_step(x + eps * e, u, QUAD, 0.02) - quadrotor_step(x - eps * e, u, QUAD, 0.02))
+        / (2 * eps)
+        for e in jnp.eye(13)
+    ]
+    jac = np.stack([np.asarray(c) for c in cols], axis=1)
+    np.testing.assert_allclose(var_d, jac**2 @ np.asarray(var), rtol=1e-6, atol=1e-18)
+    # Over the delay the velocity's uncertainty moves into the position's.
+    assert np.all(np.asarray(var_d[:3]) > np.asarray(var[:3]))
+    # No delay: the same state and, but along the unit quaternion itself, the same variance.
+    x_0, var_0 = predict_over_delay(x, var, u, QUAD, 0.0)
+    np.testing.assert_allclose(x_0, x, atol=1e-15)
+    keep = np.r_[0:6, 10:13]
+    np.testing.assert_allclose(np.asarray(var_0)[keep], np.asarray(var)[keep], rtol=1e-12)
 
 
 def test_quadrotor_jit_and_vmap():

@@ -483,6 +483,58 @@ def test_the_delay_diagnostic_flies_each_row_with_its_setpoint_delay(monkeypatch
         assert {c for *_, c in tuning.flown} == {compensate}
 
 
+def test_the_link_diagnostic_flies_the_stack_on_the_estimate_with_and_without_compensation(
+    monkeypatch,
+):
+    from benchmarks import quadrotor_variants as qv
+
+    flown = []
+
+    class Recorder:
+        def __init__(self, models, **kwargs):
+            self.models = models
+
+        def fly(self, method, scenario, seed=0, estimated=False, compensate_delay=False):
+            knobs = dict(self.models.closedloop)
+            flown.append((method, knobs, scenario, seed, estimated, compensate_delay))
+            rmse = 0.01 + scenario.command_delay_s * (0.5 if compensate_delay else 2.0)
+            if method == "l1":  # the tuning moves L1's pole off its stored value ...
+                rmse += 0.01 * abs(knobs.get("l1_a_s", -0.1) + 1.0)
+            else:  # ... and keeps ours at the stack's knobs
+                rmse += 0.001 * sum(knobs[k] != v for k, v in qv.STACK_KNOBS.items())
+            metrics = {"rmse_m": rmse, "rmse_z_m": rmse / 2, "changepoint_rate": 0.1}
+            return SimpleNamespace(metrics={**metrics, "settling_s": 0.0})
+
+    monkeypatch.setattr(cl, "Runner", Recorder)
+    monkeypatch.setattr(qv, "models", lambda: SimpleNamespace(closedloop={}))
+    r = qv.link_delay(trials=1)
+    assert all(est for *_, est, _ in flown)  # what the stack flies: the estimate
+    # The grid on the tuning cell: each delay without compensation, each non-zero one with
+    # it (0 ms is one flight), ours at the stack's knobs.
+    n = len(qv.LINK_DELAYS_S)
+    grid = flown[: 2 * (2 * n - 1) * len(cl.TUNING_SEEDS)]
+    assert {(s.payload_g, s.speed_mps) for _, _, s, *_ in grid} == {cl.TUNING_CELL}
+    assert all(f[1] == qv.STACK_KNOBS for f in grid if f[0] == "ours")
+    sens = r["sensitivity"]
+    assert sens["delays_s"] == list(qv.LINK_DELAYS_S)
+    comp, plain = sens["rows"]["ours_stack_compensated"], sens["rows"]["ours_stack"]
+    assert comp["rmse_m"][0] == plain["rmse_m"][0] == pytest.approx(0.01)
+    i = qv.LINK_DELAYS_S.index(0.02)
+    assert plain["rmse_m"][i] == pytest.approx(0.05) and comp["rmse_m"][i] == pytest.approx(0.02)
+    # The tuning and the cells fly the stack's condition: 20 ms, compensated.
+    rest = flown[len(grid) :]
+    assert {(s.command_delay_s, c) for _, _, s, _, _, c in rest} == {(0.02, True)}
+    assert r["tuning"]["chosen"]["l1_a_s"] == -1.0
+    names = [f["name"] for f in r["rows_flown"]]
+    # Ours keeps the stack's knobs: no re-tuned row of its own.
+    assert names == [
+        "ours_stack_compensated@20ms",
+        "l1_compensated@20ms",
+        "l1_retuned_compensated@20ms",
+    ]
+    assert len(r["rows"]) == 9 and all(n in r["rows"][0] for n in names)
+
+
 def test_a_runner_flies_the_scenarios_setpoint_delay(monkeypatch):
     import simulator
 
@@ -498,9 +550,6 @@ def test_a_runner_flies_the_scenarios_setpoint_delay(monkeypatch):
     with pytest.raises(Built) as built:
         runner.fly("nominal", scen)
     assert built.value.args == (0.02,)
-    # The compensation is of the ground-truth state: with the estimate it is refused.
-    with pytest.raises(ValueError, match="ground-truth state only"):
-        runner.fly("nominal", scen, estimated=True, compensate_delay=True)
 
 
 def test_a_compensated_delay_plans_from_the_state_predicted_over_it():

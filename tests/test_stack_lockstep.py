@@ -77,10 +77,11 @@ def check_clean_run(out: Path, summary: dict) -> None:
     assert json.loads((out / "metrics.json").read_text())["rmse_m"] == summary["rmse_m"]
 
 
-def in_process_rmse(monkeypatch) -> float:
+def in_process_rmse(monkeypatch, delay_s: float = 0.0) -> float:
     """The in-process closed loop on the information the ``model`` message carries: its
     ``Q`` modulation from the moment-matched beam marginal (``moment_matched``) instead
-    of the full beam, as a deployed controller receives it."""
+    of the full beam, as a deployed controller receives it. ``delay_s``: a link delay,
+    compensated (``Runner.fly``'s ``compensate_delay``)."""
     from arcade.weights import load_model
     from benchmarks import quadrotor_closedloop as cl
     from services.adapter import stack_knobs
@@ -94,7 +95,8 @@ def in_process_rmse(monkeypatch) -> float:
         vld=vld, guard=cl.guard_from_metadata(extra), closedloop=stack_knobs()
     )
     assert models.guard is not None
-    flight = cl.Runner(models).fly("ours", cl.Scenario(), seed=SEED)
+    scen = cl.Scenario(command_delay_s=delay_s)
+    flight = cl.Runner(models).fly("ours", scen, seed=SEED, compensate_delay=delay_s > 0)
     assert not flight.crashed
     return flight.metrics["rmse_m"]
 
@@ -104,6 +106,27 @@ def test_lockstep_flight_matches_in_process_loop(tmp_path, monkeypatch):
     check_clean_run(tmp_path, summary)
     assert summary["adaptation"] == "ours"
     reference = in_process_rmse(monkeypatch)
+    assert abs(summary["rmse_m"] - reference) <= 0.1 * reference, (summary["rmse_m"], reference)
+
+
+def test_lockstep_flight_compensating_a_link_delay_matches_in_process_loop(tmp_path, monkeypatch):
+    """The simulator delays every setpoint by 30 ms (``--command-delay``) and the controller
+    and the adapter compensate it (``--link-delay``): the in-process loop compensating the
+    same delay flies the same flight (within 10 %)."""
+    summary = run_demo(
+        tmp_path,
+        seed=SEED,
+        x64=True,
+        truth_state=True,
+        progress=False,
+        extra={"sim": ["--command-delay=0.03"]},
+        link_delay_s=0.03,
+    )
+    assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
+    assert summary["rejects"] == {} and not summary["crashed"]
+    sim = json.loads((tmp_path / "stats" / "sim.json").read_text())
+    assert sim["command_delay_s"] == 0.03
+    reference = in_process_rmse(monkeypatch, delay_s=0.03)
     assert abs(summary["rmse_m"] - reference) <= 0.1 * reference, (summary["rmse_m"], reference)
 
 

@@ -81,6 +81,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--seed", type=count(0), default=0, help="trial seed (default: %(default)s)")
     p.add_argument(
+        "--link-delay",
+        type=number(0.0),
+        default=0.0,
+        metavar="S",
+        help="the delay from a state's sample instant to when its setpoint acts on the "
+        "vehicle's rate loop, shorter than one control period: the controller plans and "
+        "the adapter learns from the state predicted that far ahead (measure it: "
+        "docs/quadrotor-closed-loop.md; default: 0, not compensated). In the sim profile "
+        "--service-arg sim:--command-delay=S emulates such a link",
+    )
+    p.add_argument(
         "--out",
         type=Path,
         default=None,
@@ -160,6 +171,11 @@ def usage_problem(args: argparse.Namespace) -> str | None:
     """Why these options do not fit together or do not parse (one line), or None."""
     if args.bus_configs is not None and args.hub is not None:
         return "--hub and --bus-configs exclude each other: the configurations name the endpoints"
+    if args.link_delay >= 1.0 / args.rate:
+        return (
+            f"--link-delay {args.link_delay:g} s: must be shorter than the control period "
+            f"({1.0 / args.rate:g} s at --rate {args.rate:g})"
+        )
     problem = hub_problem(args.hub) or vehicle_name_problem(args.vehicle)
     if problem is not None:
         return problem
@@ -403,6 +419,7 @@ def stack_config(args: argparse.Namespace, out: Path, configs: dict[str, Path], 
         speed=args.speed,
         seed=args.seed,
         x64=args.x64,
+        link_delay_s=args.link_delay,
         weights=args.weights,
         checkpoint=args.checkpoint,
         realtime_priority=args.realtime_priority,

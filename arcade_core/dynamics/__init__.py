@@ -23,6 +23,7 @@ from arcade_core.dynamics.quadrotor import (
     QUADROTOR_NX,
     hover_input,
     hover_state,
+    predict_over_delay,
     quadrotor_deriv,
     quadrotor_step,
 )
@@ -44,6 +45,7 @@ __all__ = [
     "cartpole_true_step",
     "hover_input",
     "hover_state",
+    "predict_over_delay",
     "quadrotor_deriv",
     "quadrotor_step",
     "quaternion",

@@ -13,6 +13,7 @@ nominal model represents the closed rate loop as a first-order lag
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -61,6 +62,22 @@ def quadrotor_step(x: Array, u: Array, params: QuadrotorParams, dt: float) -> Ar
     k4 = quadrotor_deriv(x + dt * k3, u, params)
     x_next = x + (dt / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
     return x_next.at[QUAT].set(quat.normalize(x_next[QUAT]))
+
+
+def predict_over_delay(
+    x: Array, var: Array, u: Array, params: QuadrotorParams, delay: float
+) -> tuple[Array, Array]:
+    """The state ``delay`` seconds on, when the setpoint sent now reaches the rate loop.
+
+    Not an equation of the paper: a link that delays every setpoint by ``delay`` (< one
+    control period) keeps the previous setpoint ``u`` acting until then, so a controller
+    that plans, and an adapter that learns, from the predicted state see each input act over
+    exactly one period. One RK4 step of the nominal model (:func:`quadrotor_step`) with
+    ``u``; ``var`` ``(13,)``, the state's diagonal variance, is carried to first order
+    (``diag(J diag(var) J^T)``, ``J = d step / dx``).
+    """
+    jac = jax.jacfwd(quadrotor_step)(x, u, params, delay)
+    return quadrotor_step(x, u, params, delay), jnp.einsum("ij,j,ij->i", jac, var, jac)
 
 
 def hover_input(params: QuadrotorParams, dtype=None) -> Array:
