@@ -473,6 +473,7 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
         retuned = {k: v for k, v in tuning["chosen"].items() if qc.TUNING_METHOD[k] == meth}
         if any(retuned[k] != starting[meth][k] for k in retuned):
             flown.append(Flown(f"{meth}_retuned{at}", meth, retuned, True, PX4_LIKE_DELAY_S, True))
+    rows = _cell_means(flown, trials, ESTIMATE_KEYS)
     return {
         **_run_header(trials),
         "sensitivity": {
@@ -483,7 +484,7 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
         },
         "tuning": {"command_delay_s": PX4_LIKE_DELAY_S, **tuning},
         "rows_flown": [f._asdict() for f in flown],
-        "rows": _cell_means(flown, trials, ESTIMATE_KEYS),
+        "rows": rows,
         "wall_time_s": time.perf_counter() - t0,
     }
 

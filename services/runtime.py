@@ -29,7 +29,7 @@ import sys
 import threading
 import time
 from array import array
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -699,7 +699,7 @@ def add_link_delay_argument(p: argparse.ArgumentParser) -> None:
     controller plans from the state the adapter learns from)."""
     p.add_argument(
         "--link-delay",
-        type=link_delay,
+        type=seconds(1.0, high_open=True),  # the control period bounds it further
         default=0.0,
         metavar="S",
         help="compensate the delay from a state's sample instant to when its setpoint "
@@ -709,15 +709,22 @@ def add_link_delay_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
-def link_delay(text: str) -> float:
-    """A link delay in [0, 1) s (``--link-delay``; the control period bounds it further)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"must be a number of seconds in [0, 1), not {text}")
-    return value
+def seconds(high: float, high_open: bool = False) -> Callable[[str], float]:
+    """argparse ``type=``: a duration in ``[0, high]`` seconds (``high_open``: ``[0, high)``)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        if not (0.0 <= value < high if high_open else 0.0 <= value <= high):
+            end = ")" if high_open else "]"
+            raise argparse.ArgumentTypeError(
+                f"must be a number of seconds in [0, {high:g}{end}, not {text}"
+            )
+        return value
+
+    return parse
 
 
 # ----------------------------------------------------------------------- flight plan

@@ -737,7 +737,7 @@ def _extra(p) -> None:
     )
     p.add_argument(
         "--command-delay",
-        type=_delay,
+        type=runtime.seconds(1.0),
         default=0.0,
         metavar="S",
         help="emulate the link to the autopilot: every setpoint reaches the rate loop "
@@ -752,17 +752,6 @@ def _extra(p) -> None:
         help="inject a mocap fault: dropout@T+D, freeze@T+D, "
         "outliers@T+D,p=P,m=M, clockjump@T[+D],offset=S (mission time)",
     )
-
-
-def _delay(text: str) -> float:
-    """A delay in [0, 1] s."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be a number of seconds in [0, 1], not {text}")
-    return value
 
 
 def _mocap_fault(spec: str) -> MocapFault:

@@ -184,7 +184,7 @@ def test_tuning_flies_only_the_methods_asked_for():
     flown = set()
 
     class FakeRunner:
-        def fly(self, method, scenario, seed, compensate_delay=False):
+        def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             flown.add(method)
             s2 = models.closedloop["ours_matched_sigma2"]
             return SimpleNamespace(metrics={"rmse_m": abs(np.log(s2 / 1e-2))})
@@ -227,7 +227,7 @@ def test_tuning_passes_until_no_knob_changes():
     flights = []
 
     class FakeRunner:
-        def fly(self, method, scenario, seed, compensate_delay=False):
+        def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             k = dict(models.closedloop)
             flights.append(
                 (method, seed, *(v for n, v in sorted(k.items()) if cl.TUNING_METHOD[n] == method))
