@@ -339,6 +339,17 @@ PX4_LIKE_DELAY_S = 0.02
 DELAY_METHODS = (("l1", "l1", {}), ("ours", "ours", {}), ("ours_stack", "ours", STACK_KNOBS))
 
 
+def _moved_knobs(
+    chosen: dict[str, float], method: str, before: dict[str, float]
+) -> dict[str, float] | None:
+    """``method``'s knobs in a tuning's ``chosen`` if any differs from ``before``, else
+    None (no re-tuned row to fly)."""
+    from benchmarks import quadrotor_closedloop as qc
+
+    knobs = {k: v for k, v in chosen.items() if qc.TUNING_METHOD[k] == method}
+    return knobs if any(knobs[k] != before[k] for k in knobs) else None
+
+
 def command_delay(trials: int = 3) -> dict[str, Any]:
     """What a transport delay between the controller and the rate loop costs each method.
 
@@ -385,9 +396,8 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
         for meth in METHODS:
             if compensate:
                 flown.append(Flown(f"{meth}{kind}{at}", meth, {}, False, PX4_LIKE_DELAY_S, True))
-            chosen = tuned[compensate]["chosen"]
-            retuned = {k: v for k, v in chosen.items() if qc.TUNING_METHOD[k] == meth}
-            if any(retuned[k] != stored[k] for k in retuned):
+            retuned = _moved_knobs(tuned[compensate]["chosen"], meth, stored)
+            if retuned is not None:
                 name = f"{meth}{kind}_retuned{at}"
                 flown.append(Flown(name, meth, retuned, False, PX4_LIKE_DELAY_S, compensate))
     rows = _cell_means(flown, trials, ESTIMATE_KEYS)
@@ -470,8 +480,8 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
     ]
     starting = {"ours": STACK_KNOBS, "l1": qc.knobs_of({}, ("l1",))}
     for meth in METHODS:
-        retuned = {k: v for k, v in tuning["chosen"].items() if qc.TUNING_METHOD[k] == meth}
-        if any(retuned[k] != starting[meth][k] for k in retuned):
+        retuned = _moved_knobs(tuning["chosen"], meth, starting[meth])
+        if retuned is not None:
             flown.append(Flown(f"{meth}_retuned{at}", meth, retuned, True, PX4_LIKE_DELAY_S, True))
     rows = _cell_means(flown, trials, ESTIMATE_KEYS)
     return {

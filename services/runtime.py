@@ -655,11 +655,9 @@ def main_for(
     args = parser.parse_args(argv)
     if args.bus_config is not None and args.hub is not None:
         parser.error("--hub and --bus-config exclude each other (the file names the endpoints)")
-    if getattr(args, "link_delay", 0.0) >= 1.0 / args.rate:
-        parser.error(
-            f"--link-delay {args.link_delay:g} s: must be shorter than the control period "
-            f"({1.0 / args.rate:g} s at --rate {args.rate:g})"
-        )
+    problem = link_delay_problem(getattr(args, "link_delay", 0.0), args.rate)
+    if problem is not None:
+        parser.error(problem)
     setup_logging(cls.name, args.out, args.log_level)
     # `kill -USR1 <pid>` writes every thread's Python stack to stderr (<service>.out):
     # what a hung service is doing, without stopping it.
@@ -706,6 +704,17 @@ def add_link_delay_argument(p: argparse.ArgumentParser) -> None:
         "acts on the vehicle's rate loop, shorter than one control period: plan and learn "
         "from the state predicted that far ahead with the setpoint in flight [s] "
         "(default: 0, none)",
+    )
+
+
+def link_delay_problem(delay: float, rate: float) -> str | None:
+    """Why a link delay does not fit the control rate (it must be shorter than one
+    period: one setpoint in flight at a time), or None."""
+    if delay < 1.0 / rate:
+        return None
+    return (
+        f"--link-delay {delay:g} s: must be shorter than the control period "
+        f"({1.0 / rate:g} s at --rate {rate:g})"
     )
 
 

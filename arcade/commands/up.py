@@ -171,12 +171,13 @@ def usage_problem(args: argparse.Namespace) -> str | None:
     """Why these options do not fit together or do not parse (one line), or None."""
     if args.bus_configs is not None and args.hub is not None:
         return "--hub and --bus-configs exclude each other: the configurations name the endpoints"
-    if args.link_delay >= 1.0 / args.rate:
-        return (
-            f"--link-delay {args.link_delay:g} s: must be shorter than the control period "
-            f"({1.0 / args.rate:g} s at --rate {args.rate:g})"
-        )
-    problem = hub_problem(args.hub) or vehicle_name_problem(args.vehicle)
+    from services.runtime import link_delay_problem
+
+    problem = (
+        link_delay_problem(args.link_delay, args.rate)
+        or hub_problem(args.hub)
+        or vehicle_name_problem(args.vehicle)
+    )
     if problem is not None:
         return problem
     if args.profile != "px4":
