@@ -46,16 +46,18 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline
 
 from arcade import atomicfile
 from arcade.vehicle import load_vehicle, quadrotor_params
 from arcade_core.dynamics import quadrotor_step
+
+if TYPE_CHECKING:
+    from scipy.interpolate import CubicHermiteSpline
 
 #: Control (= MPC step = residual) period [s] and log period [s].
 CONTROL_DT = 0.05
@@ -113,6 +115,10 @@ class RandomPath:
 
     @staticmethod
     def _fit(times: np.ndarray, pts: np.ndarray) -> CubicHermiteSpline:
+        # Imported here: SciPy's interpolate costs ~0.7 s of import in every process that
+        # imports this module (each service of the stack), and only the data needs it.
+        from scipy.interpolate import CubicHermiteSpline
+
         # Catmull-Rom velocities (central differences, rest at both ends): unlike a global
         # C2 spline this cannot overshoot far between unevenly spaced waypoints.
         vel = np.zeros_like(pts)

@@ -1,5 +1,5 @@
-"""Process-level helpers of the services: realtime scheduling, CPU wake-up latency and
-garbage-collector pauses."""
+"""Process-level helpers of the services: realtime scheduling, CPU wake-up latency,
+garbage-collector pauses, and what a service imports at start-up."""
 
 from __future__ import annotations
 
@@ -8,6 +8,8 @@ import gc
 import logging
 import os
 import struct
+import subprocess
+import sys
 import threading
 
 from services import runtime
@@ -125,3 +127,25 @@ def test_latency_samples_skip_the_warm_up():
     assert runtime.LatencySamples().summary() == {
         "n": 0, "p50_ms": 0.0, "p99_ms": 0.0, "max_ms": 0.0, "kept": 0
     }  # fmt: skip
+
+
+def test_the_services_start_without_importing_scipy():
+    """Every service of the stack imports the closed-loop module at start-up; SciPy's
+    interpolation (~0.7 s of import per process on a slow CPU) is for the offline data
+    only, so none of them may pull it in."""
+    modules = (
+        "services.sim_node",
+        "services.estimator",
+        "services.adapter",
+        "services.controller",
+        "services.recorder",
+        "benchmarks.quadrotor_closedloop",
+    )
+    code = (
+        f"import sys; import {', '.join(modules)}; "
+        "print(sorted(m for m in sys.modules if m.startswith('scipy')))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip() == "[]", out.stdout
