@@ -123,8 +123,8 @@ def load_model(
 
     # A float64 file read with x64 disabled is loaded as float32 (the only loss-y case).
     dtype = jax.dtypes.canonicalize_dtype(jnp.dtype(header["dtype"]))
-    # Shapes and dtypes only: initialising the weights that the file replaces would cost
-    # a second of eager operations in every process that loads a model.
+    # Shapes and dtypes only: initialising the weights that the file replaces costs about
+    # half a second of eager operations in every process that loads a model.
     skeleton = eqx.filter_eval_shape(VLD, jax.random.PRNGKey(0), config, dtype=dtype)
     stream = io.BytesIO(payload)
     try:
