@@ -130,9 +130,9 @@ def test_latency_samples_skip_the_warm_up():
 
 
 def test_the_services_start_without_importing_scipy():
-    """Every service of the stack imports the closed-loop module at start-up; SciPy's
-    interpolation (~0.7 s of import per process on a slow CPU) is for the offline data
-    only, so none of them may pull it in."""
+    """The simulator, the adapter and the controller import the closed-loop module at
+    start-up; SciPy's interpolation (~0.7 s of import per process on a slow CPU) is for
+    the offline data only, so no service may pull it in."""
     modules = (
         "services.sim_node",
         "services.estimator",
