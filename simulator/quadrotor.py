@@ -211,9 +211,10 @@ class QuadrotorSim:
         hover_cmd = self.hover_thrust() / self._thrust_gain
         self._setpoint = np.array([min(hover_cmd, 4.0 * self.max_thrust), 0.0, 0.0, 0.0])
         self._in_flight.clear()
-        self._thrust_cmd = np.full(4, min(hover_cmd / 4.0, self.max_thrust))
-        self._thrust = self._thrust_cmd.copy()
-        self._saturation = np.zeros(3)
+        # Per-rotor and per-axis state as Python floats (see ``_physics_step``).
+        self._thrust_cmd = [float(min(hover_cmd / 4.0, self.max_thrust))] * 4
+        self._thrust = list(self._thrust_cmd)
+        self._saturation = [0.0, 0.0, 0.0]
         self.rate_controller.reset(d.qvel[3:6])
         self._lag.reset(np.zeros(3))
         self.mocap.reset(0.0)
@@ -276,31 +277,37 @@ class QuadrotorSim:
     def stop_motors(self) -> None:
         """Disable the motors and spin them down at once (a disarmed vehicle)."""
         self.motors_enabled = False
-        self._thrust[:] = 0.0
-        self._thrust_cmd[:] = 0.0
-        self._saturation[:] = 0.0
+        self._thrust = [0.0] * 4
+        self._thrust_cmd = [0.0] * 4
+        self._saturation = [0.0, 0.0, 0.0]
 
     def _rate_tick(self) -> None:
         if not self.motors_enabled:
-            self._thrust_cmd = np.zeros(4)
-            self._saturation = np.zeros(3)
+            self._thrust_cmd = [0.0] * 4
+            self._saturation = [0.0, 0.0, 0.0]
             self.rate_controller.reset(self.data.qvel[3:6])
             return
         if self.hold_integrators:  # on the ground: an autopilot keeps its integrators at zero
             self.rate_controller.reset(self.data.qvel[3:6])
-        omega_meas = self.gyro.measure(self.data.qvel[3:6])
-        rate_sp = self._lag.update(self._setpoint[1:])
-        torque = self.rate_controller.update(rate_sp, omega_meas, self._saturation)
-        self._thrust_cmd, self._saturation = self.mixer.mix(self._setpoint[0], torque)
+        omega_meas = self.gyro.measure(self.data.qvel[3:6]).tolist()
+        thrust, *rates = self._setpoint.tolist()
+        rate_sp = self._lag.update_values(rates)
+        torque = self.rate_controller.update_values(rate_sp, omega_meas, self._saturation)
+        self._thrust_cmd, self._saturation = self.mixer.mix_values(thrust, torque)
 
     def _physics_step(self) -> None:
         m, d = self.model, self.data
         if self._k % self._rate_div == 0:
             self._rate_tick()
-        self._thrust += self._motor_alpha * (self._thrust_cmd - self._thrust)
-        force = self._thrust * self._thrust_gain
+        # Four rotors: Python floats, since NumPy's per-call cost would dominate this loop
+        # (the arithmetic is elementwise, so the results are those of the vector form).
+        a, gain = self._motor_alpha, self._thrust_gain
+        self._thrust = thrust = [f + a * (c - f) for f, c in zip(self._thrust, self._thrust_cmd)]
+        force = [f * gain for f in thrust]
         if self._ge_radius is not None:
-            force = force * ground_effect_gain(d.site_xpos[self._sites, 2], self._ge_radius)
+            force = np.array(force) * ground_effect_gain(
+                d.site_xpos[self._sites, 2], self._ge_radius
+            )
         d.ctrl[:] = force
         if self._drag:
             rot = d.xmat[self._airframe].reshape(3, 3)
