@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 
+import jax
 import numpy as np
 import pytest
 
@@ -134,3 +135,15 @@ def test_cartpole_log_errors_are_reported(tmp_path, capsys):
         == 2
     )
     assert "missing column(s) thetadot" in capsys.readouterr().err
+
+
+def test_the_workflow_runs_in_float64_whatever_the_callers_setting():
+    from arcade import jaxsetup
+
+    log = fly_cartpole(None, 60.0, seed=5, system=CartpoleSim(seed=1005))
+    with jaxsetup.x64(False):
+        in_float32_process = run_workflow(log, "cartpole").result
+        assert not jax.config.jax_enable_x64  # the caller's setting is restored
+    assert json.dumps(in_float32_process, sort_keys=True) == json.dumps(
+        run_workflow(log, "cartpole").result, sort_keys=True
+    )

@@ -374,8 +374,18 @@ def run_workflow(
 ) -> Outcome:
     """The discrepancy workflow on a :class:`~arcade.flightlog.FlightLog` (module docstring).
 
-    Writes the model file, plots and report into ``out`` when it is given.
+    Writes the model file, plots and report into ``out`` when it is given. Runs in float64
+    whatever the caller's JAX setting, as the command line does (the setting is restored
+    after it), so that its numbers do not depend on the caller: in float32 they differ in
+    the third or fourth digit, and the secants' scoring overflows.
     """
+    from arcade import jaxsetup
+
+    with jaxsetup.x64():
+        return _run_workflow(log, system, vehicle, out, settings, progress)
+
+
+def _run_workflow(log, system, vehicle, out, settings, progress) -> Outcome:
     from arcade_core.discrepancy.catalog import effects_for
     from arcade_core.discrepancy.identify import SelectionConfig, identify
 
