@@ -218,8 +218,8 @@ class SetpointLag:
         return np.array(self.update_values(np.asarray(value, dtype=float).tolist()))
 
     def update_values(self, value: list[float]) -> list[float]:
-        """:meth:`update` on a list of three floats."""
-        self._buf.append(value)
+        """:meth:`update` on a list of three floats (kept as a copy while it is delayed)."""
+        self._buf.append(list(value))
         a = self._alpha
         self._out = [o + a * (v - o) for o, v in zip(self._out, self._buf[0], strict=True)]
         return self._out

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from arcade.vehicle import load_vehicle
 from simulator import GyroConfig, MocapConfig, QuadrotorSim
 from simulator.mjcf import rotor_geometry
-from simulator.rate_controller import Mixer, RateController, RateGains
+from simulator.rate_controller import Mixer, RateController, RateGains, SetpointLag
 
 QUIET_GYRO = GyroConfig(noise_rad_s=0.0, bias_std_rad_s=0.0)
 NO_DROPS = MocapConfig(drop_probability=0.0)
@@ -267,6 +267,21 @@ def test_rate_controller_matches_its_vector_form_bit_for_bit():
         n_frozen += int(frozen.sum())
         n_clamped += int(np.sum(np.abs(integral) == lim))
     assert n_frozen > 1000 and n_clamped > 100  # anti-windup and clamp both compared
+
+
+def test_setpoint_lag_matches_its_vector_form_bit_for_bit():
+    dt, delay_steps = 0.002, 4
+    lag, rng = SetpointLag(delay_steps * dt, 0.015, dt), np.random.default_rng(2)
+    alpha = 1.0 - np.exp(-dt / 0.015)
+    sent, out = [np.zeros(3)] * delay_steps, np.zeros(3)
+    for _ in range(500):
+        value = rng.normal(0.0, 3.0, 3)
+        sent.append(value)
+        out = out + alpha * (sent[-1 - delay_steps] - out)
+        raw = value.tolist()
+        np.testing.assert_array_equal(lag.update_values(raw), out)
+        raw[0] = np.nan  # the caller's list is not kept: it may be reused
+    np.testing.assert_array_equal(lag.update(np.zeros(3)), out + alpha * (sent[-delay_steps] - out))
 
 
 # ---------------------------------------------------------------- rate loop
