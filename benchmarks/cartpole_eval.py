@@ -86,7 +86,7 @@ class EvalSettings:
     epochs: int = 50
     gp_points: int = 400
     # 20: with 5 (or 10) Ours' tau^2 scores from 1 to 100 lay within 1.3 % and the pick
-    # changed with 20 and 40, which agree (README, "Reproducing the paper's cartpole results").
+    # changed with 20 and 40, which agree (docs/cartpole.md).
     tuning_trials: int = 20
     ablations: bool = True
     seed: int = 0

@@ -16,7 +16,7 @@ Both changes of axes are proper rotations by 180 degrees, hence their own invers
 The attitude quaternion changes as ``q_ned_frd = q_ned_enu * q_enu_flu * q_flu_frd`` with
 the two constant rotations above (``*`` the Hamilton product). On a motion-capture world
 frame that is not aligned with north, "NED" here is the mocap frame with its axes changed
-this way: tell PX4 it is an arbitrary-heading frame (``LOCAL_FRD``), see the README.
+this way: tell PX4 it is an arbitrary-heading frame (``LOCAL_FRD``), see docs/px4.md.
 
 Thrust: PX4 maps normalised throttle ``s`` to thrust with the ``THR_MDL_FAC`` model
 ``T / T_max = fac * s^2 + (1 - fac) * s`` with ``T_max`` = 4 x the rotor's maximum thrust.
