@@ -1,7 +1,10 @@
-"""Host-side glue for ARCADE: the `arcade` command line, file formats and run folders.
+"""The `arcade` command line and the offline jobs it runs (training, demos, reports).
 
-The algorithms live in `arcade_core` (pure JAX); processes in `services`; the MuJoCo
-vehicle in `simulator`; launch and configuration in `deploy`.
+The algorithms live in `arcade_core` (pure JAX) and `arcade_control` (the closed-loop
+control library); files and configuration in `arcade_io`; processes in `services`; the
+MuJoCo vehicle in `simulator`; launch in `deploy`.
 """
 
-__version__ = "0.1.0"
+from arcade_io import __version__
+
+__all__ = ["__version__"]

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade import atomicfile, jsonout
+from arcade_io import atomicfile, jsonout
 
 
 def free_hub() -> str:

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade import atomicfile
+from arcade_io import atomicfile
 
 
 def write_outputs(out: Path, result: dict[str, Any], details: dict[str, Any]) -> dict[str, Any]:

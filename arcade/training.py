@@ -8,7 +8,7 @@ from pathlib import Path
 import jax
 from tqdm import tqdm
 
-from arcade.weights import save_model
+from arcade_io.weights import save_model
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "deploy" / "weights"
 CARTPOLE_WEIGHTS = WEIGHTS_DIR / "cartpole_vld.eqx"
@@ -79,13 +79,13 @@ def load_or_train(
     system: str | None = None,
     train_if_missing: bool = True,
 ) -> object:
-    """The VLD in ``path`` (``system``'s, when given: see ``arcade.weights.load_model``).
+    """The VLD in ``path`` (``system``'s, when given: see ``arcade_io.weights.load_model``).
 
     A missing file is trained and written by ``train(out=path)`` (saying so) when
     ``train_if_missing``, else ``FileNotFoundError``. A corrupt or foreign file raises
     ``WeightFileError``.
     """
-    from arcade.weights import load_model
+    from arcade_io.weights import load_model
 
     if not path.is_file():
         if not train_if_missing:

@@ -16,7 +16,7 @@ from pathlib import Path
 import jax
 
 from arcade.training import WEIGHTS_DIR, load_or_train, progress_callback
-from arcade.weights import save_model
+from arcade_io.weights import save_model
 
 QUADROTOR_WEIGHTS = WEIGHTS_DIR / "quadrotor_vld.eqx"
 #: How the shipped quadrotor weights are regenerated.

@@ -33,7 +33,7 @@ import time
 
 import numpy as np
 
-from arcade import jsonout
+from arcade_io import jsonout
 from benchmarks.common import machine, percentiles
 
 # One-step residual scales for the 13 quadrotor states (p, v, q, omega) at 20 Hz.
@@ -118,7 +118,7 @@ def _worker(job: dict) -> None:
 
     # Must precede the first JAX computation: it configures the CPU client.
     jax.config.update("jax_cpu_enable_async_dispatch", not job.pop("sync"))
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure(x64=False)
     print(json.dumps(_measure(**job)))

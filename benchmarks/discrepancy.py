@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from arcade import jsonout
+from arcade_io import jsonout
 from benchmarks.common import machine
 
 HIDDEN = {
@@ -92,8 +92,8 @@ def sweep_case(name: str, params: dict, seed: int = 0, duration: float = SWEEP_D
     """One sweep case: fly with only ``name`` injected, run the workflow told nothing."""
     from arcade.commands.discrepancy import run_workflow
     from arcade.commands.simulate import fly_quadrotor
-    from arcade.vehicle import load_vehicle
     from arcade_core.discrepancy.catalog import DETECTABLE, magnitude
+    from arcade_io.vehicle import load_vehicle
 
     veh = load_vehicle()
     if name == "wind":
@@ -190,13 +190,13 @@ def detection_limits(
     :data:`LIMIT_RATIO` (``sqrt(3)`` is where adding the effect would halve the held-out
     one-step RMSE with a perfect model).
     """
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure(x64=True)
     from arcade.commands import discrepancy as dc
     from arcade.commands.simulate import fly_quadrotor
-    from arcade.vehicle import load_vehicle
     from arcade_core.discrepancy.catalog import QUADROTOR_EFFECTS
+    from arcade_io.vehicle import load_vehicle
 
     settings = dc.Settings()
     out = {}
@@ -231,7 +231,7 @@ def detection_limits(
 
 def sweep(effects: list[str] | None = None, seed: int = 0, progress=None) -> dict:
     """Every case of :data:`SWEEP_CASES` (or of ``effects``); module docstring."""
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure(x64=True)
     rows = []
@@ -280,7 +280,7 @@ def _fmt(params: dict) -> str:
 
 def run(quick: bool = False) -> dict:
     """Time the workflow on 10 min (``quick``: 2 min) of simulated 100 Hz data."""
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure(x64=True)
     from arcade.commands.discrepancy import run_workflow

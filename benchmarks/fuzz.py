@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from arcade import jsonout
+from arcade_io import jsonout
 from benchmarks.common import machine
 
 TESTS = ("tests/test_fuzz_messages.py", "tests/test_fuzz_handlers.py")

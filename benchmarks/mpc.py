@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from arcade import jsonout
+from arcade_io import jsonout
 from benchmarks.common import machine, percentiles
 
 
@@ -54,7 +54,7 @@ def run(
     """
     if quick:
         steps = min(steps, 60)
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure(x64=False)
     import equinox as eqx

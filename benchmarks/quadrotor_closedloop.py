@@ -114,12 +114,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from arcade import atomicfile
 from arcade_core import adaptation, encoder, metrics, mpc
 from arcade_core.baselines import gp, l1, mlp
 from arcade_core.dynamics import quaternion as quat
 from arcade_core.dynamics.quadrotor import predict_over_delay, quadrotor_step
 from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff, flat_state
+from arcade_io import atomicfile
 from benchmarks import quadrotor_data as qd
 from benchmarks.common import machine
 from benchmarks.quadrotor_data import f_nom
@@ -776,7 +776,7 @@ class Carry(NamedTuple):
 
 def mpc_config(dtype) -> mpc.MPCConfig:
     """Appendix D MPC with the vehicle's actuator limits (thrust 16 N, rate limits)."""
-    from arcade.vehicle import load_vehicle
+    from arcade_io.vehicle import load_vehicle
 
     v = load_vehicle()
     rate = tuple(float(r) for r in v["rate_loop"]["max_rate_rad_s"])

@@ -52,9 +52,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from arcade import atomicfile
-from arcade.vehicle import load_vehicle, quadrotor_params
 from arcade_core.dynamics import quadrotor_step
+from arcade_io import atomicfile
+from arcade_io.vehicle import load_vehicle, quadrotor_params
 
 if TYPE_CHECKING:
     from scipy.interpolate import CubicHermiteSpline

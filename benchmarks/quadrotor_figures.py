@@ -15,7 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from arcade import atomicfile
+from arcade_io import atomicfile
 
 LABELS = {
     "nominal": "Nominal MPC",

@@ -134,7 +134,7 @@ def prepare_models(
     guard = None
     if vld_from_file:
         from arcade.training_quadrotor import QUADROTOR_WEIGHTS
-        from arcade.weights import load_model
+        from arcade_io.weights import load_model
         from benchmarks.quadrotor_closedloop import guard_from_metadata
 
         guard = guard_from_metadata(load_model(QUADROTOR_WEIGHTS)[2])

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from types import SimpleNamespace
 from typing import Any, NamedTuple
 
-from arcade import jsonout
+from arcade_io import jsonout
 from benchmarks.common import machine
 
 METHODS = ("l1", "ours")
@@ -34,7 +34,7 @@ def _progress(msg: str) -> None:
 def models() -> SimpleNamespace:
     """The shipped VLD and its guard: all that L1, ours and the variants need."""
     from arcade.training_quadrotor import QUADROTOR_WEIGHTS, load_quadrotor
-    from arcade.weights import load_model
+    from arcade_io.weights import load_model
     from benchmarks import quadrotor_closedloop as qc
 
     vld = load_quadrotor()
@@ -502,7 +502,7 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
 if __name__ == "__main__":
     import argparse
 
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.quadrotor_variants",

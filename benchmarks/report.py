@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade import atomicfile, jsonout
+from arcade_io import atomicfile, jsonout
 from benchmarks.common import machine
 
 RESULTS = Path("benchmarks") / "results"
@@ -852,7 +852,7 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
     _log("cartpole evaluation (minutes)")
     fig_dir = RESULTS / "cartpole"
     settings = cartpole_eval.EvalSettings.quick() if quick else cartpole_eval.EvalSettings()
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     with jaxsetup.x64(False):  # as `arcade eval cartpole` runs it, whatever ran before
         result = cartpole_eval.evaluate(settings, fig_dir, progress=_log)

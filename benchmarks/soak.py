@@ -47,7 +47,7 @@ import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-from arcade import jsonout
+from arcade_io import jsonout
 from benchmarks.common import machine
 
 D, L = 13, 8
@@ -335,8 +335,8 @@ def run(
     """``arcade bench soak``: 10^6 steps per dtype (``quick``: 2 x 10^4) with the quadrotor
     preset, and with Eq. 5 as written (no prior floor) if the preset has a floor;
     ``progress``: see :func:`soak`."""
-    from arcade import jaxsetup
     from arcade_core import adaptation as A
+    from arcade_io import jaxsetup
 
     jaxsetup.configure()
     n = steps if steps is not None else (20_000 if quick else 1_000_000)

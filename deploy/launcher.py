@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from arcade import jsonout, signals
+from arcade_io import jsonout, signals
 
 REPO = Path(__file__).resolve().parents[1]
 #: Start order; stop order is the reverse of the data flow (vehicle first, recorder last).

@@ -79,7 +79,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade import atomicfile
+from arcade_io import atomicfile
 from services import runtime
 from services.messages import MAX_VARIANCE, Event, Model, Residual, Setpoint, State
 
@@ -154,7 +154,7 @@ def load_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
     beam at the prior). A file that is not a quadrotor VLD raises ``WeightFileError``."""
     from types import SimpleNamespace
 
-    from arcade.weights import load_model
+    from arcade_io.weights import load_model
     from benchmarks import quadrotor_closedloop as cl
 
     vld, _, extra = load_model(weights, system="quadrotor")
@@ -194,9 +194,9 @@ class Adapter(runtime.Service):
         import jax
         import jax.numpy as jnp
 
-        from arcade.vehicle import load_vehicle, quadrotor_params
         from arcade_core import adaptation
         from arcade_core.dynamics import predict_over_delay, quadrotor_step
+        from arcade_io.vehicle import load_vehicle, quadrotor_params
 
         a = self.args
         self.jnp = jnp

@@ -168,7 +168,7 @@ class Px4Bridge(runtime.Service):
 
     def _init_state(self) -> None:
         """Limits, offboard state and counters (everything but the MAVLink link)."""
-        from arcade.vehicle import load_vehicle
+        from arcade_io.vehicle import load_vehicle
 
         a = self.args
         self.limits = Limits.from_vehicle(load_vehicle(a.vehicle_file), a.max_throttle)

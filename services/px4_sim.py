@@ -41,8 +41,8 @@ import argparse
 import math
 import time
 
-from arcade.px4_failsafe import add_failsafe_arguments, failsafe_settings
-from arcade.runs import number
+from arcade_io.px4_failsafe import add_failsafe_arguments, failsafe_settings
+from arcade_io.runs import number
 from services import runtime
 from services.messages import Command, Setpoint
 from services.sim_node import SimNode

@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from arcade import flightlog
+from arcade_io import flightlog
 from services import runtime
 from services.csvlog import StreamedCsv
 from services.messages import MESSAGE_TYPES, Message, Setpoint, State

@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from arcade import atomicfile, jsonout, signals
+from arcade_io import atomicfile, jsonout, signals
 from services.bus import DEFAULT_HUB, Bus, peer_config, read_config, zenoh_reason
 
 log = logging.getLogger("arcade.service")
@@ -159,7 +159,7 @@ def setup_logging(name: str, out: Path | None, level: str = "INFO") -> Path | No
 
 def setup_jax(x64: bool) -> None:
     """Persistent cache, precision and synchronous dispatch (faster for small calls)."""
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure(x64=x64)
     import jax

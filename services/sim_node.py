@@ -81,7 +81,7 @@ from pathlib import Path
 
 import numpy as np
 
-from arcade import flightlog
+from arcade_io import flightlog
 from services import runtime
 from services.csvlog import StreamedCsv
 from services.messages import Command, Event, Imu, Mocap, Setpoint, State

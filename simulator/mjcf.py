@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from arcade.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG
+from arcade_io.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG
 
 #: Name of the equality constraint that holds the cable at the electromagnet.
 RELEASE_EQUALITY = "magnet_lock"

@@ -35,7 +35,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from arcade.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG, load_vehicle
+from arcade_io.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG, load_vehicle
 from simulator.effects import Effects, drag_force_body, ground_effect_gain, load_effects
 from simulator.mjcf import (
     PAYLOAD_RADIUS,

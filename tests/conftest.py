@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from arcade import jaxsetup
+from arcade_io import jaxsetup
 
 jaxsetup.configure(x64=True)
 

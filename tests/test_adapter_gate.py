@@ -194,8 +194,8 @@ def test_with_a_link_delay_it_learns_between_the_states_predicted_over_it():
     """``--link-delay``: the setpoint answering state ``k-1`` is in flight at state ``k``;
     each state is learned as its prediction over the delay with that setpoint, variance
     included, and the first transition (no setpoint in flight known) is skipped."""
-    from arcade.vehicle import load_vehicle, quadrotor_params
     from arcade_core.dynamics import predict_over_delay
+    from arcade_io.vehicle import load_vehicle, quadrotor_params
 
     svc = make_adapter("--lockstep", "--link-delay", "0.02")
     seen = []

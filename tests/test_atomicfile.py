@@ -1,4 +1,4 @@
-"""Files are written whole or not at all (arcade.atomicfile)."""
+"""Files are written whole or not at all (arcade_io.atomicfile)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import stat
 import numpy as np
 import pytest
 
-from arcade import atomicfile, flightlog
+from arcade_io import atomicfile, flightlog
 
 
 def _leftovers(directory):

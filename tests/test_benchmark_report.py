@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from arcade import jsonout
+from arcade_io import jsonout
 from benchmarks import report
 
 

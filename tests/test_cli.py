@@ -151,7 +151,7 @@ def test_bench_help_gives_the_durations(capsys):
 
 
 def test_soak_reports_progress_per_tenth_of_its_chunks():
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure()
     from benchmarks import soak

@@ -113,7 +113,7 @@ def test_sim_bad_url_is_a_usage_error(workdir, monkeypatch, capsys):
 def test_sim_payload_within_the_rotors_lift_is_accepted(workdir):
     from arcade.cli import build_parser
     from arcade.commands.sim import check_arguments
-    from arcade.vehicle import load_vehicle, max_payload_g
+    from arcade_io.vehicle import load_vehicle, max_payload_g
 
     args = build_parser().parse_args(
         ["sim", "--px4", "udpout://127.0.0.1:14540", "--payload-g", "1000", "--release-at", "5"]
@@ -196,7 +196,7 @@ def test_discrepancy_checks_everything_before_making_a_run_folder(
     quad_log, monkeypatch, capsys, extra, expect
 ):
     _forbid(monkeypatch, "arcade.commands.discrepancy.run_workflow")
-    _forbid(monkeypatch, "arcade.runs.new_run_dir")
+    _forbid(monkeypatch, "arcade_io.runs.new_run_dir")
     assert _exit_code(["discrepancy", str(quad_log.name), *extra]) == 2
     assert expect in _error_line(capsys)
     assert not (quad_log.parent / "runs").exists()
@@ -329,7 +329,7 @@ def test_bench_variants_checks_out_first_and_writes_it_whole(tmp_path, monkeypat
 
 
 def test_invalid_toml_errors_name_the_file(workdir):
-    from arcade.vehicle import load_vehicle
+    from arcade_io.vehicle import load_vehicle
 
     with pytest.raises(ValueError, match=r"bad\.toml: not a valid TOML vehicle file"):
         load_vehicle(workdir / "bad.toml")

@@ -140,7 +140,7 @@ def test_service_out_of_restarts_error_quotes_its_output(tmp_path):
     (tmp_path / "logs").mkdir()
     (tmp_path / "logs" / "adapter.out").write_text(
         "Traceback (most recent call last):\n  File 'x', line 1\n"
-        "arcade.weights.WeightFileError: /tmp/q.csv: not an ARCADE VLD weight file (bad magic)\n"
+        "arcade_io.weights.WeightFileError: /tmp/q.csv: not an ARCADE VLD weight file (bad magic)\n"
     )
     proc = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
     stack._watch("adapter", proc)  # returns once the process ended: no restart left
@@ -333,7 +333,7 @@ def test_payload_heavier_than_the_bridges_vehicle_file_lifts_is_refused(
     elsewhere, capsys, monkeypatch
 ):
     """With --profile px4 the payload is checked against the bridge's --vehicle-file."""
-    from arcade.vehicle import DEFAULT_VEHICLE
+    from arcade_io.vehicle import DEFAULT_VEHICLE
 
     _forbid_flight(monkeypatch)
 

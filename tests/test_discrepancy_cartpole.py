@@ -138,7 +138,7 @@ def test_cartpole_log_errors_are_reported(tmp_path, capsys):
 
 
 def test_the_workflow_runs_in_float64_whatever_the_callers_setting():
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     log = fly_cartpole(None, 60.0, seed=5, system=CartpoleSim(seed=1005))
     with jaxsetup.x64(False):

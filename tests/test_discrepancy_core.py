@@ -12,7 +12,6 @@ import pytest
 
 from arcade import cli
 from arcade.commands.discrepancy import quad_model_from_vehicle
-from arcade.vehicle import load_vehicle
 from arcade_core.discrepancy import cartpole as cp
 from arcade_core.discrepancy import quadrotor as qm
 from arcade_core.discrepancy.catalog import (
@@ -32,6 +31,7 @@ from arcade_core.discrepancy.identify import (
 from arcade_core.discrepancy.localize import binned_rms, changepoints, segment_rms
 from arcade_core.dynamics.cartpole import cartpole_true_step
 from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_NOMINAL, CARTPOLE_TRUE
+from arcade_io.vehicle import load_vehicle
 from simulator import EFFECTS as SIM_EFFECTS
 
 QUAD_NAMES = {

@@ -21,10 +21,10 @@ import pytest
 from arcade import cli
 from arcade.commands.discrepancy import quad_model_from_vehicle, run_workflow
 from arcade.commands.simulate import fly_quadrotor
-from arcade.flightlog import from_arrays
-from arcade.vehicle import load_vehicle
 from arcade_core.discrepancy import quadrotor as qm
 from arcade_core.discrepancy.catalog import DETECTABLE, QUADROTOR_EFFECTS, magnitude
+from arcade_io.flightlog import from_arrays
+from arcade_io.vehicle import load_vehicle
 from simulator import QuadrotorSim
 
 DURATION_S = 90.0

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from arcade import weights
 from arcade_core import encoder as enc
+from arcade_io import weights
 
 C_TRUE = np.array([[1.0, 0.5], [-0.3, 2.0], [0.7, -1.0]])
 N_TRAIN = 1536

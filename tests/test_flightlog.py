@@ -7,7 +7,7 @@ import io
 import numpy as np
 import pytest
 
-from arcade.flightlog import LogError, columns, from_arrays, read_log, write_log
+from arcade_io.flightlog import LogError, columns, from_arrays, read_log, write_log
 
 
 def _quad_log(n=50, dt=0.01, seed=0):

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from arcade import jsonout
+from arcade_io import jsonout
 
 
 def _strict_loads(text: str):

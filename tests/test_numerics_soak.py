@@ -145,7 +145,7 @@ def test_lemma2_first_term_fails_after_tempering_in_unexcited_directions():
 def test_soak_leaves_the_float64_setting_as_it_found_it():
     """`arcade bench report` runs the soak before the cartpole evaluation in one process:
     the soak's float64 must not leak into it (it changed the cartpole numbers)."""
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     before = bool(jax.config.jax_enable_x64)
     with jaxsetup.x64(False):

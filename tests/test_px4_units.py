@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from arcade.vehicle import load_vehicle
+from arcade_io.vehicle import load_vehicle
 from services import px4_bridge, runtime
 from services.messages import Command, Event, Setpoint
 from services.px4_bridge import Px4Bridge

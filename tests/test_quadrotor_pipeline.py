@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from arcade.training_quadrotor import QUADROTOR_COMMAND, QUADROTOR_WEIGHTS
-from arcade.weights import load_model, read_header
 from arcade_core import adaptation, encoder
 from arcade_core.dynamics import quaternion as quat
+from arcade_io.weights import load_model, read_header
 from benchmarks import quadrotor_closedloop as cl
 from benchmarks import quadrotor_data as qd
 

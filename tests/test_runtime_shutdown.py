@@ -488,7 +488,7 @@ def test_a_stop_signal_while_the_main_thread_holds_the_event_lock_does_not_deadl
     code = textwrap.dedent(
         """
         import signal, threading
-        from arcade import signals
+        from arcade_io import signals
         stop = threading.Event()
         signal.signal(signal.SIGINT, lambda *_: signals.set_from_handler(stop))
         with stop._cond:  # where stop.set() and stop.wait() hold it

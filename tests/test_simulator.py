@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from arcade.vehicle import load_vehicle
+from arcade_io.vehicle import load_vehicle
 from simulator import GyroConfig, MocapConfig, QuadrotorSim
 from simulator.mjcf import rotor_geometry
 from simulator.rate_controller import Mixer, RateController, RateGains, SetpointLag

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from arcade.vehicle import load_vehicle
+from arcade_io.vehicle import load_vehicle
 from simulator import EFFECTS, GyroConfig, QuadrotorSim, load_effects
 from simulator.effects import ground_effect_gain
 

@@ -82,7 +82,7 @@ def in_process_rmse(monkeypatch, delay_s: float = 0.0) -> float:
     ``Q`` modulation from the moment-matched beam marginal (``moment_matched``) instead
     of the full beam, as a deployed controller receives it. ``delay_s``: a link delay,
     compensated (``Runner.fly``'s ``compensate_delay``)."""
-    from arcade.weights import load_model
+    from arcade_io.weights import load_model
     from benchmarks import quadrotor_closedloop as cl
     from services.adapter import stack_knobs
     from services.controller import moment_matched

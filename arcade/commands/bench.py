@@ -6,7 +6,7 @@ import argparse
 import importlib
 import sys
 
-from arcade import atomicfile, jsonout
+from arcade_io import atomicfile, jsonout
 
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
@@ -41,7 +41,7 @@ BENCHES = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from arcade.runs import count
+    from arcade_io.runs import count
 
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = DURATIONS
@@ -104,13 +104,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     if args.out is not None and args.which not in ("report", "variants"):
         print("error: --out belongs to `arcade bench report` and `variants`", file=sys.stderr)
         return 2
     if args.out is not None and args.which == "variants":
-        from arcade.runs import check_output_file
+        from arcade_io.runs import check_output_file
 
         try:
             check_output_file(args.out, "--out")
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             print("error: --json: `arcade bench report` writes a markdown file", file=sys.stderr)
             return 2
-        from arcade.runs import check_output_file
+        from arcade_io.runs import check_output_file
 
         out = args.out or "BENCHMARKS.md"
         try:
@@ -194,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _discrepancy_sweep(args: argparse.Namespace) -> int:
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
     from benchmarks import discrepancy
 
     if not (args.sweep or args.limits):

@@ -17,7 +17,7 @@ PAYLOAD_G, SPEED = 175.0, 2.5
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from arcade.runs import count, number
+    from arcade_io.runs import count, number
 
     p.add_argument(
         "--out",
@@ -78,12 +78,12 @@ def run_cartpole(args: argparse.Namespace) -> int:
     problem = out_problem(args.out)
     if problem is not None:
         return _error(problem)
-    from arcade import jaxsetup
-    from arcade.runs import new_run_dir
+    from arcade_io import jaxsetup
+    from arcade_io.runs import new_run_dir
 
     jaxsetup.configure()
     from arcade.training import load_cartpole
-    from arcade.weights import WeightFileError
+    from arcade_io.weights import WeightFileError
 
     try:  # a given file must load; the shipped one is trained first when it is missing
         vld = load_cartpole(args.weights)
@@ -114,7 +114,7 @@ def run_cartpole(args: argparse.Namespace) -> int:
 def payload_problem(payload_g: float | None) -> str | None:
     """Why the stack demo's payload is more than the shipped vehicle lifts, or None."""
     from arcade.commands.sim import payload_limit_problem
-    from arcade.vehicle import load_vehicle
+    from arcade_io.vehicle import load_vehicle
 
     return payload_limit_problem(load_vehicle(None), PAYLOAD_G if payload_g is None else payload_g)
 
@@ -122,9 +122,9 @@ def payload_problem(payload_g: float | None) -> str | None:
 def run(args: argparse.Namespace) -> int:
     if args.cartpole:
         return run_cartpole(args)
-    from arcade import jaxsetup
     from arcade.commands.up import out_problem, weights_problem
-    from arcade.runs import new_run_dir
+    from arcade_io import jaxsetup
+    from arcade_io.runs import new_run_dir
 
     problem = payload_problem(args.payload_g) or out_problem(args.out)
     if problem is not None:

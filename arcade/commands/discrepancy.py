@@ -1,6 +1,6 @@
 """`arcade discrepancy LOG` — where do model and data disagree, and which effect is missing.
 
-The workflow of design §6 on one flight log (CSV with the columns of :mod:`arcade.flightlog`,
+The workflow of design §6 on one flight log (CSV with the columns of :mod:`arcade_io.flightlog`,
 any constant rate):
 
 1. **Align**: predictions of the current model (the vehicle or model file: nominal model,
@@ -19,13 +19,13 @@ any constant rate):
    one-step gap, :func:`effect_visibility`) is reported as "below detectability" and not
    added (quadrotor; the library states each effect's limit on the standard trajectory).
 4. **Add**: an updated vehicle/model file with the effects in its ``[effects]`` table,
-   loadable by ``arcade.vehicle.load_vehicle``, the simulator and the JAX model.
+   loadable by ``arcade_io.vehicle.load_vehicle``, the simulator and the JAX model.
 5. **Show**: the log is split in time into blocks of 2 s; a ``--heldout`` fraction of
    them, spread evenly over the flight, is only evaluated, never fitted (so that the
    held-out part sees the same kinds of flight as the fitted part). Before/after one-step
    RMSE and multi-step CRMSE per component, plots and a short report in ``--out``.
 
-Inputs are a zero-order hold per row (:mod:`arcade.flightlog`: the setpoint in effect from
+Inputs are a zero-order hold per row (:mod:`arcade_io.flightlog`: the setpoint in effect from
 ``t`` to the next row). A log whose setpoint changed between rows (resampled without regard
 to the controller's instants) shows an apparent input lag, which the workflow will name.
 
@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade import atomicfile, jsonout
+from arcade_io import atomicfile, jsonout
 
 HELP = "find where a flight log and the model disagree, name the missing effect, show the fix"
 
@@ -91,13 +91,13 @@ MIN_FIT_WINDOWS = 50
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from arcade.flightlog import columns
-    from arcade.runs import count, number
+    from arcade_io.flightlog import columns
+    from arcade_io.runs import count, number
 
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = (
         "flight log columns (CSV with a header row, one row per sample at a constant rate,\n"
-        "SI units, world ENU, body FLU; extra columns are ignored; see arcade.flightlog):\n"
+        "SI units, world ENU, body FLU; extra columns are ignored; see arcade_io.flightlog):\n"
         f"  quadrotor: {', '.join(columns('quadrotor'))}\n"
         "      (u0 collective thrust [N], u1-u3 body-rate setpoints [rad/s], each in effect\n"
         "      from its row's t to the next row's)\n"
@@ -169,8 +169,8 @@ def quad_model_from_vehicle(vehicle: dict[str, Any]):
     """:class:`~arcade_core.discrepancy.quadrotor.QuadModel` of a vehicle file."""
     import jax.numpy as jnp
 
-    from arcade.vehicle import quadrotor_params
     from arcade_core.discrepancy.quadrotor import QuadModel
+    from arcade_io.vehicle import quadrotor_params
 
     rotors, rl = vehicle["rotors"], vehicle["rate_loop"]
     if rotors.get("layout", "x") != "x":
@@ -203,8 +203,8 @@ def quad_model_from_vehicle(vehicle: dict[str, Any]):
 def load_cartpole_file(path: str | Path | None) -> dict[str, Any]:
     """A cartpole model file (TOML ``[cartpole] M, m, L, g`` + ``[effects]``); ``None``:
     the Appendix D nominal model."""
-    from arcade.vehicle import read_toml
     from arcade_core.dynamics.params import CARTPOLE_NOMINAL as N
+    from arcade_io.vehicle import read_toml
 
     data: dict[str, Any] = {"cartpole": {"M": N.M, "m": N.m, "L": N.L, "g": N.g}}
     if path is not None:
@@ -372,14 +372,14 @@ def run_workflow(
     settings: Settings = Settings(),
     progress=None,
 ) -> Outcome:
-    """The discrepancy workflow on a :class:`~arcade.flightlog.FlightLog` (module docstring).
+    """The discrepancy workflow on a :class:`~arcade_io.flightlog.FlightLog` (module docstring).
 
     Writes the model file, plots and report into ``out`` when it is given. Runs in float64
     whatever the caller's JAX setting, as the command line does (the setting is restored
     after it), so that its numbers do not depend on the caller: in float32 they differ in
     the third or fourth digit, and the secants' scoring overflows.
     """
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     with jaxsetup.x64():
         return _run_workflow(log, system, vehicle, out, settings, progress)
@@ -392,7 +392,7 @@ def _run_workflow(log, system, vehicle, out, settings, progress) -> Outcome:
     say = progress or (lambda _msg: None)
     check_settings(log, system, settings)
     if system == "quadrotor":
-        from arcade.vehicle import load_vehicle
+        from arcade_io.vehicle import load_vehicle
 
         veh = vehicle if isinstance(vehicle, dict) else load_vehicle(vehicle)
         vehicle_path = None if isinstance(vehicle, dict) else vehicle
@@ -764,7 +764,7 @@ def write_model_file(
         name = sysm.groups[j][0]
         effects[name] = _clip_to_spec(system, name, sysm.effect_params(ident.theta, name))
     if system == "quadrotor":
-        from arcade.vehicle import DEFAULT_VEHICLE
+        from arcade_io.vehicle import DEFAULT_VEHICLE
 
         src = Path(vehicle_path) if vehicle_path is not None else DEFAULT_VEHICLE
         base = _strip_effects(src.read_text()) if src.is_file() else ""
@@ -788,7 +788,7 @@ def _log_system(path: Path) -> str | None:
     """The system whose columns the header of the CSV at ``path`` has (``None``: neither)."""
     import csv
 
-    from arcade.flightlog import columns
+    from arcade_io.flightlog import columns
 
     try:
         with path.open(newline="") as f:
@@ -806,7 +806,7 @@ def check_model_file(system: str, path: Path | None) -> None:
     from arcade.commands.simulate import validate_tables
 
     if system == "quadrotor":
-        from arcade.vehicle import load_vehicle
+        from arcade_io.vehicle import load_vehicle
 
         veh = load_vehicle(path)
         if veh["rotors"].get("layout", "x") != "x":
@@ -833,8 +833,8 @@ def effect_line(effect: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from arcade.flightlog import LogError, read_log
-    from arcade.runs import check_output_dir, check_runs_root, new_run_dir
+    from arcade_io.flightlog import LogError, read_log
+    from arcade_io.runs import check_output_dir, check_runs_root, new_run_dir
 
     settings = Settings(
         step_s=args.step, heldout=args.heldout, horizon_s=args.horizon,
@@ -863,7 +863,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure(x64=True)
     out = args.out or new_run_dir(f"discrepancy-{args.system}")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from arcade import jsonout
+from arcade_io import jsonout
 
 HELP = "list the library of physical effects (name, parameters with units and ranges)"
 

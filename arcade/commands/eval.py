@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from arcade import atomicfile, jsonout
+from arcade_io import atomicfile, jsonout
 
 HELP = (
     "reproduce the paper's evaluations, all methods in one run (cartpole: Table I, Fig. 3, "
@@ -16,7 +16,7 @@ HELP = (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from arcade.runs import count
+    from arcade_io.runs import count
 
     p.add_argument("system", choices=["cartpole", "quadrotor"], help="which evaluation")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
@@ -39,8 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from arcade import jaxsetup
-    from arcade.runs import check_output_dir, check_runs_root, new_run_dir
+    from arcade_io import jaxsetup
+    from arcade_io.runs import check_output_dir, check_runs_root, new_run_dir
 
     # The output folder is checked before the (long) evaluation starts.
     try:

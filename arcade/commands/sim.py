@@ -15,14 +15,14 @@ import sys
 import time
 from pathlib import Path
 
-from arcade import signals
-from arcade.px4_failsafe import add_failsafe_arguments, failsafe_settings
+from arcade_io import signals
+from arcade_io.px4_failsafe import add_failsafe_arguments, failsafe_settings
 
 HELP = "run the simulator alone as a PX4 vehicle on MAVLink (MAVSDK/QGC can fly it)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from arcade.runs import count, number
+    from arcade_io.runs import count, number
 
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = (
@@ -128,7 +128,7 @@ def status_line(v) -> str:
 
 def payload_limit_problem(vehicle: dict, payload_g: float) -> str | None:
     """Why ``payload_g`` is more than ``vehicle`` lifts at full thrust (one line), or None."""
-    from arcade.vehicle import max_payload_g
+    from arcade_io.vehicle import max_payload_g
 
     limit = max_payload_g(vehicle)
     if payload_g >= limit:
@@ -142,7 +142,7 @@ def payload_limit_problem(vehicle: dict, payload_g: float) -> str | None:
 def check_arguments(args: argparse.Namespace) -> dict:
     """The vehicle file, checked with the options that depend on it; ``ValueError`` /
     ``FileNotFoundError`` with a one-line message otherwise (nothing has started yet)."""
-    from arcade.vehicle import load_vehicle
+    from arcade_io.vehicle import load_vehicle
     from simulator.px4.link import parse_url
 
     try:

@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade import jsonout
+from arcade_io import jsonout
 
 HELP = "fly a standard exciting trajectory in the simulator with effects injected; write a log"
 
@@ -85,7 +85,7 @@ CARTPOLE_NOISE = np.array([1e-3, 0.01, 1e-3, 0.01])
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from arcade.runs import count, number
+    from arcade_io.runs import count, number
 
     p.add_argument(
         "--system",
@@ -247,7 +247,7 @@ def pilot_gains(vehicle: dict[str, Any], effects: dict[str, Any]) -> dict[str, A
     its thrust must not be banked at 50 deg). ``slowdown`` is ``(s_horizontal,
     s_vertical)``.
     """
-    from arcade.vehicle import quadrotor_params
+    from arcade_io.vehicle import quadrotor_params
 
     rl, rot = vehicle["rate_loop"], vehicle["rotors"]
     tau_rate = float(rl["time_constant_s"])
@@ -291,10 +291,10 @@ def fly_quadrotor(
     """Fly the standard exciting trajectory with ``effects`` injected; the noisy 100 Hz log.
 
     ``effects`` are tables by canonical name (merged over the vehicle file's ``[effects]``).
-    Returns a :class:`arcade.flightlog.FlightLog`.
+    Returns a :class:`arcade_io.flightlog.FlightLog`.
     """
-    from arcade.flightlog import from_arrays
-    from arcade.vehicle import load_vehicle, quadrotor_params
+    from arcade_io.flightlog import from_arrays
+    from arcade_io.vehicle import load_vehicle, quadrotor_params
     from benchmarks.quadrotor_data import (
         CONTROL_DT,
         EXCITATION_STD,
@@ -424,9 +424,9 @@ def fly_cartpole(
     import jax
     import jax.numpy as jnp
 
-    from arcade.flightlog import from_arrays
     from arcade_core.discrepancy import cartpole as cp
     from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_NOMINAL
+    from arcade_io.flightlog import from_arrays
 
     tables = validate_tables("cartpole", effects or {})
     model = cp.CartpoleModel.from_params(CARTPOLE_NOMINAL)
@@ -511,7 +511,7 @@ def validate_tables(system: str, tables: dict[str, Any]) -> dict[str, dict[str, 
 
 def read_effects_file(path: str | Path) -> dict[str, Any]:
     """Effect tables of an effects file (or of a model file's ``[effects]`` table)."""
-    from arcade.vehicle import read_toml
+    from arcade_io.vehicle import read_toml
 
     tables = read_toml(path, "effects file")
     return dict(tables.get("effects", tables))
@@ -526,7 +526,7 @@ def _check_tables(system: str, tables: dict[str, Any], path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from arcade.runs import check_output_file
+    from arcade_io.runs import check_output_file
 
     # Everything the flight needs is checked before it starts.
     try:
@@ -537,7 +537,7 @@ def run(args: argparse.Namespace) -> int:
         _check_tables(args.system, tables, args.effects)
         vehicle = None
         if args.system == "quadrotor":
-            from arcade.vehicle import DEFAULT_VEHICLE, load_vehicle
+            from arcade_io.vehicle import DEFAULT_VEHICLE, load_vehicle
 
             vehicle = load_vehicle(args.vehicle)
             _check_tables("quadrotor", vehicle.get("effects", {}), args.vehicle or DEFAULT_VEHICLE)
@@ -545,10 +545,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure(x64=True)
-    from arcade.flightlog import write_log
+    from arcade_io.flightlog import write_log
 
     try:
         if args.system == "quadrotor":

@@ -14,7 +14,7 @@ EPOCHS = {"cartpole": 50, "quadrotor": 100}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from arcade.runs import count
+    from arcade_io.runs import count
 
     p.add_argument(
         "--system",
@@ -44,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure()
     from arcade import training
@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         print("error: --deterministic is only available for the cartpole", file=sys.stderr)
         return 2
     if args.out is not None:
-        from arcade.runs import check_output_file
+        from arcade_io.runs import check_output_file
 
         try:
             check_output_file(args.out, "--out")

@@ -11,7 +11,7 @@ HELP = "launch the service stack as processes over Zenoh (profile sim or px4)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from arcade.runs import count, number
+    from arcade_io.runs import count, number
 
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = (
@@ -261,7 +261,7 @@ def payload_problem(args: argparse.Namespace) -> str | None:
     """Why ``--payload-g`` is more than the vehicle lifts (the shipped vehicle, or the
     bridge's ``--vehicle-file``), or None."""
     from arcade.commands.sim import payload_limit_problem
-    from arcade.vehicle import load_vehicle
+    from arcade_io.vehicle import load_vehicle
 
     vehicle_file = None
     if args.profile == "px4" and args.bridge_arg:
@@ -371,7 +371,7 @@ def service_args_problem(cfg) -> str | None:
 
 def out_problem(out: Path | None) -> str | None:
     """Why the run folder (``--out``, else one under the runs root) cannot be made, or None."""
-    from arcade.runs import check_output_dir, check_runs_root
+    from arcade_io.runs import check_output_dir, check_runs_root
 
     try:
         if out is not None:
@@ -391,10 +391,10 @@ def weights_problem(path: Path | None) -> tuple[str, int] | None:
 
     if path is None and not DEFAULT_WEIGHTS.is_file():
         return None
-    from arcade import jaxsetup
+    from arcade_io import jaxsetup
 
     jaxsetup.configure()
-    from arcade.weights import weight_file_problem
+    from arcade_io.weights import weight_file_problem
 
     problem = weight_file_problem(DEFAULT_WEIGHTS if path is None else path, "quadrotor")
     if problem is None:
@@ -475,7 +475,7 @@ def run(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from arcade.runs import new_run_dir
+    from arcade_io.runs import new_run_dir
     from deploy.launcher import StackError, last_output, run_flight, sigterm_interrupts
 
     cfg = stack_config(args, args.out or new_run_dir("up"), configs, grouped)

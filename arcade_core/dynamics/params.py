@@ -1,7 +1,7 @@
 """Physical parameters of the nominal models, as immutable pytrees.
 
 The files that hold these numbers (vehicle TOML files) are read outside the core, by
-``arcade.vehicle``; the core only sees arrays.
+``arcade_io.vehicle``; the core only sees arrays.
 """
 
 from __future__ import annotations

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from arcade.px4_failsafe import LOSS_ACTIONS
+from arcade_io.px4_failsafe import LOSS_ACTIONS
 from services.px4_frames import (
     ThrustCurve,
     flu_to_frd,

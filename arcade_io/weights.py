@@ -33,8 +33,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from arcade import __version__, atomicfile
 from arcade_core.encoder import VLD, EncoderConfig
+from arcade_io import __version__, atomicfile
 
 MAGIC = b"ARCADE-VLD\n"
 FORMAT_VERSION = 1

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from arcade.runs import number
+from arcade_io.runs import number
 
 #: ``--of-loss-action`` name -> ``COM_OBL_RC_ACT`` value (PX4's codes; the simulated
 #: vehicle maps them to its modes, :data:`simulator.px4.vehicle.OFFBOARD_LOSS_ACTIONS`).

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from arcade import atomicfile
+from arcade_io import atomicfile
 
 STATE_COLUMNS = {
     "quadrotor": ("px", "py", "pz", "vx", "vy", "vz", "qw", "qx", "qy", "qz", "wx", "wy", "wz"),
