@@ -21,15 +21,15 @@ demo: $(STAMP)
 # Unit and property tests share the cores (one worker per test file, so per-file fixtures
 # are built once); the integration tests run real-time loops and run alone so that their
 # timing assertions are not measured on a starved CPU.
-test: $(STAMP)
-	$(VENV)/bin/ruff check .
-	$(VENV)/bin/ruff format --check .
+test: lint
 	$(PY) -m pytest -q -m "not integration" -n 2 --dist loadfile
 	$(PY) -m pytest -q -m integration
 
+# ruff, then the import contract of design §2 (pyproject.toml's [tool.importlinter]).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/lint-imports --no-cache
 
 # Regenerates BENCHMARKS.md from measurements on this machine (slow: minutes).
 benchmarks: $(STAMP)

@@ -16,11 +16,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from arcade_control import cartpole as cd
 from arcade_core import adaptation, metrics, mpc
 from arcade_core.dynamics.cartpole import cartpole_nominal_step, cartpole_true_step
 from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_TRUE
 from arcade_io import atomicfile, jsonout
-from benchmarks import cartpole_data as cd
 
 
 def _controller():

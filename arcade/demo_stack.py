@@ -3,7 +3,7 @@
 The simulator, estimator, adapter, controller and recorder run as separate processes on
 a private Zenoh hub (:mod:`deploy.launcher`). The flight: take-off, hover, two laps of the
 figure-eight with a swinging payload that is released just before the second lap
-(:class:`benchmarks.quadrotor_closedloop.Scenario`). Afterwards the ground truth of the
+(:class:`arcade_control.scenario.Scenario`). Afterwards the ground truth of the
 simulator gives the metrics of ``arcade_core.metrics`` (tracking RMSE and z-RMSE over the
 figure-eight, shift magnitude and 5 cm settling time of the z error at the release) and the
 adapter's changepoint events give the detection delay. The run folder holds the plot,
@@ -40,7 +40,7 @@ def truth_metrics(
     truth: dict[str, np.ndarray], t_figure: float, t_release: float | None
 ) -> dict[str, float]:
     """RMSE and z-RMSE from ``t_figure`` on; shift and settling at ``t_release`` (as the
-    in-process evaluation computes them, ``benchmarks.quadrotor_closedloop.flight_metrics``)."""
+    in-process evaluation computes them, ``benchmarks.quadrotor_flights.flight_metrics``)."""
     import jax.numpy as jnp
 
     from arcade_core import metrics
@@ -113,7 +113,7 @@ def run_demo(
     (``arcade up --link-delay``)."""
     from tqdm import tqdm
 
-    from benchmarks.quadrotor_closedloop import Scenario
+    from arcade_control.scenario import Scenario
     from deploy.launcher import StackConfig, run_flight, sigterm_interrupts
 
     scen = Scenario(payload_g=payload_g, speed_mps=speed)

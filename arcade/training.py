@@ -37,8 +37,8 @@ def train_cartpole(
     T: int = 100,
 ) -> Path:
     """Simulate the paper's offline dataset (Appendix D) and fit the VLD on all of it."""
+    from arcade_control import cartpole as cd
     from arcade_core import adaptation, encoder
-    from benchmarks import cartpole_data as cd
 
     key = jax.random.PRNGKey(seed)
     k_data, k_train = jax.random.split(key)

@@ -1,6 +1,6 @@
 """`arcade train --system quadrotor`: the quadrotor VLD of Sec. III-A / Appendix D.
 
-Data: the expert flights of :mod:`benchmarks.quadrotor_data` (rigid payloads of 10, 100
+Data: the expert flights of :mod:`simulator.expert_flights` (rigid payloads of 10, 100
 and 200 g, 3 min each, 100 Hz logs; residuals at the 0.05 s control period). Model: the
 Appendix D preset (MLP [64, 128, 64], ELU, l = 8, KL weight 0.1, Adam 1e-3, batch 256,
 100 epochs). After training, the residual scale is calibrated so that the online
@@ -34,15 +34,16 @@ def train_quadrotor(
 
     Returns the path written (default ``deploy/weights/quadrotor_vld.eqx``).
     """
+    from arcade_control.guard import compute_guard, guard_to_metadata
+    from arcade_control.nominal import CONTROL_DT
     from arcade_core import adaptation, encoder
-    from benchmarks import quadrotor_data as qd
-    from benchmarks.quadrotor_closedloop import compute_guard, guard_to_metadata
+    from simulator.expert_flights import TRAIN_PAYLOADS_G, make_dataset
 
     def say(msg: str) -> None:
         if progress:
             print(msg, file=sys.stderr)
 
-    data = qd.make_dataset(
+    data = make_dataset(
         seed=seed, minutes_per_payload=minutes_per_payload, progress=say if progress else None
     )
     x, u, delta = data["x"], data["u"], data["delta"]
@@ -50,8 +51,8 @@ def train_quadrotor(
     if epochs is not None:
         cfg = cfg._replace(epochs=int(epochs))
     say(
-        f"training on {x.shape[0]} transitions at {qd.CONTROL_DT} s "
-        f"(payloads {', '.join(f'{p:g}' for p in qd.TRAIN_PAYLOADS_G)} g)"
+        f"training on {x.shape[0]} transitions at {CONTROL_DT} s "
+        f"(payloads {', '.join(f'{p:g}' for p in TRAIN_PAYLOADS_G)} g)"
     )
     callback = progress_callback(cfg.epochs, "train quadrotor VLD") if progress else None
     key = jax.random.fold_in(jax.random.PRNGKey(seed), 1)
@@ -68,11 +69,11 @@ def train_quadrotor(
         extra={
             "system": "quadrotor",
             "data": (
-                f"expert flights with rigid payloads {list(qd.TRAIN_PAYLOADS_G)} g, "
+                f"expert flights with rigid payloads {list(TRAIN_PAYLOADS_G)} g, "
                 f"{minutes_per_payload:g} min each, MuJoCo simulator, seed {seed}; "
-                f"{x.shape[0]} transitions at the {qd.CONTROL_DT} s control period"
+                f"{x.shape[0]} transitions at the {CONTROL_DT} s control period"
             ),
-            "control_dt": qd.CONTROL_DT,
+            "control_dt": CONTROL_DT,
             "residual": "x(t + control_dt) - f_nom(x(t), u(t)), nominal RK4 over control_dt",
             "final_train_loss": float(history.train_loss[-1]),
             "command": QUADROTOR_COMMAND,

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from arcade_core.dynamics import quaternion as quat
+from arcade_core import frames as quat
 
 #: Frames fused per control period at most (120 Hz mocap at >= 20 Hz control: <= 6).
 MAX_FRAMES = 16
@@ -204,10 +204,6 @@ def predict(state: FilterState, t: ArrayLike, config: FilterConfig) -> FilterSta
     )
 
 
-def _angle_between(a: Array, b: Array) -> Array:
-    return 2.0 * jnp.arccos(jnp.clip(jnp.abs(jnp.dot(a, b)), 0.0, 1.0))
-
-
 def update(
     state: FilterState,
     stamp: ArrayLike,
@@ -243,7 +239,7 @@ def update(
         state.initialised, q_meas, quat.align(quaternion, jnp.array([1.0, 0.0, 0.0, 0.0], dtype))
     )
     close = (d2 <= config.gate_chi2) | (jnp.sum(nu * nu) <= config.gate_floor_m**2)
-    in_gate = close & (_angle_between(q_pred, q_meas) <= config.gate_angle_rad)
+    in_gate = close & (quat.angle_between(q_pred, q_meas) <= config.gate_angle_rad)
     in_order = (stamp > state.t) | ~state.initialised
     reinit = ~state.initialised | (state.rejects + 1 >= config.max_rejects)
     accept = in_order & (in_gate | reinit)

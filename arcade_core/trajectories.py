@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from arcade_core.dynamics import quaternion as quat
+from arcade_core import frames as quat
 from arcade_core.dynamics.params import QuadrotorParams
 
 _ARC_SAMPLES = 2048  # midpoint-rule samples for the figure-eight arc length

@@ -12,9 +12,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from arcade_control import cartpole as cd
 from arcade_core import adaptation
 from arcade_io import atomicfile
-from benchmarks import cartpole_data as cd
 
 LABELS = ("x [m]", "xdot [m/s]", "theta [rad]", "thetadot [rad/s]")
 

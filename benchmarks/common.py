@@ -1,11 +1,15 @@
-"""Shared helpers for benchmarks: machine description and latency statistics."""
+"""Shared by the benchmarks: machine description, latency statistics, the results folder."""
 
 from __future__ import annotations
 
 import os
 import platform
+from pathlib import Path
 
 import numpy as np
+
+#: Where the benchmarks and evaluations write their results and figures (repository-relative).
+RESULTS = Path("benchmarks") / "results"
 
 
 def machine() -> str:

@@ -26,8 +26,15 @@ import time
 
 import numpy as np
 
-from arcade_io import jsonout
+from arcade_core.discrepancy import quadrotor as qm
+from arcade_core.discrepancy.catalog import DETECTABLE, QUADROTOR_EFFECTS, magnitude
+from arcade_core.discrepancy.settings import Settings, fit_windows
+from arcade_core.discrepancy.workflow import effect_visibility, noise_levels
+from arcade_io import jaxsetup, jsonout
+from arcade_io.discrepancy import discrepancy_model, run_workflow
+from arcade_io.vehicle import load_vehicle
 from benchmarks.common import machine
+from simulator.log_flights import fly_quadrotor
 
 HIDDEN = {
     "rotor_drag": {"d": [0.6, 0.5, 0.15]},
@@ -90,11 +97,6 @@ def _rel_error(true: dict, found: dict) -> float:
 
 def sweep_case(name: str, params: dict, seed: int = 0, duration: float = SWEEP_DURATION_S):
     """One sweep case: fly with only ``name`` injected, run the workflow told nothing."""
-    from arcade.commands.discrepancy import run_workflow
-    from arcade.commands.simulate import fly_quadrotor
-    from arcade_core.discrepancy.catalog import DETECTABLE, magnitude
-    from arcade_io.vehicle import load_vehicle
-
     veh = load_vehicle()
     if name == "wind":
         veh["effects"] = {"rotor_drag": {"d": WIND_VEHICLE_DRAG}}
@@ -157,15 +159,12 @@ LIMIT_DIRECTIONS = {
 
 def _limit(ctx: dict, name: str, direction, hi: float) -> float:
     """Smallest magnitude in ``direction`` at which ``name`` halves the gap (bisection)."""
-    from arcade.commands import discrepancy as dc
-    from arcade_core.discrepancy import quadrotor as qm
-
     sysm = ctx["sysm"]
 
     def visibility(m: float) -> float:
         tables = {**sysm.effect_tables, name: direction(m)}
         th = np.asarray(qm.theta_from_effects(sysm.model, tables))
-        return dc.effect_visibility(
+        return effect_visibility(
             sysm, ctx["X"], ctx["U"], ctx["dt"], ctx["starts"], ctx["H"], th, name,
             ctx["sigma"], ctx["pred0"],
         )  # fmt: skip
@@ -186,19 +185,12 @@ def detection_limits(
 
     A flight with no effect (for wind: with the wind cases' vehicle drag) at the standard
     sensor noise; the workflow's noise levels on it; per effect the smallest magnitude at
-    which :func:`arcade.commands.discrepancy.effect_visibility` reaches
+    which :func:`arcade_core.discrepancy.workflow.effect_visibility` reaches
     :data:`LIMIT_RATIO` (``sqrt(3)`` is where adding the effect would halve the held-out
     one-step RMSE with a perfect model).
     """
-    from arcade_io import jaxsetup
-
     jaxsetup.configure(x64=True)
-    from arcade.commands import discrepancy as dc
-    from arcade.commands.simulate import fly_quadrotor
-    from arcade_core.discrepancy.catalog import QUADROTOR_EFFECTS
-    from arcade_io.vehicle import load_vehicle
-
-    settings = dc.Settings()
+    settings = Settings()
     out = {}
     for wind in (False, True):
         if effects and not any((n == "wind") == wind for n in effects):
@@ -207,15 +199,14 @@ def detection_limits(
         if wind:
             veh["effects"] = {"rotor_drag": {"d": WIND_VEHICLE_DRAG}}
         log = fly_quadrotor({}, duration, seed=seed, vehicle=veh)
-        outcome = dc.run_workflow(log, "quadrotor", vehicle=veh)
-        sysm = dc._System("quadrotor", veh)
+        outcome = run_workflow(log, "quadrotor", vehicle=veh)
+        sysm = discrepancy_model("quadrotor", veh)
         X, U, dt = log.X, log.U, log.dt
         H = round(settings.step_s / dt)
-        blocks = dc.split_blocks(len(log), round(settings.heldout_block_s / dt), settings.heldout)
-        starts = dc._block_windows(blocks, False, round(settings.burn_in_s / dt), H, H)
+        starts = fit_windows(settings, "quadrotor", len(log), dt)
         ctx = {
             "sysm": sysm, "X": X, "U": U, "dt": dt, "H": H, "starts": starts,
-            "sigma": dc.noise_levels(
+            "sigma": noise_levels(
                 sysm, X, U, dt, starts, H, outcome.details["identification"].theta_selected
             ),
             "pred0": sysm.predict(sysm.theta_base, X, U, starts, H, dt)[:, -1],
@@ -231,8 +222,6 @@ def detection_limits(
 
 def sweep(effects: list[str] | None = None, seed: int = 0, progress=None) -> dict:
     """Every case of :data:`SWEEP_CASES` (or of ``effects``); module docstring."""
-    from arcade_io import jaxsetup
-
     jaxsetup.configure(x64=True)
     rows = []
     for name, cases in SWEEP_CASES.items():
@@ -280,12 +269,7 @@ def _fmt(params: dict) -> str:
 
 def run(quick: bool = False) -> dict:
     """Time the workflow on 10 min (``quick``: 2 min) of simulated 100 Hz data."""
-    from arcade_io import jaxsetup
-
     jaxsetup.configure(x64=True)
-    from arcade.commands.discrepancy import run_workflow
-    from arcade.commands.simulate import fly_quadrotor
-
     minutes = 2.0 if quick else 10.0
     t0 = time.perf_counter()
     log = fly_quadrotor(HIDDEN, 60.0 * minutes, seed=0)

@@ -23,7 +23,7 @@ from typing import Any
 from arcade_io import jsonout
 from benchmarks.common import machine
 
-TESTS = ("tests/test_fuzz_messages.py", "tests/test_fuzz_handlers.py")
+TESTS = ("tests/property/test_fuzz_messages.py", "tests/property/test_fuzz_handlers.py")
 
 
 def run(

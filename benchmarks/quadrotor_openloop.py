@@ -1,7 +1,7 @@
 """Open-loop validation on quadrotor flights (Sec. V-B, Table II, Fig. 4).
 
 All methods are trained on the expert flights with rigid payloads of 10, 100 and 200 g
-(:func:`benchmarks.quadrotor_data.make_dataset`) and run *online* over the disjoint
+(:func:`simulator.expert_flights.make_dataset`) and run *online* over the disjoint
 validation flights with 75, 125 and 175 g (no control is applied: the logged inputs are
 replayed). At every control step ``k`` a method predicts ``x_{k+1}`` from ``(x_k, u_k)``
 with what it knew after step ``k - 1``, then sees ``x_{k+1}`` and updates by its own rule:
@@ -38,10 +38,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from arcade_control.guard import compute_guard
+from arcade_control.learners import no_cp_config
+from arcade_control.nominal import CONTROL_DT, f_nom
 from arcade_core import adaptation, encoder, metrics
 from arcade_core.baselines import gp, mlp, proto, sysid
-from benchmarks import quadrotor_data as qd
-from benchmarks.quadrotor_data import f_nom
+from simulator.expert_flights import (
+    TRAIN_PAYLOADS_G,
+    VAL_PAYLOADS_G,
+    flight_transitions,
+    make_dataset,
+    make_validation,
+)
 
 MLP_LR_GRID = (1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
 PAPER_MLP_LR = 1e-6
@@ -82,7 +90,7 @@ def prepare_models(
     """
     from arcade.training_quadrotor import load_quadrotor
 
-    data = qd.make_dataset(seed=seed, progress=progress)
+    data = make_dataset(seed=seed, progress=progress)
     x, u, delta = (jnp.asarray(data[k]) for k in ("x", "u", "delta"))
     vld_from_file = vld is None
     if vld is None:
@@ -103,7 +111,7 @@ def prepare_models(
     steps = 500 if quick else 3000
     progress(f"training the Proto-MPC baseline ({steps} steps)")
     pay = np.asarray(data["transition_payload_g"])
-    tasks = tuple(float(p) for p in qd.TRAIN_PAYLOADS_G)
+    tasks = tuple(float(p) for p in TRAIN_PAYLOADS_G)
     task = jnp.asarray(np.searchsorted(np.asarray(tasks), pay))
     pm = proto.init_model(jax.random.fold_in(key, 1), x, u, delta, tasks)
     pm = proto.train(
@@ -118,7 +126,7 @@ def prepare_models(
     )
 
     progress("tuning the MLP online learning rate on a separate flight")
-    tune = qd.make_validation(
+    tune = make_validation(
         seed=seed + 1000, minutes_per_payload=0.5, payloads_g=(TUNING_PAYLOAD_G,), progress=progress
     )
     tuning = {}
@@ -134,10 +142,13 @@ def prepare_models(
     guard = None
     if vld_from_file:
         from arcade.training_quadrotor import QUADROTOR_WEIGHTS
+        from arcade_control.guard import guard_from_metadata
         from arcade_io.weights import load_model
-        from benchmarks.quadrotor_closedloop import guard_from_metadata
 
         guard = guard_from_metadata(load_model(QUADROTOR_WEIGHTS)[2])
+    if guard is None:  # what the weights file would carry: the training flights' range
+        data = make_dataset()
+        guard = compute_guard(vld, data["x"], data["u"], data["delta"])
     return Models(vld, net, float(best), tuning, gpm, sid, stats, guard=guard, proto=pm)
 
 
@@ -191,11 +202,6 @@ def run_proto(model: proto.ProtoResidual, X, U, Xn):
     return jax.lax.scan(body, proto.init(model), (X, U, Xn))[1]
 
 
-def no_cp_config(cfg: adaptation.AdaptationConfig) -> adaptation.AdaptationConfig:
-    """Ours without changepoints: a single hypothesis that never tempers (Appendix D 5)."""
-    return adaptation.AdaptationConfig(K=1, pi=0.0, beta=1.0, tau2=cfg.tau2, sigma2=cfg.sigma2)
-
-
 def predictors(m: Models) -> dict[str, Callable]:
     """``name -> fn(X, U, Xn) -> Xhat`` one-step predictions over a flight."""
     cfg = adaptation.quadrotor_config()
@@ -241,13 +247,13 @@ def run_openloop(
     """
     t0 = time.perf_counter()
     m = models if models is not None else prepare_models(quick, seed, progress)
-    val = qd.make_validation(seed=seed, progress=progress)
-    n_keep = int((20.0 if quick else 60.0) / qd.CONTROL_DT)
+    val = make_validation(seed=seed, progress=progress)
+    n_keep = int((20.0 if quick else 60.0) / CONTROL_DT)
     preds = predictors(m)
     table: dict[str, dict[str, Any]] = {}
     gram = None
-    for i, pay in enumerate(qd.VAL_PAYLOADS_G):
-        X, U, Xn, _ = (a[:n_keep] for a in qd.flight_transitions(val, i))
+    for i, pay in enumerate(VAL_PAYLOADS_G):
+        X, U, Xn, _ = (a[:n_keep] for a in flight_transitions(val, i))
         X, U, Xn = jnp.asarray(X), jnp.asarray(U), jnp.asarray(Xn)
         progress(f"online prediction on the {pay:g} g validation flight")
         for name, fn in preds.items():
@@ -277,7 +283,7 @@ def run_openloop(
             "quick": quick,
             "seed": seed,
             "steps_per_flight": n_keep,
-            "control_dt": qd.CONTROL_DT,
+            "control_dt": CONTROL_DT,
             **m.train_stats,
         },
     }
@@ -306,7 +312,7 @@ def run_openloop(
                 f"window_lambda_min_W{int(w)}": _to_json_curve(wmin[j])
                 for j, w in enumerate(gram.windows)
             },
-            "dt": qd.CONTROL_DT,
+            "dt": CONTROL_DT,
         }
         if out is not None:
             from pathlib import Path

@@ -1,11 +1,11 @@
 """``arcade bench variants``: ours beside variants that are not the paper's method.
 
-Flies L1, ours and every :data:`benchmarks.quadrotor_closedloop.VARIANTS` method on the
+Flies L1, ours and every :data:`arcade_control.knobs.VARIANTS` method on the
 nine cells of the closed-loop evaluation (same scenario, seeds and metrics as
 ``arcade eval quadrotor``), each tuned on the tuning cell in the same run
 (:func:`benchmarks.quadrotor_closedloop.tune`). Only the shipped VLD weights are needed,
 no baseline is trained. ``ours_matched``
-(:func:`benchmarks.quadrotor_closedloop.beam_method`) asks what the swinging payload's
+(:func:`arcade_control.methods.beam_method`) asks what the swinging payload's
 unmatched pull costs ours: the regression gets an intercept feature and the MPC plans
 with the part of the learned residual that the collective thrust can cancel, the
 structural assumption of the L1 augmentation. ``docs/quadrotor-closed-loop.md`` reads the
@@ -34,19 +34,20 @@ def _progress(msg: str) -> None:
 def models() -> SimpleNamespace:
     """The shipped VLD and its guard: all that L1, ours and the variants need."""
     from arcade.training_quadrotor import QUADROTOR_WEIGHTS, load_quadrotor
+    from arcade_control.guard import guard_from_metadata
     from arcade_io.weights import load_model
-    from benchmarks import quadrotor_closedloop as qc
 
     vld = load_quadrotor()
-    guard = qc.guard_from_metadata(load_model(QUADROTOR_WEIGHTS)[2])
+    guard = guard_from_metadata(load_model(QUADROTOR_WEIGHTS)[2])
     return SimpleNamespace(vld=vld, guard=guard, closedloop={})
 
 
 def run(quick: bool = False, trials: int | None = None) -> dict[str, Any]:
     """``quick``: one trial of two cells with the stored knobs (no tuning flights)."""
+    from arcade_control.knobs import VARIANTS
     from benchmarks import quadrotor_closedloop as qc
 
-    methods = (*METHODS, *qc.VARIANTS)
+    methods = (*METHODS, *VARIANTS)
     cells = [(175.0, 0.5), (75.0, 2.5)] if quick else None
     t0 = time.perf_counter()
     r = qc.run_closedloop(
@@ -91,17 +92,19 @@ ABLATION = (
 
 def ablation(seeds: tuple[int, ...] = (0, 1, 2)) -> dict[str, Any]:
     """Mean RMSE per cell of :data:`ABLATION`, flown in process on ``seeds`` (no tuning:
-    the stored knobs of :data:`benchmarks.quadrotor_closedloop.TUNED_DEFAULTS` plus each
+    the stored knobs of :data:`arcade_control.knobs.TUNED_DEFAULTS` plus each
     row's overrides). ``python -m benchmarks.quadrotor_variants`` prints it (~7 min)."""
+    from arcade_control.scenario import Scenario
     from benchmarks import quadrotor_closedloop as qc
+    from benchmarks.quadrotor_flights import Runner
 
     m = models()
-    runner = qc.Runner(m)
+    runner = Runner(m)
     t0 = time.perf_counter()
     rows = []
     for pay in qc.PAYLOADS_G:
         for speed in qc.SPEEDS_MPS:
-            scen = qc.Scenario(payload_g=pay, speed_mps=speed)
+            scen = Scenario(payload_g=pay, speed_mps=speed)
             row: dict[str, Any] = {"payload_g": pay, "speed_mps": speed}
             for name, knobs in ABLATION:
                 m.closedloop = dict(knobs)
@@ -120,13 +123,13 @@ def ablation(seeds: tuple[int, ...] = (0, 1, 2)) -> dict[str, Any]:
 
 
 def oracle(trials: int = 10) -> dict[str, Any]:
-    """L1, ours and the mass oracle (:func:`benchmarks.quadrotor_closedloop.oracle_mass_method`:
+    """L1, ours and the mass oracle (:func:`arcade_control.methods.oracle_mass_method`:
     the payload's mass and the release step known exactly) side by side, in process, on
     the nine cells with the evaluation's seeds ``0 .. trials-1`` and the stored knobs:
     mean RMSE, z-RMSE and settling time per cell (~10 min on a 2-core CPU)."""
-    from benchmarks import quadrotor_closedloop as qc
+    from arcade_control.knobs import ORACLE
 
-    names = ("l1", "ours", qc.ORACLE)
+    names = ("l1", "ours", ORACLE)
     t0 = time.perf_counter()
     rows = _cell_means(
         [(n, n, {}, False) for n in names], trials, ("rmse_m", "rmse_z_m", "settling_s")
@@ -160,7 +163,7 @@ class Flown(NamedTuple):
     (``models.closedloop`` overrides of the stored ones), the state it flies on (``False``:
     the ground-truth state; ``True``: the state estimate with the estimator's defaults; a
     :class:`arcade_core.estimation.FilterConfig`: the estimate with those settings), the
-    setpoints' transport delay (:class:`benchmarks.quadrotor_closedloop.Scenario`) and
+    setpoints' transport delay (:class:`arcade_control.scenario.Scenario`) and
     whether the method compensates it (``Runner.fly``'s ``compensate_delay``)."""
 
     name: str
@@ -176,22 +179,24 @@ def _cell_means(
 ) -> list[dict[str, Any]]:
     """One row per cell of the evaluation: for each :class:`Flown` row of ``flown`` (or a
     tuple of its fields), the mean of ``keys`` over the evaluation's seeds
-    ``0 .. trials-1`` (:meth:`benchmarks.quadrotor_closedloop.Runner.fly`)."""
+    ``0 .. trials-1`` (:meth:`benchmarks.quadrotor_flights.Runner.fly`)."""
+    from arcade_control.scenario import Scenario
     from benchmarks import quadrotor_closedloop as qc
+    from benchmarks.quadrotor_flights import Runner
 
     m = models()
-    runners: dict[Any, qc.Runner] = {}
+    runners: dict[Any, Runner] = {}
     rows = []
     flown = [Flown(*f) for f in flown]
     for pay in qc.PAYLOADS_G:
         for speed in qc.SPEEDS_MPS:
             row: dict[str, Any] = {"payload_g": pay, "speed_mps": speed}
             for f in flown:
-                scen = qc.Scenario(pay, speed, command_delay_s=f.command_delay_s)
+                scen = Scenario(pay, speed, command_delay_s=f.command_delay_s)
                 m.closedloop = dict(f.knobs)
                 config = None if isinstance(f.state, bool) else f.state
                 if config not in runners:
-                    runners[config] = qc.Runner(m, filter_config=config)
+                    runners[config] = Runner(m, filter_config=config)
                 flights = [
                     runners[config]
                     .fly(
@@ -211,7 +216,7 @@ def _cell_means(
     return rows
 
 
-#: The service stack's adapter knobs (:func:`services.adapter.stack_knobs`: the calibrated
+#: The service stack's adapter knobs (:func:`arcade_control.stack.stack_knobs`: the calibrated
 #: ``sigma^2 = 0.1``, ``beta = 0.05``): ``ours_stack`` flies ours with them.
 STACK_KNOBS = {"ours_sigma2": 0.1, "ours_beta": 0.05}
 
@@ -228,7 +233,7 @@ ESTIMATED_STATE = (
 def estimated_state(trials: int = 3) -> dict[str, Any]:
     """L1 and ours on the ground-truth state (what ``arcade eval quadrotor`` flies) and on
     the state estimate from the emulated motion capture and gyro (what the service stack
-    flies: :class:`benchmarks.quadrotor_closedloop.MocapEstimate`), in process, on the nine
+    flies: :class:`benchmarks.quadrotor_flights.MocapEstimate`), in process, on the nine
     cells with the evaluation's seeds ``0 .. trials-1`` and the stored knobs, plus ours with
     the stack's knobs (:data:`ESTIMATED_STATE`): mean RMSE, z-RMSE, settling time and the
     changepoint rate per cell (~5 min on a 2-core CPU)."""
@@ -281,15 +286,17 @@ def estimator_tuning(trials: int = 3) -> dict[str, Any]:
     cells (the evaluation's seeds ``0 .. trials-1``, the stored knobs otherwise) with
     :data:`HAND_SET_JERK_PSD` and with the value picked, side by side: mean RMSE, z-RMSE,
     settling time and changepoint rate per cell (~6 min on a 2-core CPU)."""
+    from arcade_control.scenario import Scenario
     from arcade_core import estimation
     from benchmarks import quadrotor_closedloop as qc
+    from benchmarks.quadrotor_flights import Runner
 
     t0 = time.perf_counter()
     m = models()
-    scen = qc.Scenario(payload_g=qc.TUNING_CELL[0], speed_mps=qc.TUNING_CELL[1])
+    scen = Scenario(payload_g=qc.TUNING_CELL[0], speed_mps=qc.TUNING_CELL[1])
     scores: dict[str, dict[float, float]] = {name: {} for name, *_ in ESTIMATOR_METHODS}
     for psd in JERK_PSD_GRID:
-        runner = qc.Runner(m, filter_config=estimation.FilterConfig(jerk_psd=psd))
+        runner = Runner(m, filter_config=estimation.FilterConfig(jerk_psd=psd))
         for name, method, knobs in ESTIMATOR_METHODS:
             m.closedloop = dict(knobs)
             rmse = [
@@ -344,9 +351,9 @@ def _moved_knobs(
 ) -> dict[str, float] | None:
     """``method``'s knobs in a tuning's ``chosen`` if any differs from ``before``, else
     None (no re-tuned row to fly)."""
-    from benchmarks import quadrotor_closedloop as qc
+    from arcade_control.knobs import TUNING_METHOD
 
-    knobs = {k: v for k, v in chosen.items() if qc.TUNING_METHOD[k] == method}
+    knobs = {k: v for k, v in chosen.items() if TUNING_METHOD[k] == method}
     return knobs if any(knobs[k] != before[k] for k in knobs) else None
 
 
@@ -354,7 +361,7 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
     """What a transport delay between the controller and the rate loop costs each method.
 
     The evaluation applies each setpoint at the instant of the state it was computed from;
-    a real offboard link cannot (:class:`benchmarks.quadrotor_closedloop.Scenario`'s
+    a real offboard link cannot (:class:`arcade_control.scenario.Scenario`'s
     ``command_delay_s``). On the tuning cell (its four seeds) L1, ours and ours with the
     stack's knobs fly with each delay of :data:`DELAY_GRID_S`, at the stored knobs. Then L1
     and ours are tuned again by the evaluation's protocol with :data:`PX4_LIKE_DELAY_S`,
@@ -365,14 +372,17 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
     knobs re-tuned either way where they differ from the stored ones (``_retuned``).
     Mean RMSE, z-RMSE, settling time and changepoint rate per cell (~15 min on a 2-core
     CPU)."""
+    from arcade_control.knobs import knobs_of
+    from arcade_control.scenario import Scenario
     from benchmarks import quadrotor_closedloop as qc
+    from benchmarks.quadrotor_flights import Runner
 
     t0 = time.perf_counter()
     m = models()
-    runner = qc.Runner(m)
+    runner = Runner(m)
     sensitivity: dict[str, list[float]] = {name: [] for name, *_ in DELAY_METHODS}
     for delay in DELAY_GRID_S:
-        scen = qc.Scenario(*qc.TUNING_CELL, command_delay_s=delay)
+        scen = Scenario(*qc.TUNING_CELL, command_delay_s=delay)
         for name, method, knobs in DELAY_METHODS:
             m.closedloop = dict(knobs)
             rmse = [runner.fly(method, scen, seed=sd).metrics["rmse_m"] for sd in qc.TUNING_SEEDS]
@@ -387,7 +397,7 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
         tuned[compensate] = qc.tune(
             m, _progress, runner, METHODS, PX4_LIKE_DELAY_S, compensate_delay=compensate
         )
-    stored = qc.knobs_of({}, METHODS)
+    stored = knobs_of({}, METHODS)
     at = f"@{1e3 * PX4_LIKE_DELAY_S:g}ms"
     flown: list[Flown] = []
     for delay in (0.0, PX4_LIKE_DELAY_S):
@@ -406,7 +416,7 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
         "sensitivity": {
             **_tuning_flights(),
             "delays_s": list(DELAY_GRID_S),
-            "knobs": {n: qc.knobs_of(k, (meth,)) for n, meth, k in DELAY_METHODS},
+            "knobs": {n: knobs_of(k, (meth,)) for n, meth, k in DELAY_METHODS},
             "rmse_m": sensitivity,
         },
         "tuning": {"command_delay_s": PX4_LIKE_DELAY_S, "stored": stored, **tuned[False]},
@@ -436,11 +446,14 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
     nine cells (the evaluation's seeds ``0 .. trials-1``) in that condition: ours at the
     stack's knobs, L1 at its stored knobs, and each at its re-tuned knobs where they differ.
     Mean RMSE, z-RMSE, settling time and changepoint rate (~40 min on a 2-core CPU)."""
+    from arcade_control.knobs import knobs_of
+    from arcade_control.scenario import Scenario
     from benchmarks import quadrotor_closedloop as qc
+    from benchmarks.quadrotor_flights import Runner
 
     t0 = time.perf_counter()
     m = models()
-    runner = qc.Runner(m)
+    runner = Runner(m)
     keys = ("rmse_m", "rmse_z_m", "changepoint_rate")
     sensitivity: dict[str, dict[str, list[float]]] = {}
     for name, method, knobs in LINK_METHODS:
@@ -453,7 +466,7 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
                     for k in keys:
                         row[k].append(sensitivity[name][k][-1])
                     continue
-                scen = qc.Scenario(*qc.TUNING_CELL, command_delay_s=delay)
+                scen = Scenario(*qc.TUNING_CELL, command_delay_s=delay)
                 flights = [
                     runner.fly(
                         method, scen, seed=sd, estimated=True, compensate_delay=compensate
@@ -478,7 +491,7 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
         Flown(f"ours_stack{at}", "ours", STACK_KNOBS, True, PX4_LIKE_DELAY_S, True),
         Flown(f"l1{at}", "l1", {}, True, PX4_LIKE_DELAY_S, True),
     ]
-    starting = {"ours": STACK_KNOBS, "l1": qc.knobs_of({}, ("l1",))}
+    starting = {"ours": STACK_KNOBS, "l1": knobs_of({}, ("l1",))}
     for meth in METHODS:
         retuned = _moved_knobs(tuning["chosen"], meth, starting[meth])
         if retuned is not None:
@@ -489,7 +502,7 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
         "sensitivity": {
             **_tuning_flights(),
             "delays_s": list(LINK_DELAYS_S),
-            "knobs": {n: qc.knobs_of(k, (meth,)) for n, meth, k in LINK_METHODS},
+            "knobs": {n: knobs_of(k, (meth,)) for n, meth, k in LINK_METHODS},
             "rows": sensitivity,
         },
         "tuning": {"command_delay_s": PX4_LIKE_DELAY_S, **tuning},

@@ -41,247 +41,52 @@ meets the others through ``hub``. With ``StackConfig.bus_configs`` each one open
 configuration file given for it instead (``--bus-config``), e.g. a client of an ACL router
 with its own user and password (``deploy/zenoh/router-acl.json5``, which expects the
 launcher as user ``launcher``); the router must be up before the stack starts.
+
+The options are :class:`StackConfig` (:mod:`deploy.stack_config`); stopping a process, the
+signals around a stop and a process's last output are :mod:`deploy.processes`. This module
+exports what ``arcade up`` and scripts use: :class:`Stack`, :func:`run_flight`,
+:class:`StackConfig`, :class:`StackError`, :func:`last_output`, :func:`sigterm_interrupts`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import re
 import signal
 import subprocess
 import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from arcade_io import jsonout, signals
+from arcade_io import jsonout
+from deploy.processes import end_process, interrupts_deferred, last_output, sigterm_interrupts
+from deploy.stack_config import PROFILES, SERVICES, STOP_ORDER, StackConfig
+
+__all__ = [
+    "EVENTS_KEPT",
+    "REPO",
+    "SERVICES",
+    "VEHICLE",
+    "Stack",
+    "StackConfig",
+    "StackError",
+    "last_output",
+    "run_flight",
+    "sigterm_interrupts",
+]
 
 REPO = Path(__file__).resolve().parents[1]
-#: Start order; stop order is the reverse of the data flow (vehicle first, recorder last).
-SERVICES = ("recorder", "estimator", "adapter", "controller", "sim")
-STOP_ORDER = ("sim", "controller", "adapter", "estimator", "recorder")
-PROFILES = ("sim", "px4")
-#: Realtime scheduling (realtime clock only): the sense-to-actuate path (vehicle link,
-#: estimator, controller) under SCHED_FIFO at these priorities, ahead of the adapter; the
-#: recorder niced last. Without the privilege a service warns and keeps the normal policy.
-REALTIME_PRIORITY = {"sim": 30, "estimator": 25, "controller": 20}
-NICE = {"recorder": 5}
-#: ... and idle CPUs that poll instead of sleeping (PM QoS; ``runtime.cpu_wakeup_latency``).
-CPU_WAKEUP_LATENCY_US = 0
 #: Event records kept in memory (``Stack.events``, the newest; ``events.jsonl`` has them
 #: all): a PX4 flight alone sends a ``vehicle_status`` event twice a second.
 EVENTS_KEPT = 10_000
 
 
-@dataclass
-class StackConfig:
-    """Options of one stack (``arcade up`` flags)."""
-
-    out: Path
-    profile: str = "sim"
-    lockstep: bool = False
-    vehicle: str = "default"
-    hub: str = "tcp/127.0.0.1:7450"
-    rate: float = 20.0
-    duration: float | None = None
-    payload_g: float = 175.0
-    speed: float = 2.5
-    seed: int = 0
-    release: float = 0.95
-    #: Hover before the figure-eight [s] (None: the scenario's); horizontal plan offset [m].
-    hover_s: float | None = None
-    origin: tuple[float, float] = (0.0, 0.0)
-    x64: bool = False
-    #: The link's setpoint delay that the controller and the adapter compensate [s]
-    #: (``--link-delay``; 0: none).
-    link_delay_s: float = 0.0
-    #: Realtime clock: SCHED_FIFO for the sense-to-actuate path (``REALTIME_PRIORITY``)
-    #: and a CPU wake-up latency request (``CPU_WAKEUP_LATENCY_US``).
-    realtime_priority: bool = True
-    weights: Path | None = None
-    checkpoint: Path | None = None
-    ready_timeout: float = 600.0
-    log_level: str = "INFO"
-    #: Diagnostic: the simulator publishes the ground-truth state, no estimator runs.
-    truth_state: bool = False
-    extra: dict[str, list[str]] = field(default_factory=dict)
-    #: Supervision: restarts per service (0: a crash stops the stack) and the back-off
-    #: before restart ``n`` (``restart_backoff_s * 2**n``, at most ``restart_backoff_max_s``).
-    max_restarts: int = 3
-    restart_backoff_s: float = 0.5
-    restart_backoff_max_s: float = 8.0
-    #: Zenoh configuration file of each process's bus session, keyed by process name plus
-    #: ``launcher`` (the launcher's own session) and optionally ``operator`` (commands
-    #: sent on a user's behalf); empty: peers on loopback through ``hub``. Given, it must
-    #: name every process and the launcher; ``hub`` is then unused.
-    bus_configs: dict[str, Path] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        # Absolute paths: what a service is handed does not depend on where it runs.
-        self.out = _absolute(self.out)
-        if self.weights is not None:
-            self.weights = _absolute(self.weights)
-        if self.checkpoint is not None:
-            self.checkpoint = _absolute(self.checkpoint)
-        self.bus_configs = {k: _absolute(v) for k, v in self.bus_configs.items()}
-
-    def bus_config_problem(self, processes: Iterable[str]) -> str | None:
-        """Why ``bus_configs`` does not fit ``processes`` (one line), or None."""
-        if not self.bus_configs:
-            return None
-        # The px4 profile's operator session (arm, hold, land, disarm) needs its own.
-        wanted = [*processes, "launcher", *(("operator",) if self.profile == "px4" else ())]
-        missing = [n for n in wanted if n not in self.bus_configs]
-        unknown = sorted(set(self.bus_configs) - set(wanted))
-        if missing:
-            return f"bus_configs: no configuration for {', '.join(missing)}"
-        if unknown:
-            return f"bus_configs: not a process of this stack: {', '.join(unknown)}"
-        return None
-
-    def bus_config(self, name: str) -> Any:
-        """The Zenoh configuration of process ``name``'s session (``launcher``, a service,
-        ``operator``): its file in ``bus_configs``, else a peer on ``hub``. ``ValueError``
-        naming the file if it cannot be read."""
-        from services.bus import peer_config, read_config
-
-        if not self.bus_configs:
-            return peer_config(self.hub)
-        if name not in self.bus_configs:
-            raise ValueError(f"bus_configs: no configuration for {name}")
-        return read_config(self.bus_configs[name])
-
-    def bus_args(self, name: str) -> list[str]:
-        """``--bus-config FILE`` of process ``name`` (none without ``bus_configs``: the
-        peers' ``--hub`` is among :meth:`base_args`)."""
-        return ["--bus-config", str(self.bus_configs[name])] if self.bus_configs else []
-
-    def checkpoint_path(self) -> Path:
-        """The adapter's posterior checkpoint (restored by a restarted adapter). Without
-        ``checkpoint`` it is the run folder's own, removed at start: a new flight starts
-        at the prior, a restarted adapter continues from it."""
-        return (
-            Path(self.checkpoint)
-            if self.checkpoint is not None
-            else (Path(self.out) / "adapter_checkpoint.npz")
-        )
-
-    def services(self) -> tuple[str, ...]:
-        """The processes of this configuration, in start order."""
-        if self.truth_state:
-            return tuple(s for s in SERVICES if s != "estimator")
-        return SERVICES
-
-    def base_args(self) -> list[str]:
-        """The arguments every process of the stack takes (vehicle, hub, run folder, rate);
-        with ``bus_configs`` no hub: each process gets its own :meth:`bus_args` when it is
-        spawned."""
-        hub = [] if self.bus_configs else ["--hub", self.hub]
-        return [
-            "--vehicle",
-            self.vehicle,
-            *hub,
-            "--out",
-            str(self.out),
-            "--rate",
-            f"{self.rate:g}",
-            "--log-level",
-            self.log_level,
-        ]
-
-    def args(self, service: str) -> list[str]:
-        common = self.base_args()
-        if self.lockstep:
-            common.append("--lockstep")
-        if self.x64:
-            common.append("--x64")
-        plan = [
-            "--payload-g",
-            f"{self.payload_g:g}",
-            "--speed",
-            f"{self.speed:g}",
-            "--seed",
-            str(self.seed),
-            "--release",
-            f"{self.release:g}",
-        ]
-        if self.duration is not None:
-            plan += ["--duration", f"{self.duration:g}"]
-        if self.hover_s is not None:
-            plan += ["--hover-s", f"{self.hover_s:g}"]
-        if tuple(self.origin) != (0.0, 0.0):
-            plan.append(f"--origin={self.origin[0]:g},{self.origin[1]:g}")  # may start with "-"
-        own: list[str] = []
-        if service in ("sim", "controller"):
-            own += plan
-        if service in ("adapter", "controller") and self.weights is not None:
-            own += ["--weights", str(self.weights)]
-        if service == "adapter":
-            own += ["--checkpoint", str(self.checkpoint_path())]
-        if service in ("adapter", "controller"):  # one value on both, never one alone
-            own += ["--link-delay", f"{self.link_delay_s:g}"]
-        if service == "sim":
-            own += ["--ready-timeout", f"{self.ready_timeout:g}"]
-            consumers = [s for s in self.services() if s != "sim"]  # incl. the recorder
-            own += ["--wait-for", ",".join(consumers)]
-            if self.truth_state:
-                own.append("--truth-state")
-        if not self.lockstep and self.realtime_priority and service in REALTIME_PRIORITY:
-            own += [
-                "--realtime-priority",
-                str(REALTIME_PRIORITY[service]),
-                "--cpu-wakeup-latency-us",
-                str(CPU_WAKEUP_LATENCY_US),
-            ]
-        if not self.lockstep and service in NICE:
-            own += ["--nice", str(NICE[service])]
-        return [*common, *own, *self.extra.get(service, [])]
-
-
-def _absolute(path: str | os.PathLike[str]) -> Path:
-    """``path`` relative to the current directory, made absolute (symlinks kept)."""
-    return Path(os.path.abspath(os.fspath(path)))
-
-
 class StackError(RuntimeError):
     """A service failed to start, gave up restarting, or the vehicle link died."""
-
-
-#: ANSI colour sequences (MAVSDK colours its console lines).
-_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
-
-
-def last_output(out: Path, name: str, lines: int = 4) -> list[str]:
-    """What a process of the run in ``out`` said last (``logs/<name>.out``): after a
-    traceback, the log line before it and the exception; otherwise its last ``lines``
-    non-blank lines. Empty when there is no output."""
-    path = Path(out) / "logs" / f"{name}.out"
-    try:
-        with path.open("rb") as f:
-            f.seek(max(0, f.seek(0, os.SEEK_END) - 16384))
-            text = f.read().decode(errors="replace")
-    except OSError:
-        return []
-    rows = [_ANSI.sub("", r).rstrip() for r in text.splitlines()]
-    rows = [r for r in rows if r.strip()]
-    tb = max((i for i, r in enumerate(rows) if r.startswith("Traceback (")), default=None)
-    if tb is not None:
-        # Frames are indented; the exception (and what chains it) is not. The exception
-        # line stays even when more output follows it.
-        after = [r for r in rows[tb + 1 :] if not r[:1].isspace()]
-        before = rows[max(0, tb - 1) : tb]
-        if len(before) + len(after) <= lines:
-            rows = before + after
-        else:
-            rows = after[:1] + after[1:][-(lines - 1) :] if lines > 1 else after[:1]
-    else:
-        rows = rows[-lines:]
-    return [r if len(r) <= 400 else r[:399] + "…" for r in rows]
 
 
 #: The process whose end is the end of the flight (never restarted: it is the vehicle).
@@ -335,6 +140,7 @@ class Stack:
 
     # -- lifecycle
     def start(self) -> Stack:
+        # Zenoh loads when a stack starts, not when the command line imports this module.
         import zenoh
 
         from services.bus import Bus, zenoh_reason
@@ -444,7 +250,7 @@ class Stack:
     # -- events
     def emit(self, kind: str, text: str, severity: str = "info", **data: Any) -> None:
         """Publish a supervisor event on the bus and record it (``events.jsonl``)."""
-        from services.messages import Event
+        from services.messages import Event  # loaded with the first event (start-up cost)
 
         stamp = self._event_stamp = max(self._event_stamp, self.last_stamp)
         rec = {
@@ -625,14 +431,14 @@ class Stack:
         waiting for a clean exit), and is delivered once every service has ended.
         """
         self._stopping.set()
-        with _interrupts_deferred() as hurry:
+        with interrupts_deferred() as hurry:
             try:
                 for name in getattr(self.config, "stop_order", STOP_ORDER):
                     p = self.procs.get(name)
                     if p is None or p.poll() is not None:
                         continue
                     try:
-                        _end_process(p, grace, hurry)
+                        end_process(p, grace, hurry)
                     except Exception as err:  # the next services must be stopped still
                         print(f"could not stop {name}: {err}", file=sys.stderr)
             finally:
@@ -646,78 +452,6 @@ class Stack:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-@contextlib.contextmanager
-def sigterm_interrupts() -> Iterator[None]:
-    """While inside, SIGTERM raises ``KeyboardInterrupt`` as Ctrl-C does, so the
-    :class:`Stack` context manager stops every service (``arcade up``, ``arcade demo``);
-    the previous handler is restored on leaving. Only the main thread can install
-    handlers: elsewhere, nothing."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def on_term(*_: object) -> None:
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, on_term)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
-
-
-def _end_process(p: subprocess.Popen, grace: float, hurry: threading.Event) -> None:
-    """SIGINT ``p`` and wait up to ``grace`` s (less once ``hurry`` is set), then SIGTERM
-    and 5 s, then SIGKILL; returns once it has been reaped. A service still running after
-    the grace period first gets SIGUSR1: it writes its threads' stacks to its ``.out`` log
-    (``faulthandler``), the record of where it hung."""
-    with contextlib.suppress(ProcessLookupError):
-        p.send_signal(signal.SIGINT)
-    deadline = time.monotonic() + grace
-    # Polled, because a process's exit cannot be waited for together with ``hurry``.
-    while p.poll() is None and not hurry.is_set() and time.monotonic() < deadline:
-        hurry.wait(0.05)
-    if p.poll() is None and not hurry.is_set():
-        with contextlib.suppress(ProcessLookupError):
-            p.send_signal(signal.SIGUSR1)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            p.wait(timeout=0.5)
-    if p.poll() is None:
-        with contextlib.suppress(ProcessLookupError):
-            p.terminate()
-        try:
-            p.wait(timeout=5.0)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-
-
-@contextlib.contextmanager
-def _interrupts_deferred() -> Any:
-    """While inside: SIGINT and SIGTERM set the yielded event instead of acting; on leaving,
-    the previous handlers are back and the signals that came are delivered to them.
-    Outside the main thread (no signal handlers there): only the event."""
-    hurry = threading.Event()
-    if threading.current_thread() is not threading.main_thread():
-        yield hurry
-        return
-    came: list[int] = []
-
-    def defer(sig: int, _frame: object) -> None:
-        came.append(sig)
-        signals.set_from_handler(hurry)  # the main thread may be inside hurry.wait()
-
-    sigs = (signal.SIGINT, signal.SIGTERM)
-    previous = {sig: signal.signal(sig, defer) for sig in sigs}
-    try:
-        yield hurry
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
-        for sig in dict.fromkeys(came):
-            signal.raise_signal(sig)
 
 
 def run_flight(

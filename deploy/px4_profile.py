@@ -33,7 +33,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from deploy.launcher import CPU_WAKEUP_LATENCY_US, EVENTS_KEPT, REALTIME_PRIORITY, StackConfig
+from deploy.launcher import EVENTS_KEPT
+from deploy.stack_config import CPU_WAKEUP_LATENCY_US, REALTIME_PRIORITY, StackConfig
 
 #: Start order; stop order: the bridge first (it leaves offboard -> Hold), recorder last.
 PX4_SERVICES = ("recorder", "estimator", "adapter", "controller", "bridge")

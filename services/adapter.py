@@ -91,8 +91,6 @@ FALLBACK_PERIODS = 1.5
 #: Steps whose stamps are kept to date a changepoint (the MAP history dates one at most a
 #: few steps back).
 STEP_STAMPS = 256
-#: Tempering of the adapter's beam at the calibrated noise (see :func:`stack_knobs`).
-STACK_BETA = 0.05
 
 
 def save_checkpoint(path: Path, beam: Any, meta: dict[str, Any]) -> None:
@@ -127,76 +125,23 @@ def load_checkpoint(path: Path, template: Any, meta: dict[str, Any]) -> Any | No
     return type(template)(**{k: jnp.asarray(v) for k, v in fields.items()})
 
 
-def stack_knobs() -> dict[str, Any]:
-    """Closed-loop knobs of the adapter that differ from the evaluation's tuned ones.
-
-    The closed-loop evaluation tunes ``sigma^2`` on in-process flights; the adapter keeps
-    the offline calibration (Appendix D 0.1) and adds the estimator's noise to it: with
-    0.001 (the evaluation now tunes 1e-4) the lockstep flights flagged changepoints during
-    take-off and hover (on the ground-truth state too), and the beam restarts on most steps
-    of a swinging flight.
-    ``beta`` is then the one the tuning picks at ``sigma^2 = 0.1`` (its first pass, before
-    ``sigma^2`` moves): 0.05, tuning-cell RMSE 0.054 m against 0.056 m at 0.2. The same
-    tuning with a 20 ms setpoint delay, what the simulated PX4 link adds, picks both
-    knobs (``python -m benchmarks.quadrotor_variants delay``): the evaluation's 1e-4
-    does not tolerate such a delay. Tuned in the stack's own condition (the state
-    estimate, 20 ms, compensated with ``--link-delay``) it keeps them
-    (``python -m benchmarks.quadrotor_variants link``)."""
-    from arcade_core import adaptation
-
-    return {"ours_sigma2": float(adaptation.quadrotor_config().sigma2), "ours_beta": STACK_BETA}
-
-
-def load_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
-    """ARCADE's adaptive state at take-off and its method, as the in-process evaluation
-    builds them (``benchmarks.quadrotor_closedloop``) with :func:`stack_knobs` (the calibrated
-    ``sigma^2`` and the ``beta`` tuned at it), feature/residual guard of the training data,
-    beam at the prior). A file that is not a quadrotor VLD raises ``WeightFileError``."""
-    from types import SimpleNamespace
-
-    from arcade_io.weights import load_model
-    from benchmarks import quadrotor_closedloop as cl
-
-    vld, _, extra = load_model(weights, system="quadrotor")
-    models = SimpleNamespace(vld=vld, guard=cl.guard_from_metadata(extra), closedloop=stack_knobs())
-    learner = cl.initial_learner("ours", models, dtype)
-    return learner, cl.make_method("ours")
-
-
-def adapter_learner(weights: Path, dtype: Any) -> tuple[Any, Any]:
-    """:func:`load_learner` with one noise variance per output (the state estimate's
-    variance differs per component, see :class:`Adapter`): one covariance per output row,
-    at the prior (Algorithm 1 line 1). Mathematically the same beam while all variances
-    are equal."""
-    from benchmarks import quadrotor_closedloop as cl
-
-    learner, method = load_learner(weights, dtype)
-    return cl.per_output_noise(learner), method
-
-
-def learner_features(learner: Any, x: Any, u: Any) -> Any:
-    """Latent features ``z = mu_phi(x, u)`` as the in-process method computes them
-    (clipped to the training range when the learner carries a guard)."""
-    from benchmarks import quadrotor_closedloop as cl
-
-    guard = getattr(learner, "guard", None)
-    if guard is not None and hasattr(cl, "_features"):
-        return cl._features(learner.vld, guard, x, u)
-    return learner.vld.features(x, u)
-
-
 class Adapter(runtime.Service):
     """Adapter: ARCADE online adaptation (Algorithm 1) of the residual model."""
 
     name = "adapter"
 
     def setup(self, bus) -> None:
+        # Imported here, like every JAX module of the services: after runtime.setup_jax
+        # has set the precision, and not for `--help`.
         import jax
         import jax.numpy as jnp
 
+        from arcade_control.stack import adapter_learner, make_adapter_update, same_hemisphere
         from arcade_core import adaptation
-        from arcade_core.dynamics import predict_over_delay, quadrotor_step
+        from arcade_core.dynamics import predict_over_delay
         from arcade_io.vehicle import load_vehicle, quadrotor_params
+
+        self._same_hemisphere = same_hemisphere
 
         a = self.args
         self.jnp = jnp
@@ -211,41 +156,13 @@ class Adapter(runtime.Service):
         params = quadrotor_params(load_vehicle())
         self.model_dt = 0.05
 
-        def features(learner, x, u):
-            return learner_features(learner, x, u)
-
-        def marginal(learner, x, u):
-            theta, cov = adaptation.marginal_decoder(learner.beam)
-            return theta, cov, self.method.sigma(learner, x, u)
-
         # At the model's step (the default 20 Hz) the in-process method's own ``learn``
         # runs; at other rates the same update with the nominal step over the elapsed time.
         exact = abs(1.0 / a.rate - self.model_dt) < 1e-9
-
         base_sigma2 = None if self.learner is None else self.learner.config.sigma2
-
-        def adapt(learner, xp, up, x, h, learn, var_p, var_x):
-            vld = learner.vld
-            z = features(learner, xp, up)
-            dn = vld.normalise_residual(x - quadrotor_step(xp, up, params, h))
-            # Estimation noise of the two states enters the residual (errors in variables,
-            # first order): its normalised variance adds to the observation noise sigma_j^2.
-            J = jax.jacfwd(lambda xx: quadrotor_step(xx, up, params, h))(xp)
-            sigma2 = adaptation.state_noise_sigma2(base_sigma2, J, var_p, var_x, vld.delta_scale)
-            learner = learner._replace(config=learner.config._replace(sigma2=sigma2))
-            pred = adaptation.predict(learner.beam, z, vld.latent_variance(xp, up))
-            if exact:
-                new = self.method.learn(learner, xp, up, x)
-            else:
-                beam, info = adaptation.update(learner.beam, z, dn, learner.config)
-                new = learner._replace(
-                    beam=beam, changepoint=info.changepoint.astype(z.dtype), cp_prob=info.cp_prob
-                )
-            new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, learner)
-            cp = (new.changepoint > 0) & learn
-            theta, cov, sig = marginal(new, x, up)
-            dated = adaptation.map_last_changepoint(new.beam)
-            return new, dn, pred, new.cp_prob, cp, theta, cov, sig, dated
+        adapt, marginal = make_adapter_update(
+            getattr(self, "method", None), params, base_sigma2, exact
+        )
 
         self._predict = jax.jit(
             lambda x, var, u: predict_over_delay(x, var, u, params, a.link_delay)
@@ -432,7 +349,7 @@ class Adapter(runtime.Service):
             if sp is None:
                 self._predicted = None  # the setpoint in flight at ``s`` is not known
             theta, cov, sig = self._marginal(
-                self.learner, _same_hemisphere(s.x, s.x)[0], self._u_hover()
+                self.learner, self._same_hemisphere(s.x, s.x)[0], self._u_hover()
             )
             self.stats["skipped"] += prev is not None
         else:
@@ -536,7 +453,7 @@ class Adapter(runtime.Service):
         zeros = np.zeros(13)
         var_p = prev.cov_diag if prev.cov_diag is not None else zeros
         var_x = s.cov_diag if s.cov_diag is not None else zeros
-        xp, x = _same_hemisphere(prev.x, s.x)
+        xp, x = self._same_hemisphere(prev.x, s.x)
         if self.args.link_delay == 0.0:
             return xp, var_p, x, var_x
         # ``sp`` answered ``prev``: it is the setpoint in flight at ``s``.
@@ -545,7 +462,7 @@ class Adapter(runtime.Service):
         self._predicted = (s.stamp, x_d, var_d)
         if before is None or before[0] != prev.stamp:
             return None
-        xp_d, x_d = _same_hemisphere(before[1], x_d)
+        xp_d, x_d = self._same_hemisphere(before[1], x_d)
         return xp_d, before[2], x_d, var_d
 
     def _checkpoint(self) -> None:
@@ -578,18 +495,6 @@ class Adapter(runtime.Service):
             self._checkpoint()
             if self.stats.get("checkpoint_errors", 0) == errors:
                 self.stats["checkpoint_step"] = int(self.learner.beam.step)
-
-
-def _same_hemisphere(xp: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The transition's quaternions as the learned model saw them in training: ``xp``'s
-    with a non-negative scalar part, ``x``'s in the hemisphere of ``xp``'s (q and -q are
-    one rotation, but far apart as the vectors the features and the residual use)."""
-    xp, x = np.array(xp, dtype=float), np.array(x, dtype=float)
-    if xp[6] < 0.0:
-        xp[6:10] *= -1.0
-    if float(np.dot(x[6:10], xp[6:10])) < 0.0:
-        x[6:10] *= -1.0
-    return xp, x
 
 
 def _extra(p) -> None:

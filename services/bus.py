@@ -52,16 +52,8 @@ from typing import Any, Generic, TypeVar
 import msgpack
 import zenoh
 
-from services.messages import (
-    TOPICS,
-    Message,
-    MessageError,
-    Reason,
-    Receiver,
-    RejectCounter,
-    message_type,
-    safe_handler,
-)
+from services.messages import TOPICS, Message, MessageError, Reason, message_type
+from services.reception import Receiver, RejectCounter, safe_handler
 
 __all__ = [
     "DEFAULT_HUB",
@@ -72,6 +64,7 @@ __all__ = [
     "QoS",
     "Subscription",
     "alive_key",
+    "check_name",
     "client_config",
     "config_path",
     "key_expr",
@@ -99,8 +92,10 @@ M = TypeVar("M", bound=Message)
 # --------------------------------------------------------------------------- names
 
 
-def _check_name(kind: str, name: str) -> str:
-    # Key-expression chunks: no '/', wildcards or '$'.
+def check_name(kind: str, name: str) -> str:
+    """``name`` if it is a valid ``kind`` name (a vehicle, a service) for a key-expression
+    chunk: letters, digits, ``_``, ``.``, ``-`` (no ``/``, wildcards or ``$``); otherwise
+    ``ValueError`` saying so."""
     if not isinstance(name, str) or not _NAME.fullmatch(name):
         raise ValueError(f"invalid {kind} name {name!r} (letters, digits, '_', '.', '-')")
     return name
@@ -110,14 +105,14 @@ def key_expr(vehicle: str, topic: str) -> str:
     """``arcade/<vehicle>/<topic>``."""
     if topic not in TOPICS:
         raise ValueError(f"unknown topic {topic!r}; topics are {TOPICS}")
-    return f"arcade/{_check_name('vehicle', vehicle)}/{topic}"
+    return f"arcade/{check_name('vehicle', vehicle)}/{topic}"
 
 
 def alive_key(vehicle: str, service: str) -> str:
     """Liveliness token ``arcade/<vehicle>/alive/<service>`` (``service`` may be ``*``)."""
     if service != "*":
-        _check_name("service", service)
-    return f"arcade/{_check_name('vehicle', vehicle)}/alive/{service}"
+        check_name("service", service)
+    return f"arcade/{check_name('vehicle', vehicle)}/alive/{service}"
 
 
 # ----------------------------------------------------------------------------- QoS
@@ -399,8 +394,8 @@ class Bus:
         *,
         rejects: RejectCounter | None = None,
     ):
-        self.vehicle = _check_name("vehicle", vehicle)
-        self.name = _check_name("service", name)
+        self.vehicle = check_name("vehicle", vehicle)
+        self.name = check_name("service", name)
         self.config = config
         self.rejects = rejects or RejectCounter(
             logger=logging.getLogger(f"arcade.bus.{name}"), service=name
@@ -497,7 +492,7 @@ class Bus:
 
         Invalid, out-of-order or stale (``max_age`` seconds on ``clock``) messages are
         counted in :attr:`rejects` instead, exceptions of ``callback`` in its
-        :attr:`~services.messages.RejectCounter.failures`.
+        :attr:`~services.reception.RejectCounter.failures`.
         """
         receiver = Receiver(topic, check_order=check_order, max_age=max_age, clock=clock)
         transit: deque[float] = deque(maxlen=TRANSIT_SAMPLES)
@@ -522,7 +517,7 @@ class Bus:
 
     def track_stream(self, topic: str, checker: Any) -> None:
         """Include ``checker`` (anything with a ``stats() -> {name: count}`` method, e.g. a
-        :class:`~services.messages.StreamChecker`) in :meth:`stream_stats`."""
+        :class:`~services.reception.StreamChecker`) in :meth:`stream_stats`."""
         with self._pub_lock:
             self._streams.append((topic, checker))
 

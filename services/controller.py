@@ -4,7 +4,7 @@ Subscribes ``state`` and ``model``; publishes ``setpoint`` (tagged with the ``se
 ``stamp`` of the state it answers) and ``event``.
 
 Per state: one step of the in-process closed loop's controller
-(``benchmarks.quadrotor_closedloop.make_controller_step`` with the learning left to the
+(``arcade_control.step.make_controller_step`` with the learning left to the
 adapter): the flat reference of the flight plan over the horizon (index = mission time
 / 0.05 s; mission time = state stamp minus the first state's stamp in lockstep, minus the
 ``t0`` of the ``start`` command in realtime, 0 before it), input reference
@@ -70,6 +70,8 @@ from pathlib import Path
 
 import numpy as np
 
+from arcade_control.hover import HOVER_THRUST_STEPS, level_hover
+from arcade_core import frames
 from services import runtime
 from services.messages import MAX_STAMP_S, Model, Setpoint, State
 
@@ -80,115 +82,46 @@ STEP_ERROR_LOG_S = 5.0
 MAX_STAMP_LAG_S = 1.0
 
 
-def one_hypothesis_beam(beam, theta, cov):
-    """A one-hypothesis beam holding a moment-matched posterior ``theta`` (d, l), ``cov``
-    (d, l, l) (``arcade_core.adaptation.marginal_decoder``), the form of the ``model``
-    message. With it the method's ``model()`` returns ``theta`` and its ``sigma()`` gives
-    ``z^T Sigma_j z`` -- exactly the parameter + between-hypothesis parts of the beam
-    mixture (Sec. IV) -- plus the encoder term at the marginal mean."""
-    import jax.numpy as jnp
-
-    l = theta.shape[1]
-    scale = jnp.max(jnp.diagonal(cov, 0, 1, 2))
-    jitter = 10 * jnp.finfo(theta.dtype).eps * scale  # keeps the Cholesky factor finite
-    sqrt = jnp.linalg.cholesky(cov + jitter * jnp.eye(l, dtype=theta.dtype))
-    return beam._replace(
-        means=theta[None],
-        sqrt_covariances=sqrt[None],
-        log_scores=jnp.zeros(1, theta.dtype),
-        num_changepoints=beam.num_changepoints[:1],
-        last_changepoint=beam.last_changepoint[:1],
-        is_changepoint=beam.is_changepoint[:1],
-    )
-
-
-def moment_matched(method):
-    """``method`` with ``sigma`` evaluated on the moment-matched beam marginal, i.e. on
-    what the ``model`` message carries (used to run the in-process loop on the same
-    information as the service stack)."""
-    from arcade_core import adaptation
-
-    def sigma(learner, x, u):
-        beam = one_hypothesis_beam(learner.beam, *adaptation.marginal_decoder(learner.beam))
-        return method.sigma(learner._replace(beam=beam), x, u)
-
-    return method._replace(sigma=sigma)
-
-
-def with_finite_flag(step):
-    """``step`` with its input returned as ``[u, all(isfinite(solution))]``: the service
-    checks the solution without a second device-to-host copy on the control path."""
-    import jax.numpy as jnp
-
-    def flagged(*args):
-        new, u, diag = step(*args)
-        ok = jnp.all(jnp.isfinite(new.u_warm)) & jnp.all(jnp.isfinite(u))
-        return new, jnp.append(u, ok.astype(u.dtype)), diag
-
-    return flagged
-
-
-def with_learner(carry, learner):
-    """``carry`` of the in-process loop with its adaptive state (first field) replaced."""
-    return carry._replace(**{carry._fields[0]: learner})
-
-
-#: Tracking steps the level hover's thrust is averaged over (50: 2.5 s at 20 Hz).
-HOVER_THRUST_STEPS = 50
-#: Gain of the level-hover attitude law [rad/s per unit tilt].
-LEVEL_GAIN = 2.0
-
-
-def level_hover(q: np.ndarray, thrust_hover: float, gain: float = LEVEL_GAIN) -> np.ndarray:
-    """``[collective N, body rates FLU]`` that level the vehicle of attitude ``q``
-    (scalar first, body FLU to world ENU) and hold its height while level.
-
-    ``g_b`` is the world's up axis in body coordinates (the third row of ``R(q)``); the
-    body sees it move as ``dg_b/dt = -omega x g_b``, so ``omega = gain [-g_b,y, g_b,x, 0]``
-    makes ``1 - g_b,z`` (the tilt) decrease: ``d/dt (1 - g_b,z) = -gain (g_b,x^2 +
-    g_b,y^2)``. Yaw rate zero. The thrust is divided by the tilt's cosine (at most 2x).
-    """
-    g_b = np.array(
-        [
-            2 * (q[1] * q[3] - q[0] * q[2]),
-            2 * (q[2] * q[3] + q[0] * q[1]),
-            1 - 2 * (q[1] ** 2 + q[2] ** 2),
-        ]
-    )
-    rates = gain * np.array([-g_b[1], g_b[0], 0.0])
-    return np.r_[thrust_hover / max(g_b[2], 0.5), rates]
-
-
 class Controller(runtime.Service):
     """Controller: uncertainty-modulated MPC on the latest state and model."""
 
     name = "controller"
 
     def setup(self, bus) -> None:
+        # Imported here, like every JAX module of the services: after runtime.setup_jax
+        # has set the precision, and not for `--help`.
         import jax
         import jax.numpy as jnp
 
+        from arcade_control.methods import make_method
+        from arcade_control.nominal import CONTROL_DT, nominal_params
+        from arcade_control.scenario import reference
+        from arcade_control.stack import (
+            load_learner,
+            one_hypothesis_beam,
+            with_finite_flag,
+        )
+        from arcade_control.step import Carry, make_controller_step, mpc_config
         from arcade_core import adaptation
-        from benchmarks import quadrotor_closedloop as cl
-        from services.adapter import DEFAULT_WEIGHTS, load_learner
+        from services.adapter import DEFAULT_WEIGHTS
 
         a = self.args
         self.jnp = jnp
         dtype = self.dtype = jnp.result_type(float)
-        self.cfg = cfg = cl.mpc_config(dtype)
+        self.cfg = cfg = mpc_config(dtype)
         self.u_min = np.asarray(cfg.u_min, float)
         self.u_max = np.asarray(cfg.u_max, float)
-        p = cl.qd.nominal_params()
+        p = nominal_params()
         self.u_hover = np.array([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0])
         scen = runtime.scenario(a)
         N = cfg.N
-        self.ref_dt = cl.DT
+        self.ref_dt = CONTROL_DT
         t_end = a.duration if a.duration is not None else scen.t_end
-        self.n_ref = math.ceil(t_end / cl.DT - 1e-9) + 1
+        self.n_ref = math.ceil(t_end / CONTROL_DT - 1e-9) + 1
         # With a link delay the plan starts where the setpoint will act: the reference
         # that much later, from the state predicted over it (``make_controller_step``).
         delay = a.link_delay
-        self.x_ref_all, self.u_ref_all = cl.reference(scen, self.n_ref, N, delay)
+        self.x_ref_all, self.u_ref_all = reference(scen, self.n_ref, N, delay)
         weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
         self.weights = weights
         self.learner0 = None
@@ -196,20 +129,20 @@ class Controller(runtime.Service):
         no_learn = {"learn": lambda learner, x_prev, u_prev, x: learner}
         self._step_nominal = jax.jit(
             with_finite_flag(
-                cl.make_controller_step(
-                    cl.make_method("nominal")._replace(**no_learn), cfg, delay_s=delay
+                make_controller_step(
+                    make_method("nominal")._replace(**no_learn), cfg, delay_s=delay
                 )
             )
         )
         self._learner_nominal = jnp.zeros((), dtype)
         if weights.is_file():
             self.learner0, method = load_learner(weights, dtype)
-            step = cl.make_controller_step(method._replace(**no_learn), cfg, delay_s=delay)
+            step = make_controller_step(method._replace(**no_learn), cfg, delay_s=delay)
 
             def learned(carry, x, k, theta, cov, x_ref_all, u_ref_all):
                 learner = carry[0]
                 beam = one_hypothesis_beam(learner.beam, theta, cov)
-                carry = with_learner(carry, learner._replace(beam=beam))
+                carry = carry._replace(learner=learner._replace(beam=beam))
                 return step(carry, x, carry.u_mpc, k, x_ref_all, u_ref_all)
 
             self._step_learned = jax.jit(with_finite_flag(learned))
@@ -219,7 +152,7 @@ class Controller(runtime.Service):
                 np.asarray(self.learner0.beam.covariances[0]), (d, l, l)
             ).copy()
         u0 = jnp.asarray(self.u_hover, dtype)
-        self.carry = cl.Carry(
+        self.carry = Carry(
             self.learner0 if self.learner0 is not None else self._learner_nominal,
             jnp.broadcast_to(u0, (N, 4)),
             u0,
@@ -275,10 +208,10 @@ class Controller(runtime.Service):
         x = np.asarray(x, dt)
         carry = self.carry
         if posterior is None:
-            carry = with_learner(carry, self._learner_nominal)
+            carry = carry._replace(learner=self._learner_nominal)
             new, u, _ = self._step_nominal(carry, x, carry.u_mpc, k, self.x_ref_all, self.u_ref_all)
         else:
-            carry = with_learner(carry, self.learner0)
+            carry = carry._replace(learner=self.learner0)
             theta, cov = (np.asarray(v, dt) for v in posterior)
             new, u, _ = self._step_learned(carry, x, k, theta, cov, self.x_ref_all, self.u_ref_all)
         self._new_carry = new
@@ -474,7 +407,7 @@ class Controller(runtime.Service):
         # level-equivalent (a slow mean: a few seconds).
         if not s.predicted_through_dropout:
             q = s.q
-            tilt = 1 - 2 * (q[1] ** 2 + q[2] ** 2)
+            tilt = frames.world_up_in_body_np(q)[2]
             # The plain mean of the first HOVER_THRUST_STEPS samples, then an exponential
             # mean over as many: the nominal value it starts from (no payload) must not
             # linger for seconds.

@@ -285,7 +285,7 @@ def subscribe_ordered(
     import zenoh
 
     from services.bus import TRANSIT_SAMPLES, transit_time
-    from services.messages import Receiver, safe_handler
+    from services.reception import Receiver, safe_handler
 
     subs = []
     for topic, callback in topics.items():
@@ -780,7 +780,7 @@ def _xy(text: str) -> tuple[float, float]:
 
 def scenario(args: argparse.Namespace) -> Any:
     """The closed-loop scenario (take-off, hover, figure-eight) of the plan options."""
-    from benchmarks.quadrotor_closedloop import Scenario
+    from arcade_control.scenario import Scenario
 
     ox, oy = getattr(args, "origin", (0.0, 0.0))
     base = Scenario()
@@ -796,7 +796,7 @@ def scenario(args: argparse.Namespace) -> Any:
 
 class Trial(NamedTuple):
     """Per-trial randomness, derived from the seed exactly as the in-process evaluation
-    (``benchmarks.quadrotor_closedloop.Runner.fly``) derives it."""
+    (``benchmarks.quadrotor_flights.Runner.fly``) derives it."""
 
     sim_seed: int
     start_offset: np.ndarray

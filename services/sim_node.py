@@ -81,6 +81,7 @@ from pathlib import Path
 
 import numpy as np
 
+from arcade_control.hover import hold_setpoint
 from arcade_io import flightlog
 from services import runtime
 from services.csvlog import StreamedCsv
@@ -91,9 +92,6 @@ FLIGHT_COLUMNS = flightlog.columns("quadrotor")
 #: Position error [m] or height [m] at which a flight counts as crashed and stops.
 CRASH_ERROR_M = 2.0
 CRASH_HEIGHT_M = 0.02
-#: Failsafe position hold: PD gains [1/s^2, 1/s], horizontal acceleration limit [m/s^2],
-#: attitude gain [1/s] (tilt error -> body rates).
-HOLD_KP, HOLD_KD, HOLD_MAX_ACC, HOLD_K_ATT = 4.0, 3.0, 4.0, 6.0
 
 _FAULT = re.compile(
     r"(dropout|freeze|outliers|clockjump)@([0-9.]+)(?:\+([0-9.]+))?"
@@ -175,39 +173,6 @@ class MocapFaults:
         return out
 
 
-def hold_setpoint(
-    x: np.ndarray, p_hold: np.ndarray, hover_thrust: float, mass: float, max_thrust: float
-) -> np.ndarray:
-    """Position hold at ``p_hold`` on state ``x``: ``[thrust N, body rates rad/s]``.
-
-    Desired acceleration ``kp (p_hold - p) - kd v`` (horizontal part limited) plus
-    gravity; thrust is its projection on the body z axis; body rates turn the body z
-    axis towards the desired direction (small-angle attitude loop), yaw rate zero.
-    """
-    p, v, q = x[0:3], x[3:6], x[6:10] / np.linalg.norm(x[6:10])
-    g = hover_thrust / mass
-    acc = HOLD_KP * (p_hold - p) - HOLD_KD * v
-    n = np.linalg.norm(acc[:2])
-    if n > HOLD_MAX_ACC:
-        acc[:2] *= HOLD_MAX_ACC / n
-    acc[2] = np.clip(acc[2], -0.5 * g, g)
-    f_world = mass * (acc + np.array([0.0, 0.0, g]))
-    w, xq, yq, zq = q
-    R = np.array(
-        [
-            [1 - 2 * (yq * yq + zq * zq), 2 * (xq * yq - w * zq), 2 * (xq * zq + w * yq)],
-            [2 * (xq * yq + w * zq), 1 - 2 * (xq * xq + zq * zq), 2 * (yq * zq - w * xq)],
-            [2 * (xq * zq - w * yq), 2 * (yq * zq + w * xq), 1 - 2 * (xq * xq + yq * yq)],
-        ]
-    )
-    f_body = R.T @ f_world
-    thrust = float(np.clip(f_body[2], 0.0, max_thrust))
-    d = f_body / max(np.linalg.norm(f_body), 1e-6)  # desired thrust axis, body frame
-    # z_b x d = (-d_y, d_x, 0): rotate about body x by -d_y, about body y by d_x.
-    rates = HOLD_K_ATT * np.array([-d[1], d[0], 0.0])
-    return np.r_[thrust, rates]
-
-
 class SimNode(runtime.Service):
     """Simulator: MuJoCo quadrotor + motion capture on the bus."""
 
@@ -218,7 +183,8 @@ class SimNode(runtime.Service):
     _controller_failsafe: Event | None = None  # received, not yet acted on
 
     def setup(self, bus) -> None:
-        from benchmarks.quadrotor_closedloop import DT, reference
+        from arcade_control.nominal import CONTROL_DT as DT
+        from arcade_control.scenario import reference
         from simulator import QuadrotorSim
 
         a = self.args
@@ -771,6 +737,5 @@ __all__ = [
     "MocapFault",
     "MocapFaults",
     "SimNode",
-    "hold_setpoint",
     "main",
 ]

@@ -26,6 +26,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from arcade_core import frames
+
 
 @dataclass(frozen=True)
 class MocapConfig:
@@ -88,28 +90,6 @@ class GyroSample(NamedTuple):
     stamp: float
     arrival: float
     omega: np.ndarray
-
-
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of w-first quaternions."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ]
-    )
-
-
-def quat_exp(rotvec: np.ndarray) -> np.ndarray:
-    """Unit quaternion of a rotation vector [rad]."""
-    angle = float(np.linalg.norm(rotvec))
-    if angle < 1e-12:
-        return np.array([1.0, *(0.5 * rotvec)])
-    return np.array([np.cos(0.5 * angle), *(np.sin(0.5 * angle) / angle * rotvec)])
 
 
 _MAX_PENDING = 8192
@@ -176,7 +156,9 @@ class MocapEmulator:
             self.n_dropped += 1
             return
         pos = position + c.position_noise_m * noise[:3]
-        q = quat_mul(quaternion, quat_exp(c.attitude_noise_rad * noise[3:6]))
+        q = frames.multiply_np(
+            quaternion, frames.from_rotation_vector_np(c.attitude_noise_rad * noise[3:6])
+        )
         q /= np.linalg.norm(q)
         self._stream.pending.append(MocapSample(t, self._stream.arrival(t, latency), pos, q))
 

@@ -35,6 +35,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from arcade_core import frames
 from arcade_io.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG, load_vehicle
 from simulator.effects import Effects, drag_force_body, ground_effect_gain, load_effects
 from simulator.mjcf import (
@@ -193,7 +194,7 @@ class QuadrotorSim:
         p = np.asarray(position, dtype=float).reshape(3)
         v = np.asarray(velocity, dtype=float).reshape(3)
         d.qpos[0:3] = p
-        d.qpos[3:7] = [math.cos(0.5 * yaw), 0.0, 0.0, math.sin(0.5 * yaw)]
+        d.qpos[3:7] = frames.from_yaw_py(yaw)
         d.qvel[0:3] = v
         if self._swinging:
             d.eq_active[self._eq] = 1

@@ -1,5 +1,18 @@
-"""Shared test set-up: float64 for correctness tests and the persistent JAX cache; test
-certificates for the TLS tests."""
+"""Shared test set-up: float64 for correctness tests and the persistent JAX cache; each
+test's kind from its folder; test certificates for the TLS tests.
+
+A test's kind is the folder it sits in, and its marker (``-m unit``, ``-m integration``):
+
+- ``unit/``: one function, class or service handler in process (seconds);
+- ``property/``: properties over many generated inputs (Hypothesis, fuzzing, soaks);
+- ``integration/``: real processes or a Zenoh session on loopback (the stack, a service,
+  the router, the PX4 bridge and simulated PX4);
+- ``workflow/``: offline workflows end to end (the cartpole evaluation, the discrepancy
+  workflow, the quadrotor data, training and closed-loop pipeline).
+
+Modules shared by every folder (``loopback``) sit beside this file, which pytest puts on
+``sys.path``.
+"""
 
 import subprocess
 from pathlib import Path
@@ -9,6 +22,19 @@ import pytest
 from arcade_io import jaxsetup
 
 jaxsetup.configure(x64=True)
+
+TESTS = Path(__file__).resolve().parent
+KINDS = ("unit", "property", "integration", "workflow")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items) -> None:
+    """Mark every test with its folder's kind (before ``-m`` selects on the markers)."""
+    for item in items:
+        folder = Path(item.path).resolve().relative_to(TESTS).parts[0]
+        if folder not in KINDS:
+            raise pytest.UsageError(f"{item.nodeid}: a test belongs in one of tests/{KINDS}")
+        item.add_marker(folder)
 
 
 def _openssl(*args: str, cwd: Path) -> None:

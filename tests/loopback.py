@@ -116,7 +116,7 @@ class RecordingBus:
     def __init__(self) -> None:
         from types import SimpleNamespace
 
-        from services.messages import RejectCounter
+        from services.reception import RejectCounter
 
         self.rejects = RejectCounter()
         self.session = SimpleNamespace(declare_subscriber=lambda *a, **k: None)

@@ -213,11 +213,11 @@ def hub_problem(hub: str | None) -> str | None:
 def vehicle_name_problem(name: str) -> str | None:
     """Why ``--vehicle`` is not a bus name, or None. A vehicle file is a common mistake:
     ``arcade sim``, ``simulate`` and ``discrepancy`` take one under the same option."""
-    from services.bus import _check_name
+    from services.bus import check_name
 
     why = f"{name!r} looks like a vehicle file" if name.endswith(".toml") else None
     try:
-        _check_name("vehicle", name)
+        check_name("vehicle", name)
     except ValueError as err:
         why = str(err)
     if why is None:

@@ -46,6 +46,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
+from arcade_core import frames
+
 
 class L1Params(NamedTuple):
     """Model and tuning of the L1 augmentation (SI units)."""
@@ -72,18 +74,6 @@ class L1State(NamedTuple):
     x_prev: Array  # (13,) state at the previous update
     started: Array  # () bool: has seen a first state
     params: L1Params
-
-
-def quat_to_rotmat(q: Array) -> Array:
-    """Body-to-world rotation matrix of a unit quaternion ``[w, x, y, z]`` (normalised)."""
-    w, x, y, z = q / jnp.linalg.norm(q)
-    return jnp.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def init(params: L1Params, dtype: jnp.dtype | None = None) -> L1State:
@@ -132,7 +122,7 @@ def update(state: L1State, x: Array, u_applied: Array, dt: float | Array) -> L1S
 
     # 1. predictor over the last interval, from the previous measurement and estimates
     xp = state.x_prev
-    rp = quat_to_rotmat(xp[6:10])
+    rp = frames.to_rotation_matrix(frames.normalize(xp[6:10]))
     vp, wp = xp[3:6], xp[10:13]
     v_dot = (
         u_applied[0] / p.mass * (rp @ e3)
@@ -145,7 +135,7 @@ def update(state: L1State, x: Array, u_applied: Array, dt: float | Array) -> L1S
     w_hat = jnp.where(state.started, state.w_hat + dt * w_dot, w)
 
     # 2. piecewise-constant adaptation law: B^-1 = m R^T (translation), tau I (rates)
-    r = quat_to_rotmat(x[6:10])
+    r = frames.to_rotation_matrix(frames.normalize(x[6:10]))
     sigma_force = -p.mass * (r.T @ (_adaptation_gain(p.a_s, dt) * (v_hat - v)))
     sigma_rates = -p.rate_tau * _adaptation_gain(p.a_s_rot, dt) * (w_hat - w)
 
@@ -184,7 +174,7 @@ def acceleration_estimate(state: L1State, x: Array, include_matched: bool = True
     An MPC running with the L1 correction should add only the unmatched part
     (``include_matched=False``): the matched part is being cancelled through the thrust.
     """
-    r = quat_to_rotmat(x[6:10])
+    r = frames.to_rotation_matrix(frames.normalize(x[6:10]))
     sigma = state.sigma_force
     sigma = jnp.where(include_matched, sigma, sigma.at[2].set(0.0))
     return r @ sigma / state.params.mass

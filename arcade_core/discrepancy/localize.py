@@ -6,12 +6,13 @@ Regimes: residuals binned by quantiles of a regime variable (speed, height, thru
 of Algorithm 1 (:mod:`arcade_core.adaptation`): the whitened residual is modelled as a mean
 ``theta * 1`` that may jump (one constant feature, ``d`` = channels), and the changepoints
 on the MAP path of the beam split the log into segments of homogeneous model error.
+:func:`localise_gap` is the workflow's step: all three for the current model.
 """
 
 from __future__ import annotations
 
 import itertools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +20,7 @@ import numpy as np
 from jax import Array
 
 from arcade_core import adaptation
+from arcade_core.discrepancy.prediction import rms
 
 
 class Segmenter(NamedTuple):
@@ -101,3 +103,88 @@ def segment_rms(resid: Array, cps: np.ndarray) -> list[tuple[int, int, np.ndarra
         for a, b in itertools.pairwise(bounds)
         if b > a
     ]
+
+
+def localise_gap(model, X, U, dt, starts, H, theta, W) -> dict[str, Any]:
+    """The workflow's step 2: the one-step residual of ``model`` at ``theta`` (a
+    :class:`~arcade_core.discrepancy.prediction.DiscrepancyModel`) over the windows
+    ``starts`` of ``H`` samples, by component, regime and time segment.
+
+    Residuals of the velocity/rate channels are expressed in units of their noise level
+    (``sigma`` from the whitening ``W`` of what is left after fitting every candidate
+    effect), so "4 x noise" reads the same for m/s and rad/s and a noisy channel does not
+    look like a gap. Regimes: speed, height, thrust, tilt (quadrotor); cart speed, pole
+    rate, pole angle, force (cartpole).
+    """
+    err = model.errors(X, model.predict(theta, X, U, starts, H, dt), starts, H)[:, -1]
+    comps = list(model.components)
+    dyn = [
+        comps.index(c)
+        for c in (
+            ("vx", "vy", "vz", "wx", "wy", "wz")
+            if model.name == "quadrotor"
+            else ("xdot", "thetadot")
+        )
+    ]
+    W = np.asarray(W)
+    sigma = np.sqrt(np.diag(np.linalg.inv(W.T @ W)))
+    norm = err[:, dyn] / sigma
+    names = [comps[d] for d in dyn]
+    x0 = X[starts]
+    if model.name == "quadrotor":
+        qx, qy = x0[:, 7], x0[:, 8]
+        tilt = np.degrees(np.arccos(np.clip(1 - 2 * (qx * qx + qy * qy), -1.0, 1.0)))
+        regimes = {
+            "speed_mps": np.linalg.norm(x0[:, 3:6], axis=1),
+            "height_m": x0[:, 2],
+            "thrust_n": U[starts, 0],
+            "tilt_deg": tilt,
+        }
+    else:
+        regimes = {
+            "cart_speed_mps": np.abs(x0[:, 1]),
+            "pole_rate_rad_s": np.abs(x0[:, 3]),
+            "pole_cos": np.cos(x0[:, 2]),
+            "force_n": np.abs(U[starts, 0]),
+        }
+    overall = rms(norm)
+    by_regime, findings = {}, []
+    for name, var in regimes.items():
+        b = binned_rms(norm, var, bins=4)
+        by_regime[name] = {
+            "edges": b.edges.tolist(),
+            "rms": {c: b.rms[:, i].tolist() for i, c in enumerate(names)},
+        }
+        for i, c in enumerate(names):
+            k = int(np.argmax(b.rms[:, i]))
+            findings.append(
+                (
+                    float(b.rms[k, i]),
+                    float(b.rms[k, i] / max(overall[i], 1e-12)),
+                    name,
+                    c,
+                    b.edges[k],
+                    b.edges[k + 1],
+                )
+            )
+    # Regimes where a component's gap concentrates: most noise levels, then most contrast.
+    findings.sort(key=lambda f: -f[0] * f[1])
+    cps = changepoints(norm @ np.eye(len(names)), min_gap=max(1, round(1.0 / (H * dt))))
+    t0 = starts * dt
+    segments = [
+        {"t_start": float(t0[a]), "t_end": float(t0[b - 1] + H * dt),
+         "rms_noise": {c: float(r[i]) for i, c in enumerate(names)}}
+        for a, b, r in segment_rms(norm, cps)
+    ]  # fmt: skip
+    summary = {
+        "rmse": {comps[i]: float(v) for i, v in enumerate(rms(err))},
+        "rms_noise": {c: float(v) for c, v in zip(names, overall)},
+        "noise": {c: float(v) for c, v in zip(names, sigma)},
+        "largest": names[int(np.argmax(overall))],
+        "regimes": [
+            {"regime": f, "bin": [float(lo), float(hi)], "component": c, "rms_noise": r, "ratio": q}
+            for r, q, f, c, lo, hi in findings[:3]
+        ],
+        "segments": segments,
+    }
+    return {"summary": summary, "by_regime": by_regime, "err": err, "t": t0}

@@ -50,7 +50,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.scipy.linalg import expm
 
-from arcade_core.dynamics import quaternion as quat
+from arcade_core import frames as quat
 from arcade_core.dynamics.params import QuadrotorParams
 from arcade_core.dynamics.quadrotor import quadrotor_deriv
 

@@ -1,6 +1,5 @@
 """Nominal dynamics models (Appendix D): the cartpole testbed and the 13-state quadrotor."""
 
-from arcade_core.dynamics import quaternion
 from arcade_core.dynamics.cartpole import (
     CARTPOLE_NU,
     CARTPOLE_NX,
@@ -48,6 +47,5 @@ __all__ = [
     "predict_over_delay",
     "quadrotor_deriv",
     "quadrotor_step",
-    "quaternion",
     "sample_disturbance",
 ]

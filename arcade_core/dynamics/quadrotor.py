@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from arcade_core.dynamics import quaternion as quat
+from arcade_core import frames as quat
 from arcade_core.dynamics.params import QuadrotorParams
 
 #: State and input dimensions.
@@ -39,11 +39,7 @@ def quadrotor_deriv(x: Array, u: Array, params: QuadrotorParams) -> Array:
     """
     v, q, w = x[VEL], x[QUAT], x[RATE]
     thrust, w_cmd = u[0], u[1:4]
-    # R(q) e3 is the third column of the rotation matrix (body z axis in the world frame).
-    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
-    z_body = jnp.stack(
-        [2 * (qx * qz + qw * qy), 2 * (qy * qz - qw * qx), 1 - 2 * (qx * qx + qy * qy)]
-    )
+    z_body = quat.body_z_axis(q)
     e3 = jnp.array([0.0, 0.0, 1.0], dtype=x.dtype)
     vdot = (thrust / params.mass) * z_body - params.gravity * e3
     qdot = 0.5 * quat.multiply(q, jnp.concatenate([jnp.zeros((1,), x.dtype), w]))

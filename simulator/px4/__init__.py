@@ -5,8 +5,9 @@ MAVSDK (or any ground-station) client flies it as it would fly a PX4 vehicle in 
 attitude-rate mode. The pieces: :mod:`~simulator.px4.vehicle` (commander: arming, modes,
 offboard loss failsafe), :mod:`~simulator.px4.position_control` (hold / take-off / land),
 :mod:`~simulator.px4.mavlink_vehicle` (the MAVLink protocol side). Frame and thrust-curve
-conversions are the bridge's own (:mod:`services.px4_frames`): the vehicle inverts exactly
-what an offboard client computes.
+conversions are the bridge's own (:mod:`arcade_core.frames`,
+:mod:`arcade_core.px4_command`): the vehicle inverts exactly what an offboard client
+computes.
 """
 
 from simulator.px4.mavlink_vehicle import MavlinkVehicle

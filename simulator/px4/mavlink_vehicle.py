@@ -40,12 +40,8 @@ from collections.abc import Callable
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from services.px4_frames import (
-    enu_to_ned,
-    flu_to_frd,
-    quat_enu_flu_to_ned_frd,
-    quat_to_euler_zyx,
-)
+from arcade_core import frames
+from arcade_core.frames import enu_to_ned, flu_to_frd, quat_enu_flu_to_ned_frd
 from simulator.px4.link import UdpLink
 from simulator.px4.modes import FlightMode
 from simulator.px4.vehicle import PARAM_DEFAULTS, Px4Vehicle
@@ -128,20 +124,6 @@ def _param_from_wire(value: float, param_type: int) -> float | int:
 def _int(x: float, default: int = 0) -> int:
     """Integer command parameter; unused parameters arrive as NaN."""
     return round(x) if math.isfinite(x) else default
-
-
-def _euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return np.array(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ]
-    )
 
 
 class MavlinkVehicle:
@@ -302,7 +284,7 @@ class MavlinkVehicle:
 
     def _attitude(self):
         x = self.vehicle.state()
-        rpy = quat_to_euler_zyx(quat_enu_flu_to_ned_frd(x[6:10]))
+        rpy = frames.to_rpy_np(quat_enu_flu_to_ned_frd(x[6:10]))
         return self.mav.attitude_encode(self._boot_ms(), *rpy, *flu_to_frd(x[10:13]))
 
     def _local_position_ned(self):
@@ -326,7 +308,7 @@ class MavlinkVehicle:
             return None
         x = self.vehicle.state()
         q = quat_enu_flu_to_ned_frd(x[6:10])
-        v_body = _rotation_t(x[6:10]) @ x[3:6]
+        v_body = frames.to_rotation_matrix_np(x[6:10] / np.linalg.norm(x[6:10])).T @ x[3:6]
         nan21 = [math.nan] * 21
         return self.mav.odometry_encode(
             int(self.vehicle.time * 1e6),
@@ -406,7 +388,7 @@ class MavlinkVehicle:
         elif kind == "ODOMETRY":
             self._odometry_in(msg)
         elif kind == "VISION_POSITION_ESTIMATE":
-            q = _euler_to_quat(msg.roll, msg.pitch, msg.yaw)
+            q = frames.from_rpy_py(msg.roll, msg.pitch, msg.yaw)
             if not self.vehicle.set_vision(
                 (msg.x, msg.y, msg.z),
                 q,
@@ -544,15 +526,3 @@ class MavlinkVehicle:
                 self._param_value(name)
             else:
                 self.rejects["param_set"] += 1
-
-
-def _rotation_t(q: np.ndarray) -> np.ndarray:
-    """Transpose of the rotation matrix of ``q`` (world -> body)."""
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    ).T

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.px4_frames import quat_mul
+from arcade_core import frames
 
 
 @dataclass(frozen=True)
@@ -31,46 +31,15 @@ class PositionGains:
     thrust_min_frac: float = 0.12  # MPC_THR_MIN, of the hover thrust
 
 
-def _rotation_to_quat(r: np.ndarray) -> np.ndarray:
-    """``[w, x, y, z]`` of a rotation matrix (Shepperd's method)."""
-    t = np.trace(r)
-    if t > 0.0:
-        s = 2.0 * np.sqrt(1.0 + t)
-        return np.array(
-            [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-        )
-    i = int(np.argmax(np.diag(r)))
-    j, k = (i + 1) % 3, (i + 2) % 3
-    s = 2.0 * np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k])
-    q = np.empty(4)
-    q[0] = (r[k, j] - r[j, k]) / s
-    q[1 + i] = 0.25 * s
-    q[1 + j] = (r[j, i] + r[i, j]) / s
-    q[1 + k] = (r[k, i] + r[i, k]) / s
-    return q
-
-
 def attitude_to_rates(q: np.ndarray, q_sp: np.ndarray, gains=(6.5, 6.5, 2.8)) -> np.ndarray:
     """Body-rate setpoint [rad/s] (body axes) steering attitude ``q`` to ``q_sp``.
 
     Proportional on the error quaternion ``q^-1 * q_sp`` (PX4's attitude controller without
     its yaw de-prioritisation): ``omega = 2 * k * sign(w_e) * vec(q_e)``.
     """
-    q_inv = np.array([q[0], -q[1], -q[2], -q[3]])
-    qe = quat_mul(q_inv, np.asarray(q_sp, dtype=float))
+    qe = frames.multiply_np(frames.conjugate_np(q), np.asarray(q_sp, dtype=float))
     sign = 1.0 if qe[0] >= 0.0 else -1.0
     return 2.0 * sign * np.asarray(gains) * qe[1:]
-
-
-def _rotation(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class PositionController:
@@ -113,9 +82,9 @@ class PositionController:
         b2 = np.cross(b3, c1)
         b2 /= np.linalg.norm(b2)
         b1 = np.cross(b2, b3)
-        q_sp = _rotation_to_quat(np.column_stack([b1, b2, b3]))
+        q_sp = frames.from_rotation_matrix_np(np.column_stack([b1, b2, b3]))
         # Collective along the current body z (what the rotors can actually deliver).
-        body_z = _rotation(q)[:, 2]
+        body_z = frames.to_rotation_matrix_np(q)[:, 2]
         thrust = hover_thrust / self.gravity * float(f @ body_z)
         thrust = max(thrust, g.thrust_min_frac * hover_thrust)
         return np.array([thrust, *attitude_to_rates(q, q_sp, g.att_p)])

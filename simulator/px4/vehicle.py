@@ -37,14 +37,10 @@ from typing import Any
 
 import numpy as np
 
+from arcade_core import frames
+from arcade_core.frames import flu_to_frd, frd_to_flu, ned_to_enu, quat_ned_frd_to_enu_flu
+from arcade_core.px4_command import ThrustCurve
 from arcade_io.px4_failsafe import LOSS_ACTIONS
-from services.px4_frames import (
-    ThrustCurve,
-    flu_to_frd,
-    frd_to_flu,
-    ned_to_enu,
-    quat_ned_frd_to_enu_flu,
-)
 from simulator.px4.airframe import Px4Airframe
 from simulator.px4.modes import FlightMode
 from simulator.px4.position_control import PositionController, attitude_to_rates
@@ -174,8 +170,7 @@ class Px4Vehicle:
 
     def _pose(self) -> tuple[np.ndarray, float]:
         x = self.sim.state()
-        w, qx, qy, qz = x[6:10]
-        return x[0:3].copy(), float(math.atan2(2 * (w * qz + qx * qy), 1 - 2 * (qy**2 + qz**2)))
+        return x[0:3].copy(), frames.yaw_py(x[6:10])
 
     @property
     def hold_position(self) -> np.ndarray:

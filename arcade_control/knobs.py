@@ -1,0 +1,85 @@
+"""The methods by name and the knobs they fly with (presets and tuned values).
+
+The evaluation (:mod:`benchmarks.quadrotor_closedloop`) tunes these knobs on a cell it does
+not evaluate and records the choice in :data:`TUNED_DEFAULTS`; the service stack flies
+them too (``arcade_control.stack.stack_knobs`` overrides the two it re-tunes for the state
+estimate).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
+#: Variants of ours that are not the paper's method, flown beside it by
+#: :mod:`benchmarks.quadrotor_variants` (:func:`beam_method`).
+VARIANTS = ("ours_matched",)
+#: ``(intercept, matched)`` of :func:`beam_method` per variant: ``ours_matched`` and its two
+#: changes one at a time (these two with ours' knobs; the ablation of
+#: :mod:`benchmarks.quadrotor_variants`).
+BEAM_VARIANTS = {
+    "ours_matched": (True, True),
+    "ours_intercept": (True, False),
+    "ours_thrust_axis": (False, True),
+}
+FIFO = 50
+#: UT input standard deviations of the MLP-MPC: mocap/gyro-level state noise, exact inputs.
+MLP_INPUT_STD = np.array([3e-4] * 3 + [1e-2] * 3 + [2e-3] * 4 + [5e-3] * 3 + [0.0] * 4)
+#: The method each knob belongs to.
+TUNING_METHOD = {
+    "ours_beta": "ours",
+    "ours_sigma2": "ours",
+    "gp_noise_scale": "gp",
+    "mlp_lr": "mlp",
+    "l1_cutoff": "l1",
+    "l1_cutoff_rates": "l1",
+    "l1_a_s": "l1",
+    "ours_matched_beta": "ours_matched",
+    "ours_matched_sigma2": "ours_matched",
+}
+#: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
+#: the choice under "tuning"); used when the tuning is skipped (``quick``).
+TUNED_DEFAULTS = {
+    "ours_beta": 0.05,
+    "ours_sigma2": 0.0001,
+    "gp_noise_scale": 0.01,
+    "mlp_lr": 0.1,
+    "l1_cutoff": 80.0,
+    "l1_cutoff_rates": 0.0,
+    "l1_a_s": -0.1,
+    # Tuned by `arcade bench variants` (benchmarks/results/quadrotor_variants/), 2-core AMD EPYC.
+    "ours_matched_beta": 0.2,
+    "ours_matched_sigma2": 0.0001,
+}
+
+
+def knobs_of(setting: dict[str, float], methods: Sequence[str]) -> dict[str, float]:
+    """The knobs of ``methods`` in ``setting`` (over :data:`TUNED_DEFAULTS`): what a run
+    that flies those methods records as its setting, without the other methods' knobs."""
+    full = {**TUNED_DEFAULTS, **setting}
+    owners = {knob_owner(m) for m in methods}
+    return {k: v for k, v in full.items() if TUNING_METHOD[k] in owners}
+
+
+def knob_owner(name: str) -> str:
+    """Whose knobs (:data:`TUNING_METHOD`) the method ``name`` flies with: the beam methods
+    other than ``ours_matched`` (ours without changepoints, ``ours_K*``, the one-change
+    variants) fly with ours'."""
+    name = base_name(name)
+    if name.startswith("ours") and name != "ours_matched":
+        return "ours"
+    return name
+
+
+#: Suffix of a learned-model method flown with its residual held along the warm start
+#: (the optimiser does not see the model's derivatives) instead of inside the rollout.
+HELD = "_held"
+#: The diagnostic of :func:`oracle_mass_method` (not in :data:`METHODS`).
+ORACLE = "oracle_mass"
+
+
+def base_name(name: str) -> str:
+    """``name`` without the :data:`HELD` suffix."""
+    return name.removesuffix(HELD)

@@ -1,0 +1,111 @@
+"""Each method's adaptive state at take-off, with the knobs it flies with."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from arcade_control.guard import cast as _cast
+from arcade_control.guard import make_guard
+from arcade_control.knobs import (
+    BEAM_VARIANTS,
+    FIFO,
+    MLP_INPUT_STD,
+    ORACLE,
+    TUNED_DEFAULTS,
+    base_name,
+    knob_owner,
+)
+from arcade_control.methods import BeamLearner, MassOracle
+from arcade_control.nominal import nominal_params
+from arcade_core import adaptation
+from arcade_core.baselines import gp, l1, mlp
+
+
+def no_cp_config(cfg: adaptation.AdaptationConfig) -> adaptation.AdaptationConfig:
+    """Ours without changepoints: a single hypothesis that never tempers (Appendix D 5)."""
+    return adaptation.AdaptationConfig(K=1, pi=0.0, beta=1.0, tau2=cfg.tau2, sigma2=cfg.sigma2)
+
+
+def scale_gp_noise(model: gp.GPModel, scale: float) -> gp.GPModel:
+    """``model`` with its noise variances (marginal likelihood, offline) times ``scale``."""
+    h = model.hyper
+    return model._replace(hyper=h._replace(log_noise_var=h.log_noise_var + np.log(scale)))
+
+
+def initial_learner(name: str, models, dtype) -> Any:
+    """The method's adaptive state at take-off (arrays in ``dtype``)."""
+
+    def cast(tree):
+        return _cast(tree, dtype)
+
+    name = base_name(name)
+    p = nominal_params()
+    if name == "nominal":
+        return jnp.zeros((), dtype)
+    if name == ORACLE:  # the flight fills in its payload and release step
+        return MassOracle(jnp.zeros((), jnp.int32), -jnp.ones((), jnp.int32), jnp.zeros((), dtype))
+    tuned = {**TUNED_DEFAULTS, **getattr(models, "closedloop", {})}
+    if name == "l1":
+        # The rate channel (matched body-rate disturbance) is applied when it has a bandwidth.
+        c, c_rates = tuned["l1_cutoff"], tuned["l1_cutoff_rates"]
+        return l1.init(
+            l1.L1Params(
+                mass=p.mass,
+                gravity=p.gravity,
+                rate_tau=p.rate_tau,
+                a_s=tuned["l1_a_s"],
+                cutoff_thrust=c,
+                cutoff_rates=c_rates if c_rates > 0 else c,
+                rotational=c_rates > 0,
+            ),
+            dtype,
+        )
+    guard = make_guard(models, dtype)
+    if name == "gp":
+        return cast(gp.init(scale_gp_noise(models.gp, tuned["gp_noise_scale"]), FIFO)), guard
+    if name == "mlp":
+        std = jnp.asarray(MLP_INPUT_STD, dtype)
+        return cast(
+            mlp.init(
+                cast(models.mlp), std[:13], std[13:], capacity=FIFO, learning_rate=tuned["mlp_lr"]
+            )
+        ), guard
+    knobs = knob_owner(name)
+    cfg = adaptation.quadrotor_config()._replace(
+        beta=tuned[f"{knobs}_beta"], sigma2=tuned[f"{knobs}_sigma2"]
+    )
+    if name == "ours_no_cp":
+        cfg = no_cp_config(cfg)
+    elif name.startswith("ours_K"):
+        cfg = cfg._replace(K=int(name[len("ours_K") :]))
+    vld = cast(models.vld)
+    theta0 = vld.theta0
+    if BEAM_VARIANTS.get(name, (False, False))[0]:  # the intercept's column starts at zero
+        theta0 = jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
+    beam = adaptation.init(theta0, cfg)
+    traced_cfg = adaptation.AdaptationConfig(
+        K=jnp.asarray(cfg.K),
+        pi=jnp.asarray(cfg.pi, dtype),
+        beta=jnp.asarray(cfg.beta, dtype),
+        tau2=jnp.asarray(cfg.tau2, dtype),
+        sigma2=jnp.asarray(cfg.sigma2, dtype),
+        prior_floor=jnp.asarray(cfg.prior_floor, dtype),
+    )
+    zero = jnp.zeros((), dtype)
+    return BeamLearner(vld, beam, traced_cfg, guard, zero, zero)
+
+
+def per_output_noise(learner: BeamLearner) -> BeamLearner:
+    """``learner`` with one noise variance per output and one covariance per output row, at
+    the prior (Algorithm 1 line 1): what a state estimate's per-component noise needs
+    (:func:`arcade_core.adaptation.state_noise_sigma2`). The same beam while all variances
+    are equal."""
+    cfg, (d, _) = learner.config, learner.vld.theta0.shape
+    dtype = learner.beam.means.dtype
+    vec = cfg._replace(sigma2=jnp.broadcast_to(jnp.asarray(cfg.sigma2, dtype), (d,)))
+    theta0 = learner.beam.prior_mean
+    beam = adaptation.init(theta0, vec._replace(K=int(learner.beam.means.shape[0])))
+    return learner._replace(config=vec, beam=beam)

@@ -1,0 +1,129 @@
+"""The closed-loop flight plan (Sec. V-B) and its flat reference.
+
+Every flight climbs from 1.5 m to the centre of the figure-eight at 2.0 m (2.5 s), hovers
+(1.5 s), then flies two laps of the figure-eight
+(:class:`arcade_core.trajectories.FigureEight`, 4 m x 2 m) at the mean speed of the cell.
+The first 2 s of the figure-eight ramp the speed up smoothly (:class:`RampedPath`) so the
+reference starts at rest. The payload is released just before the second lap (at 95 % of
+the first lap).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from arcade_control.nominal import CONTROL_DT as DT
+from arcade_control.nominal import nominal_params
+from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff, flat_state
+
+
+class RampedPath(NamedTuple):
+    """A path flown on a warped clock ``s(t)`` whose rate ramps smoothly from 0 to 1.
+
+    ``ds/dt = smoothstep5(t / ramp)``: velocity, acceleration and jerk of the reference are
+    continuous and zero at ``t = 0``, so it chains with a hover (thrust and body rates of
+    the flat reference stay continuous). ``s(t) = ramp (2.5 r^4 - 3 r^5 + r^6)`` for
+    ``r = t / ramp <= 1``, then ``ramp / 2 + (t - ramp)``.
+    """
+
+    path: FigureEight
+    ramp: Array | float
+
+    def clock(self, t: Array) -> Array:
+        r = jnp.clip(t / self.ramp, 0.0, 1.0)
+        s_ramp = self.ramp * r**4 * (2.5 - 3.0 * r + r**2)
+        return jnp.where(t < self.ramp, s_ramp, 0.5 * self.ramp + (t - self.ramp))
+
+    def position(self, t: Array) -> Array:
+        return self.path.position(self.clock(t))
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One cell of Table III plus the fixed flight plan (module docstring)."""
+
+    payload_g: float = 175.0
+    speed_mps: float = 2.5
+    start: tuple[float, float, float] = (0.0, 0.0, 1.5)
+    center: tuple[float, float, float] = (0.0, 0.0, 2.0)
+    takeoff_s: float = 2.5
+    hover_s: float = 1.5
+    ramp_s: float = 2.0
+    half_length_m: float = 2.0
+    half_width_m: float = 1.0
+    laps: float = 2.0
+    release_fraction: float = 0.95  # of the first lap; a negative value: no release
+    cable_length_m: float | None = None
+    #: Transport delay of every setpoint to the rate loop (``QuadrotorSim``'s
+    #: ``command_delay_s``); the evaluation's cells fly without one.
+    command_delay_s: float = 0.0
+
+    @property
+    def figure_eight(self) -> FigureEight:
+        return FigureEight(
+            center=self.center,
+            half_length=self.half_length_m,
+            half_width=self.half_width_m,
+            speed=self.speed_mps,
+        )
+
+    @property
+    def lap_s(self) -> float:
+        return float(self.figure_eight.period())
+
+    @property
+    def t_figure(self) -> float:
+        """Start of the figure-eight [s]."""
+        return self.takeoff_s + self.hover_s
+
+    def t_of_clock(self, s: float) -> float:
+        """Flight time at which the figure-eight clock reads ``s`` (s >= ramp / 2)."""
+        return self.t_figure + self.ramp_s + (s - 0.5 * self.ramp_s)
+
+    @property
+    def t_release(self) -> float:
+        return self.t_of_clock(self.release_fraction * self.lap_s)
+
+    @property
+    def t_end(self) -> float:
+        return self.t_of_clock(self.laps * self.lap_s)
+
+    def path(self):
+        """The reference as one pytree path (all numbers as arrays: no recompilation)."""
+        f = jnp.asarray
+        fig = FigureEight(
+            center=f(self.center),
+            half_length=f(self.half_length_m),
+            half_width=f(self.half_width_m),
+            speed=f(self.speed_mps),
+        )
+        hover_then_fig = Chain(
+            Hover(f(self.center)), RampedPath(fig, f(self.ramp_s)), f(self.hover_s)
+        )
+        return Chain(
+            Takeoff(f(self.start), f(self.center), f(self.takeoff_s)),
+            hover_then_fig,
+            f(self.takeoff_s),
+        )
+
+
+@jax.jit
+def _reference(path, times):
+    params = nominal_params()
+    return jax.vmap(lambda t: flat_state(path, t, params))(times)
+
+
+def reference(
+    scenario: Scenario, n_steps: int, N: int, offset_s: float = 0.0
+) -> tuple[Array, Array]:
+    """Flat reference states (n_steps + N + 1, 13) and inputs at every control instant
+    (``offset_s`` later: the instants a delayed setpoint starts to act at)."""
+    dtype = jnp.result_type(float)
+    times = jnp.arange(n_steps + N + 1, dtype=dtype) * DT + offset_s
+    path = jax.tree.map(lambda a: jnp.asarray(a, dtype), scenario.path())
+    return _reference(path, times)

@@ -1,0 +1,115 @@
+"""One system's model with effects as the discrepancy workflow uses it (design §6, step 1).
+
+:class:`DiscrepancyModel` holds the nominal model (quadrotor: with motors and rate loop;
+cartpole: Appendix D) and the effect tables the current model already has, the parameter
+layout ``theta`` of the effect library (groups, plausible ranges, the current ``theta``),
+and predicts from measured states with the measured inputs over windows of the log: one
+model step for the residuals, a short horizon for the CRMSE.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from arcade_core.discrepancy import cartpole, quadrotor
+
+QUAD_COMPONENTS = (
+    "px", "py", "pz", "vx", "vy", "vz", "att_x", "att_y", "att_z", "wx", "wy", "wz",
+)  # fmt: skip
+CART_COMPONENTS = ("x", "xdot", "theta", "thetadot")
+#: Residual channels used for identification (indices into the state).
+QUAD_CHANNELS = (3, 4, 5, 10, 11, 12)
+CART_CHANNELS = (1, 3)
+#: Predictions are padded to multiples of these (samples, windows), so that logs of
+#: similar length share one compilation.
+_PAD_SAMPLES = 4096
+_PAD_WINDOWS = 512
+
+#: One jitted prediction function per system (compiled once per shape).
+_PREDICT = {
+    "quadrotor": jax.jit(quadrotor.predict_windows, static_argnames=("steps", "dt")),
+    "cartpole": jax.jit(cartpole.predict_windows, static_argnames=("steps", "dt")),
+}
+
+
+class DiscrepancyModel:
+    """One system's model, parameter layout and jitted predictions.
+
+    ``model``: a :class:`~arcade_core.discrepancy.quadrotor.QuadModel` or
+    :class:`~arcade_core.discrepancy.cartpole.CartpoleModel`; ``effect_tables``: the
+    effects the current model has, checked and completed by
+    :func:`arcade_core.discrepancy.tables.validate_tables`.
+    """
+
+    def __init__(self, system: str, model, effect_tables: dict[str, dict[str, Any]]):
+        self.name = system
+        self.model = model
+        self.effect_tables = effect_tables
+        if system == "quadrotor":
+            mod = quadrotor
+            self.components = QUAD_COMPONENTS
+            self.channels = QUAD_CHANNELS
+        else:
+            mod = cartpole
+            self.components = CART_COMPONENTS
+            self.channels = CART_CHANNELS
+        self.mod = mod
+        self.groups = mod.GROUPS
+        self.low = np.asarray(mod.THETA_LOW, float)
+        self.high = np.asarray(mod.THETA_HIGH, float)
+        self.theta_base = np.asarray(mod.theta_from_effects(self.model, self.effect_tables))
+        self._predict = _PREDICT[system]
+
+    def predict(self, theta, X, U, starts, steps: int, dt: float) -> np.ndarray:
+        """Predictions ``(len(starts), steps, nx)`` (padded to shared shapes for jit reuse)."""
+        n, m = X.shape[0], len(starts)
+        n_pad = -(-n // _PAD_SAMPLES) * _PAD_SAMPLES
+        m_pad = -(-m // _PAD_WINDOWS) * _PAD_WINDOWS
+        Xp = np.concatenate([X, np.repeat(X[-1:], n_pad - n, axis=0)])
+        Up = np.concatenate([U, np.repeat(U[-1:], n_pad - n, axis=0)])
+        sp = np.concatenate([starts, np.full(m_pad - m, starts[0])]).astype(np.int32)
+        out = self._predict(
+            self.model,
+            jnp.asarray(theta),
+            jnp.asarray(Xp),
+            jnp.asarray(Up),
+            jnp.asarray(sp),
+            steps=steps,
+            dt=dt,
+        )
+        return np.asarray(out)[:m]
+
+    def errors(self, X, pred, starts, steps) -> np.ndarray:
+        """Measured minus predicted per reporting component, ``(m, steps, n_comp)``."""
+        idx = np.asarray(starts)[:, None] + np.arange(1, steps + 1)[None, :]
+        meas = X[idx]
+        if self.name == "cartpole":
+            return meas - pred
+        att = attitude_error(meas[..., 6:10], pred[..., 6:10])
+        return np.concatenate(
+            [meas[..., 0:6] - pred[..., 0:6], att, meas[..., 10:13] - pred[..., 10:13]],
+            axis=-1,
+        )
+
+    def effect_params(self, theta, name: str):
+        """Physical parameters of effect ``name`` at ``theta`` (library units)."""
+        return self.mod.effect_params(theta, name)
+
+
+def rms(a: np.ndarray, axis=0) -> np.ndarray:
+    """Root mean square along ``axis``."""
+    return np.sqrt(np.mean(np.square(a), axis=axis))
+
+
+def attitude_error(q_meas: np.ndarray, q_pred: np.ndarray) -> np.ndarray:
+    """Rotation vector (body frame) from the predicted to the measured attitude [rad]."""
+    w1, v1 = q_pred[..., :1], q_pred[..., 1:]
+    w2, v2 = q_meas[..., :1], q_meas[..., 1:]
+    # q_pred^* (x) q_meas
+    w = w1 * w2 + np.sum(v1 * v2, axis=-1, keepdims=True)
+    v = w1 * v2 - w2 * v1 - np.cross(v1, v2)
+    return 2.0 * np.sign(np.where(w == 0, 1.0, w)) * v

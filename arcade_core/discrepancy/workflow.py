@@ -1,0 +1,329 @@
+"""The discrepancy workflow (design §6): where model and log disagree, which effect is
+missing, the model with it, and the gap before and after.
+
+On one flight log (states ``X``, inputs ``U`` as a zero-order hold per row, constant
+period ``dt``) and the current model (:class:`~arcade_core.discrepancy.prediction.
+DiscrepancyModel`: nominal model, motors, rate loop and the effects it already has):
+
+1. **Align**: predictions of the current model from every measured state with the
+   measured inputs, over one model step (``step_s``, rounded to whole log samples) and
+   over a short horizon; residual per state component.
+2. **Localise**: residual RMS per component, per regime (speed, height, thrust, tilt for
+   the quadrotor; speeds, pole angle, force for the cartpole) and per time segment (the
+   changepoint machinery of Algorithm 1 segments the log;
+   :func:`~arcade_core.discrepancy.localize.localise_gap`).
+3. **Name**: all library effects of the system are candidates at once; sparse selection
+   (BIC among subsets in which every effect explains a relevant share) with a block
+   bootstrap for confidence and parameter intervals
+   (:mod:`arcade_core.discrepancy.identify`). Only effects with confidence at least
+   ``confidence`` are added; otherwise the answer is "no confident effect". A selected
+   effect whose signature in this log stays within the noise (it could not halve the
+   one-step gap, :func:`effect_visibility`) is reported as "below detectability" and not
+   added (quadrotor; the library states each effect's limit on the standard trajectory).
+4. **Add**: the effect tables of the updated model (``Outcome.model_effects``): the
+   current model's and the confident effects, within their plausible ranges.
+5. **Show**: the log is split in time into blocks; a held-out fraction of them is only
+   evaluated, never fitted (:mod:`arcade_core.discrepancy.settings`). Before/after one-step
+   RMSE and multi-step CRMSE per component.
+
+A log whose setpoint changed between rows (resampled without regard to the controller's
+instants) shows an apparent input lag, which the workflow will name.
+
+``heldout_rmse_before/after`` is the one-step RMSE over the state components the added
+effects act on (the library's ``acts_on``) where their contribution to the held-out
+prediction is at least half of what is left unexplained (a ground effect acts on the
+vertical velocity of a nearly level vehicle, hardly visibly on the horizontal ones); all
+velocity and rate components when nothing is added. SI units; ``gap_before/after`` give
+every component.
+
+Arrays in, an :class:`Outcome` out; no files, no printing. Run it with float64 enabled
+(``jax_enable_x64``): in float32 the numbers differ in the third or fourth digit, and the
+secants' scoring overflows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from arcade_core.discrepancy.catalog import effects_for
+from arcade_core.discrepancy.identify import SelectionConfig, identify
+from arcade_core.discrepancy.localize import localise_gap
+from arcade_core.discrepancy.prediction import DiscrepancyModel, rms
+from arcade_core.discrepancy.settings import (
+    Settings,
+    block_windows,
+    burn_in_samples,
+    check_log,
+    log_blocks,
+    step_samples,
+)
+
+#: Gap-to-noise ratio at which adding an effect halves the one-step RMSE (``sqrt(3)``).
+HALVING_RATIO = 3.0**0.5
+
+
+@dataclass
+class Outcome:
+    """Everything the workflow found.
+
+    ``result``: the findings as JSON-ready data (what ``arcade discrepancy --json``
+    prints); ``details``: arrays for plots (held-out windows ``ho``, residuals before and
+    after, localisation, ``theta`` before and after, the ``identification``);
+    ``model_effects``: the effect tables of the updated model.
+    """
+
+    result: dict[str, Any]
+    details: dict[str, Any] = field(default_factory=dict)
+    model_effects: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+def find_discrepancy(
+    model: DiscrepancyModel,
+    X: np.ndarray,
+    U: np.ndarray,
+    dt: float,
+    settings: Settings | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Outcome:
+    """The workflow (module docstring) on states ``X (n, nx)`` and inputs ``U (n, nu)`` at
+    period ``dt`` (``settings``: default :class:`Settings`); ``progress`` is told what is
+    being done."""
+    settings = Settings() if settings is None else settings
+    say = progress or (lambda _msg: None)
+    system = model.name
+    n = X.shape[0]
+    check_log(system, n, dt, settings)
+    H = step_samples(settings, dt)
+    burn = burn_in_samples(settings, system, dt)
+    blocks = log_blocks(settings, n, dt)
+    n_fit = sum(b - a for a, b, h in blocks if not h)
+    fit_starts = block_windows(blocks, False, burn, H, H)
+    ch = np.asarray(model.channels)
+
+    def residual_fn(theta):
+        pred = model.predict(theta, X, U, fit_starts, H, dt)[:, -1]
+        return X[fit_starts + H][:, ch] - pred[:, ch]
+
+    say(f"{n} samples at {1.0 / dt:.4g} Hz; fitting {len(fit_starts)} windows of {H} steps")
+    cfg = SelectionConfig(
+        min_explained=settings.min_explained,
+        min_size=settings.min_size,
+        confidence=settings.confidence,
+        n_boot=settings.n_boot,
+        block=max(1, round(settings.block_s / (H * dt))),
+        seed=settings.seed,
+    )
+    ident = identify(
+        residual_fn, model.theta_base, [g for _, g in model.groups], model.low, model.high, cfg
+    )
+    say(f"selected {[model.groups[j][0] for j in ident.selected]} in {ident.rounds} round(s)")
+
+    # ---- detectability: could each selected effect halve the held-out gap at all? An
+    # effect the bootstrap selects but whose signature is within the noise is reported,
+    # not added (:func:`effect_visibility`).
+    specs = effects_for(system)
+    ho = block_windows(blocks, True, burn, H, 1)
+    visible = {}
+    if system == "quadrotor":
+        visible = _visibility(model, X, U, dt, fit_starts, H, ident)
+        below = [j for j in ident.confident if visible[j] < HALVING_RATIO]
+        if below:
+            ident = _without(ident, below, model.theta_base, [g for _, g in model.groups])
+
+    # ---- effects, parameters, intervals
+    effects_out = []
+    listed = sorted(
+        set(ident.selected) | {j for j, c in enumerate(ident.confidence) if c >= 0.5},
+        key=lambda j: (-(j in ident.confident), -ident.contribution[j], -ident.confidence[j]),
+    )
+    for j in listed:
+        name = model.groups[j][0]
+        theta_j = ident.theta if j in ident.confident else ident.theta_selected
+        params = model.effect_params(theta_j, name)
+        lo = model.effect_params(np.percentile(ident.samples, 5, axis=0), name)
+        hi = model.effect_params(np.percentile(ident.samples, 95, axis=0), name)
+        interval = {k: _interval(lo[k], hi[k]) for k in params} if j in ident.confident else {}
+        vis = visible.get(j)
+        effects_out.append({
+            "name": name,
+            "visibility": None if vis is None else float(vis),
+            "below_detectability": vis is not None and vis < HALVING_RATIO,
+            "params": params,
+            "interval": interval,
+            "confidence": float(ident.confidence[j]),
+            "explained": float(ident.contribution[j]),
+            "added": j in ident.confident,
+            "acts_on": list(specs[name].acts_on),
+        })  # fmt: skip
+    confident_names = [model.groups[j][0] for j in ident.confident]
+
+    # ---- held-out before/after
+    theta_b, theta_a = model.theta_base, ident.theta
+    err_b = model.errors(X, model.predict(theta_b, X, U, ho, H, dt), ho, H)[:, -1]
+    err_a = model.errors(X, model.predict(theta_a, X, U, ho, H, dt), ho, H)[:, -1]
+    comps = list(model.components)
+    gap_before = {c: float(v) for c, v in zip(comps, rms(err_b))}
+    gap_after = {c: float(v) for c, v in zip(comps, rms(err_a))}
+    if confident_names:
+        # The components the added effects act on (library) and, of those, the ones where
+        # their contribution to the held-out prediction stands out of what is left (at
+        # least half of it): where the effect is visible in this log.
+        act = sorted({c for nme in confident_names for c in specs[nme].acts_on}, key=comps.index)
+        change = rms(err_b - err_a)
+        moved = [c for c in act if change[comps.index(c)] >= 0.5 * gap_after[c]]
+        act = moved or act
+    else:
+        act = (
+            [comps[i] for i in (3, 4, 5, 9, 10, 11)]
+            if system == "quadrotor"
+            else ["xdot", "thetadot"]
+        )
+    sel = [comps.index(c) for c in act]
+    rmse_b = float(rms(err_b[:, sel].reshape(-1)))
+    rmse_a = float(rms(err_a[:, sel].reshape(-1)))
+    M = max(2, round(settings.horizon_s / dt))
+    stride = max(1, round(0.5 / dt))
+    cr_starts = block_windows(blocks, True, burn, M, stride)
+    crmse_b: dict[str, float] = {}
+    crmse_a: dict[str, float] = {}
+    if len(cr_starts):
+        eb = model.errors(X, model.predict(theta_b, X, U, cr_starts, M, dt), cr_starts, M)
+        ea = model.errors(X, model.predict(theta_a, X, U, cr_starts, M, dt), cr_starts, M)
+        # CRMSE (Sec. V-A) of one component is the sum of absolute errors over the horizon.
+        crmse_b = {c: float(v) for c, v in zip(comps, np.mean(np.abs(eb).sum(1), axis=0))}
+        crmse_a = {c: float(v) for c, v in zip(comps, np.mean(np.abs(ea).sum(1), axis=0))}
+
+    # ---- localisation of the gap (fit part, current model)
+    loc = localise_gap(model, X, U, dt, fit_starts, H, theta_b, ident.weights)
+
+    summary = (
+        "named: "
+        + ", ".join(
+            f"{e['name']} (confidence {e['confidence']:.2f})" for e in effects_out if e["added"]
+        )
+        if confident_names
+        else "no confident effect"
+    )
+    below_names = [e["name"] for e in effects_out if e["below_detectability"]]
+    if below_names:
+        summary += "; below detectability: " + ", ".join(below_names)
+    result: dict[str, Any] = {
+        "system": system,
+        "summary": summary,
+        "no_confident_effect": not confident_names,
+        "effects": effects_out,
+        "gap_before": gap_before,
+        "gap_after": gap_after,
+        "below_detectability": below_names,
+        "heldout_rmse_before": rmse_b,
+        "heldout_rmse_after": rmse_a,
+        "heldout_components": act,
+        "crmse_before": crmse_b,
+        "crmse_after": crmse_a,
+        "step_s": H * dt,
+        "horizon_s": M * dt,
+        "samples": n,
+        "fit_samples": n_fit,
+        "outlier_windows": int(ident.outliers.sum()),
+        "localisation": loc["summary"],
+    }
+    details = {
+        "ho": ho, "err_before": err_b, "err_after": err_a,
+        "components": comps, "localisation": loc, "theta_before": theta_b,
+        "theta_after": theta_a, "identification": ident,
+    }  # fmt: skip
+    return Outcome(result, details, updated_effects(model, ident))
+
+
+def updated_effects(model: DiscrepancyModel, ident) -> dict[str, dict[str, Any]]:
+    """Effect tables of the updated model: the current model's, and every confident effect
+    of ``ident`` at its estimate (clipped into its plausible range)."""
+    effects = {k: dict(v) for k, v in model.effect_tables.items()}
+    for j in ident.confident:
+        name = model.groups[j][0]
+        effects[name] = _clip_to_spec(model.name, name, model.effect_params(ident.theta, name))
+    return effects
+
+
+def _clip_to_spec(system: str, name: str, params: dict[str, Any]) -> dict[str, Any]:
+    specs = effects_for(system)[name].params
+    out = {}
+    for k, v in params.items():
+        lo, hi = specs[k].low, specs[k].high
+        out[k] = [min(max(x, lo), hi) for x in v] if isinstance(v, list) else min(max(v, lo), hi)
+    return out
+
+
+def noise_levels(model: DiscrepancyModel, X, U, dt, starts, H, theta) -> np.ndarray:
+    """What is left per identification channel once ``theta`` models the log: the RMS
+    one-step residual over the windows ``starts`` (the floor a model can get down to)."""
+    pred = model.predict(theta, X, U, starts, H, dt)[:, -1]
+    ch = np.asarray(model.channels)
+    return rms(X[np.asarray(starts) + H][:, ch] - pred[:, ch])
+
+
+def effect_visibility(
+    model: DiscrepancyModel, X, U, dt, starts, H, theta, name, sigma, pred0=None
+) -> float:
+    """How far effect ``name`` at ``theta`` stands out of the noise in this log (quadrotor).
+
+    Mirrors the held-out metric: over the windows ``starts``, the RMS change ``g_c`` of the
+    one-step prediction that ``theta`` makes against the base model, per component ``c``
+    the effect acts on, against that component's noise level ``sigma_c`` (what the fitted
+    model leaves, :func:`noise_levels`); pooled over the components where the change is at
+    least half the noise (all of them when there is none), the ratio ``sqrt(sum g_c^2 / sum
+    sigma_c^2)``. A model that removes the gap takes the pooled RMSE from ``sqrt(sigma^2 +
+    g^2)`` to ``sigma`` at best: halving it takes a ratio of at least ``sqrt(3)``
+    (:data:`HALVING_RATIO`). Below that the effect is *below detectability* in this log.
+    """
+    comps = list(model.components)
+    # component name -> (state index, identification channel); all are v or omega.
+    chan = {comps[i if i < 6 else i - 1]: (i, k) for k, i in enumerate(model.channels)}
+    base = np.asarray(model.theta_base, float)
+    if pred0 is None:
+        pred0 = model.predict(base, X, U, starts, H, dt)[:, -1]
+    pred = model.predict(theta, X, U, starts, H, dt)[:, -1]
+    acts = [c for c in effects_for(model.name)[name].acts_on if c in chan]
+    g = np.array([float(rms(pred[:, chan[c][0]] - pred0[:, chan[c][0]])) for c in acts])
+    sig = np.array([float(sigma[chan[c][1]]) for c in acts])
+    moved = g >= 0.5 * sig
+    if moved.any():
+        g, sig = g[moved], sig[moved]
+    return float(np.sqrt(np.sum(g**2) / max(float(np.sum(sig**2)), 1e-300)))
+
+
+def _visibility(model: DiscrepancyModel, X, U, dt, starts, H, ident) -> dict[int, float]:
+    """:func:`effect_visibility` of every selected effect at its estimate, alone, against
+    what the fit with all selected effects leaves (fitting windows)."""
+    # Windows the identification left out as gross outliers (floor contacts) stay out.
+    starts = np.asarray(starts)[~np.asarray(ident.outliers)]
+    sigma = noise_levels(model, X, U, dt, starts, H, ident.theta_selected)
+    base = np.asarray(model.theta_base, float)
+    pred0 = model.predict(base, X, U, starts, H, dt)[:, -1]
+    out = {}
+    for j in ident.selected:
+        name, idx = model.groups[j]
+        th = base.copy()
+        src = ident.theta if j in ident.confident else ident.theta_selected
+        th[list(idx)] = np.asarray(src)[list(idx)]
+        out[j] = effect_visibility(model, X, U, dt, starts, H, th, name, sigma, pred0)
+    return out
+
+
+def _without(ident, drop: list[int], theta_base: np.ndarray, groups) -> Any:
+    """``ident`` with the effects ``drop`` taken out of the confident (added) set."""
+    theta = np.asarray(ident.theta, float).copy()
+    for j in drop:
+        theta[list(groups[j])] = theta_base[list(groups[j])]
+    confident = tuple(j for j in ident.confident if j not in drop)
+    return ident._replace(confident=confident, theta=theta)
+
+
+def _interval(lo, hi):
+    if isinstance(lo, list):
+        return [[min(a, b), max(a, b)] for a, b in zip(lo, hi)]
+    return [min(lo, hi), max(lo, hi)]

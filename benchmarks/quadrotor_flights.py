@@ -1,0 +1,326 @@
+"""In-process closed-loop flights of the quadrotor (Sec. V-B): one method, one trial.
+
+:class:`Runner` flies the MuJoCo quadrotor (:class:`simulator.QuadrotorSim`) with the
+jitted controller step of a method (:func:`arcade_control.step.make_controller_step`) on
+the ground-truth state, or on the state estimate the service stack flies
+(:class:`MocapEstimate`); :func:`flight_metrics` scores a flight. The flight plan and its
+reference are :mod:`arcade_control.scenario`; what the evaluation does with the flights is
+:mod:`benchmarks.quadrotor_closedloop`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from arcade_control.knobs import HELD, base_name
+from arcade_control.learners import initial_learner, per_output_noise
+from arcade_control.methods import BeamLearner, MassOracle, make_method
+from arcade_control.nominal import CONTROL_DT as DT
+from arcade_control.nominal import f_nom, nominal_params
+from arcade_control.scenario import Scenario, reference
+from arcade_control.step import Carry, make_controller_step, mpc_config
+from arcade_core import adaptation, estimation, metrics
+from arcade_core.dynamics.quadrotor import predict_over_delay
+from simulator import QuadrotorSim
+
+#: A flight whose position error exceeds this is stopped and counted as a crash [m].
+CRASH_ERROR_M = 2.0
+
+
+class MocapEstimate:
+    """The state a flight sees: the estimator core (:mod:`arcade_core.estimation`, the
+    :class:`~arcade_core.estimation.FilterConfig` of the :class:`Runner`) on the simulator's
+    motion capture and gyro (noise, latency, dropped frames), as the stack's estimator
+    service runs it at each control instant. The first call also takes the frame captured
+    at ``t = 0``, which the stack's simulator publishes before its first control instant."""
+
+    def __init__(self, sim, dtype, step: Callable):
+        self.sim, self.dtype, self._step = sim, dtype, step
+        self.filter = estimation.init(dtype)
+        self.gyro = np.zeros(3)
+        self._first = True
+
+    def __call__(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(x, var)`` at the simulator's current time: estimate and marginal variances."""
+        sim, first, self._first = self.sim, self._first, False
+        until = float("inf") if first else sim.time
+        gyro = sim.gyro.read(until)
+        if gyro:
+            self.gyro = gyro[-1].omega
+        frames = sim.mocap.read(until)[-estimation.MAX_FRAMES :]
+        m, dt = estimation.MAX_FRAMES, np.dtype(self.dtype)
+        stamp, pos = np.zeros(m, dt), np.zeros((m, 3), dt)
+        quat_ = np.tile(np.array([1.0, 0.0, 0.0, 0.0], dt), (m, 1))
+        valid = np.zeros(m, bool)
+        for i, f in enumerate(frames):
+            stamp[i], pos[i], quat_[i], valid[i] = f.stamp, f.position, f.quaternion, True
+        self.filter, out = self._step(
+            self.filter,
+            estimation.Frames(stamp, pos, quat_, valid),
+            np.asarray(sim.time, dt),
+            np.asarray(self.gyro, dt),
+        )
+        return np.asarray(out.x, float), np.asarray(out.var, float)
+
+
+# --------------------------------------------------------------------------- flights
+
+
+@dataclass
+class Flight:
+    """One closed-loop flight at the control rate."""
+
+    method: str
+    scenario: Scenario
+    seed: int
+    t: np.ndarray  # (n,)
+    x: np.ndarray  # (n, 13)
+    x_ref: np.ndarray  # (n, 13)
+    u: np.ndarray  # (n, 4) applied
+    diag: np.ndarray  # (n, 17)
+    t_release: float
+    crashed: bool
+    step_ms: np.ndarray  # (n,) wall time of the jitted update per step
+    metrics: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def error(self) -> np.ndarray:
+        return self.x[:, :3] - self.x_ref[:, :3]
+
+
+class Runner:
+    """Builds (once) and caches the jitted per-step update of each method."""
+
+    def __init__(self, models, dtype=None, filter_config=None):
+        """``filter_config``: the estimator's settings for flights on the state estimate
+        (:class:`arcade_core.estimation.FilterConfig`; ``None``: its defaults, the
+        estimator service's)."""
+        self.models = models
+        self.dtype = jnp.result_type(float) if dtype is None else dtype
+        self.filter_config = filter_config
+        self.cfg = mpc_config(self.dtype)
+        self._steps: dict[tuple[str, float], Callable] = {}
+        self._estimate: Callable | None = None
+        self._jacobian: Callable | None = None
+        self._predict_var: Callable | None = None
+
+    def _estimation(self) -> tuple[Callable, Callable]:
+        """The jitted estimator step and ``df_nom/dx`` (built once)."""
+        if self._estimate is None:
+            config = self.filter_config
+            if config is None:
+                config = estimation.FilterConfig()
+            self._estimate = jax.jit(
+                lambda f, fr, t, w: estimation.fuse_and_predict(f, fr, t, w, config)
+            )
+            self._jacobian = jax.jit(jax.jacfwd(f_nom))
+        assert self._jacobian is not None
+        return self._estimate, self._jacobian
+
+    def _predict(self, x, var, u, delay: float):
+        """The diagonal variance of the state predicted over ``delay``
+        (:func:`arcade_core.dynamics.predict_over_delay`; jitted once)."""
+        if self._predict_var is None:
+            self._predict_var = jax.jit(
+                lambda x, var, u, d: predict_over_delay(x, var, u, nominal_params(), d)[1]
+            )
+        return self._predict_var(x, var, u, delay)
+
+    def step_fn(self, name: str, delay_s: float = 0.0) -> Callable:
+        """The jitted step of method ``name`` (:func:`make_controller_step`)."""
+        key = (name, delay_s)
+        if key not in self._steps:
+            self._steps[key] = make_controller_step(
+                make_method(name), self.cfg, hold_residual=name.endswith(HELD), delay_s=delay_s
+            )
+        return self._steps[key]
+
+    def fly(
+        self,
+        name: str,
+        scenario: Scenario,
+        seed: int = 0,
+        estimated: bool = False,
+        compensate_delay: bool = False,
+    ) -> Flight:
+        """Fly one trial; returns the log with its metrics.
+
+        ``estimated``: every method sees the state estimate (:class:`MocapEstimate`) instead
+        of the ground-truth state, as in the service stack; ours and its variants then add
+        the estimate's noise to their observation noise at every step, as the stack's
+        adapter does (:func:`arcade_core.adaptation.state_noise_sigma2`).
+        ``compensate_delay``: the method knows the scenario's ``command_delay_s`` and
+        learns and plans from the state predicted over it, against the reference that much
+        later (:func:`make_controller_step`'s ``delay_s``); on the estimate, its variance is
+        carried through the prediction (:func:`arcade_core.dynamics.predict_over_delay`)
+        before it enters the observation noise. The metrics are of the true trajectory
+        against the reference at the control instants either way.
+        """
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 0x51]))
+        sim_seed = int(rng.integers(2**31))
+        offset = np.array([*rng.normal(0.0, 0.02, 2), 0.0])
+        jitter = int(rng.integers(-2, 3))
+        n = int(np.ceil(scenario.t_end / DT - 1e-9)) + 1
+        k_release = round(scenario.t_release / DT) + jitter
+        if scenario.release_fraction < 0:
+            k_release = -1
+        N = self.cfg.N
+        x_ref_all, u_ref_all = reference(scenario, n, N)
+        delay = scenario.command_delay_s if compensate_delay else 0.0
+        x_ref_ctrl, u_ref_ctrl = (
+            reference(scenario, n, N, delay) if delay else (x_ref_all, u_ref_all)
+        )
+        sim = QuadrotorSim(
+            payload_mass=scenario.payload_g / 1000.0,
+            cable_length=scenario.cable_length_m,
+            seed=sim_seed,
+            command_delay_s=scenario.command_delay_s,
+        )
+        x = sim.reset(np.asarray(scenario.start) + offset)
+        step = self.step_fn(name, delay)
+        dt = self.dtype
+        learner = initial_learner(name, self.models, dt)
+        estimate = state_noise = None
+        if estimated:
+            estimate_step, jacobian = self._estimation()
+            estimate = MocapEstimate(sim, dt, estimate_step)
+            x_seen, var = estimate()
+            if isinstance(learner, BeamLearner):
+                learner = per_output_noise(learner)
+                base_sigma2 = learner.config.sigma2
+
+                def state_noise(a, x_prev, u, var_prev, var_next):
+                    sigma2 = adaptation.state_noise_sigma2(
+                        base_sigma2,
+                        jacobian(jnp.asarray(x_prev, dt), jnp.asarray(u, dt)),
+                        jnp.asarray(var_prev, dt),
+                        jnp.asarray(var_next, dt),
+                        a.vld.delta_scale,
+                    )
+                    return a._replace(config=a.config._replace(sigma2=sigma2))
+        else:
+            x_seen, var = x, np.zeros(13)
+        p = nominal_params()
+        if isinstance(learner, MassOracle):  # what the rotors carry beyond the nominal
+            learner = learner._replace(  # mass: the payload and the cable's lumped mass
+                k_release=jnp.asarray(k_release, jnp.int32),
+                payload_kg=jnp.asarray(sim.carried_mass() - float(p.mass), dt),
+            )
+        # Warm start and smoothness reference: the nominal hover input (Appendix D U_0).
+        u0 = jnp.asarray([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0], dt)
+        carry = Carry(
+            learner, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x_seen, dt), jnp.zeros((), bool)
+        )
+        x_prev, var_prev = x_seen, var
+        u_applied = np.asarray(u0)
+        X, U, D, T_ms = (np.zeros((n, 13)), np.zeros((n, 4)), np.zeros((n, 17)), np.zeros(n))
+        x_ref_np = np.asarray(x_ref_all[:n])
+        crashed = False
+        n_done = n
+        for k in range(n):
+            if k == k_release:
+                sim.release_payload()
+            X[k] = x
+            t0 = time.perf_counter()
+            x_from = x_prev
+            if delay and state_noise is not None:  # learned: the states predicted over it
+                var = self._predict(
+                    jnp.asarray(x_seen, dt), jnp.asarray(var, dt), carry.u_mpc, delay
+                )
+                x_from = carry.x_prev
+            if state_noise is not None and k > 0:  # the transition x_prev -> x_seen
+                carry = carry._replace(
+                    learner=state_noise(carry.learner, x_from, u_applied, var_prev, var)
+                )
+            x_prev, var_prev = x_seen, var
+            carry, u, diag = step(
+                carry,
+                jnp.asarray(x_seen, dt),
+                jnp.asarray(u_applied, dt),
+                k,
+                x_ref_ctrl,
+                u_ref_ctrl,
+            )
+            u = np.asarray(u)
+            T_ms[k] = 1e3 * (time.perf_counter() - t0)
+            D[k] = np.asarray(diag)
+            u_applied = sim.set_setpoint(u)
+            U[k] = u_applied
+            if (
+                np.linalg.norm(x[:3] - x_ref_np[k, :3]) > CRASH_ERROR_M
+                or x[2] < 0.02
+                or not np.all(np.isfinite(x))
+            ):
+                crashed, n_done = True, k + 1
+                break
+            x = sim.step(DT)
+            x_seen, var = estimate() if estimate is not None else (x, var)
+        t = np.arange(n_done) * DT
+        flight = Flight(
+            name,
+            scenario,
+            seed,
+            t,
+            X[:n_done],
+            x_ref_np[:n_done],
+            U[:n_done],
+            D[:n_done],
+            k_release * DT if k_release >= 0 else float("nan"),
+            crashed,
+            T_ms[:n_done],
+        )
+        flight.metrics = flight_metrics(flight)
+        return flight
+
+
+#: Column of ``Flight.diag`` holding the changepoint flag (after the 13 sigma entries).
+DIAG_CHANGEPOINT = 13
+
+
+def flight_metrics(f: Flight) -> dict[str, float]:
+    """RMSE, z-RMSE on the figure-eight part; shift and settling at the release.
+
+    Diagnostics beside the paper's metrics, on the figure-eight part too: the RMS of the
+    step-to-step change of the thrust command (N) and of the body-rate commands (rad/s,
+    over the three axes; :func:`arcade_core.metrics.increment_rms`), and for the beam
+    methods the fraction of control steps on which a changepoint was flagged
+    (``nan`` for the others).
+    """
+    inf = float("inf")
+    beam = base_name(f.method).startswith("ours")
+    if f.crashed:
+        return {
+            "rmse_m": inf,
+            "rmse_z_m": inf,
+            "shift_m": inf,
+            "settling_s": inf,
+            "thrust_increment_rms_n": inf,
+            "rate_increment_rms_rad_s": inf,
+            "changepoint_rate": float("nan"),
+            "crashed": 1.0,
+        }
+    sel = f.t >= f.scenario.t_figure - 1e-9
+    p, pr = jnp.asarray(f.x[sel, :3]), jnp.asarray(f.x_ref[sel, :3])
+    e_z = jnp.asarray(f.error[:, 2])
+    t = jnp.asarray(f.t)
+    du = np.asarray(metrics.increment_rms(jnp.asarray(f.u[sel])))
+    out = {
+        "rmse_m": float(metrics.position_rmse(p, pr)),
+        "rmse_z_m": float(metrics.z_rmse(p, pr)),
+        "shift_m": float("nan"),
+        "settling_s": float("nan"),
+        "thrust_increment_rms_n": float(du[0]),
+        "rate_increment_rms_rad_s": float(np.sqrt(np.mean(du[1:] ** 2))),
+        "changepoint_rate": float(np.mean(f.diag[sel, DIAG_CHANGEPOINT])) if beam else float("nan"),
+        "crashed": 0.0,
+    }
+    if np.isfinite(f.t_release):
+        out["shift_m"] = float(metrics.shift_magnitude(t, e_z, f.t_release))
+        out["settling_s"] = float(metrics.settling_time(t, e_z, f.t_release, band=0.05).time)
+    return out

@@ -1,0 +1,209 @@
+"""Configuration of one service stack (``arcade up``'s options): :class:`StackConfig`.
+
+What the stack is made of (:data:`SERVICES`, their stop order, the profiles), how each
+process is scheduled on the realtime clock, and the command line each process gets
+(:meth:`StackConfig.args`). :class:`StackConfig` makes the run folder, the weights file, the
+checkpoint and the bus configuration files absolute (relative to the caller's working
+directory) when it is built, and checks that the bus configuration files name every process
+(:meth:`StackConfig.bus_config_problem`). The launcher (:mod:`deploy.launcher`) runs it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "CPU_WAKEUP_LATENCY_US",
+    "NICE",
+    "PROFILES",
+    "REALTIME_PRIORITY",
+    "SERVICES",
+    "STOP_ORDER",
+    "StackConfig",
+]
+
+#: Start order; stop order is the reverse of the data flow (vehicle first, recorder last).
+SERVICES = ("recorder", "estimator", "adapter", "controller", "sim")
+STOP_ORDER = ("sim", "controller", "adapter", "estimator", "recorder")
+PROFILES = ("sim", "px4")
+#: Realtime scheduling (realtime clock only): the sense-to-actuate path (vehicle link,
+#: estimator, controller) under SCHED_FIFO at these priorities, ahead of the adapter; the
+#: recorder niced last. Without the privilege a service warns and keeps the normal policy.
+REALTIME_PRIORITY = {"sim": 30, "estimator": 25, "controller": 20}
+NICE = {"recorder": 5}
+#: ... and idle CPUs that poll instead of sleeping (PM QoS; ``runtime.cpu_wakeup_latency``).
+CPU_WAKEUP_LATENCY_US = 0
+
+
+@dataclass
+class StackConfig:
+    """Options of one stack (``arcade up`` flags)."""
+
+    out: Path
+    profile: str = "sim"
+    lockstep: bool = False
+    vehicle: str = "default"
+    hub: str = "tcp/127.0.0.1:7450"
+    rate: float = 20.0
+    duration: float | None = None
+    payload_g: float = 175.0
+    speed: float = 2.5
+    seed: int = 0
+    release: float = 0.95
+    #: Hover before the figure-eight [s] (None: the scenario's); horizontal plan offset [m].
+    hover_s: float | None = None
+    origin: tuple[float, float] = (0.0, 0.0)
+    x64: bool = False
+    #: The link's setpoint delay that the controller and the adapter compensate [s]
+    #: (``--link-delay``; 0: none).
+    link_delay_s: float = 0.0
+    #: Realtime clock: SCHED_FIFO for the sense-to-actuate path (``REALTIME_PRIORITY``)
+    #: and a CPU wake-up latency request (``CPU_WAKEUP_LATENCY_US``).
+    realtime_priority: bool = True
+    weights: Path | None = None
+    checkpoint: Path | None = None
+    ready_timeout: float = 600.0
+    log_level: str = "INFO"
+    #: Diagnostic: the simulator publishes the ground-truth state, no estimator runs.
+    truth_state: bool = False
+    extra: dict[str, list[str]] = field(default_factory=dict)
+    #: Supervision: restarts per service (0: a crash stops the stack) and the back-off
+    #: before restart ``n`` (``restart_backoff_s * 2**n``, at most ``restart_backoff_max_s``).
+    max_restarts: int = 3
+    restart_backoff_s: float = 0.5
+    restart_backoff_max_s: float = 8.0
+    #: Zenoh configuration file of each process's bus session, keyed by process name plus
+    #: ``launcher`` (the launcher's own session) and optionally ``operator`` (commands
+    #: sent on a user's behalf); empty: peers on loopback through ``hub``. Given, it must
+    #: name every process and the launcher; ``hub`` is then unused.
+    bus_configs: dict[str, Path] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        # Absolute paths: what a service is handed does not depend on where it runs.
+        self.out = _absolute(self.out)
+        if self.weights is not None:
+            self.weights = _absolute(self.weights)
+        if self.checkpoint is not None:
+            self.checkpoint = _absolute(self.checkpoint)
+        self.bus_configs = {k: _absolute(v) for k, v in self.bus_configs.items()}
+
+    def bus_config_problem(self, processes: Iterable[str]) -> str | None:
+        """Why ``bus_configs`` does not fit ``processes`` (one line), or None."""
+        if not self.bus_configs:
+            return None
+        # The px4 profile's operator session (arm, hold, land, disarm) needs its own.
+        wanted = [*processes, "launcher", *(("operator",) if self.profile == "px4" else ())]
+        missing = [n for n in wanted if n not in self.bus_configs]
+        unknown = sorted(set(self.bus_configs) - set(wanted))
+        if missing:
+            return f"bus_configs: no configuration for {', '.join(missing)}"
+        if unknown:
+            return f"bus_configs: not a process of this stack: {', '.join(unknown)}"
+        return None
+
+    def bus_config(self, name: str) -> Any:
+        """The Zenoh configuration of process ``name``'s session (``launcher``, a service,
+        ``operator``): its file in ``bus_configs``, else a peer on ``hub``. ``ValueError``
+        naming the file if it cannot be read."""
+        from services.bus import peer_config, read_config  # Zenoh: loaded on first use
+
+        if not self.bus_configs:
+            return peer_config(self.hub)
+        if name not in self.bus_configs:
+            raise ValueError(f"bus_configs: no configuration for {name}")
+        return read_config(self.bus_configs[name])
+
+    def bus_args(self, name: str) -> list[str]:
+        """``--bus-config FILE`` of process ``name`` (none without ``bus_configs``: the
+        peers' ``--hub`` is among :meth:`base_args`)."""
+        return ["--bus-config", str(self.bus_configs[name])] if self.bus_configs else []
+
+    def checkpoint_path(self) -> Path:
+        """The adapter's posterior checkpoint (restored by a restarted adapter). Without
+        ``checkpoint`` it is the run folder's own, removed at start: a new flight starts
+        at the prior, a restarted adapter continues from it."""
+        return (
+            Path(self.checkpoint)
+            if self.checkpoint is not None
+            else (Path(self.out) / "adapter_checkpoint.npz")
+        )
+
+    def services(self) -> tuple[str, ...]:
+        """The processes of this configuration, in start order."""
+        if self.truth_state:
+            return tuple(s for s in SERVICES if s != "estimator")
+        return SERVICES
+
+    def base_args(self) -> list[str]:
+        """The arguments every process of the stack takes (vehicle, hub, run folder, rate);
+        with ``bus_configs`` no hub: each process gets its own :meth:`bus_args` when it is
+        spawned."""
+        hub = [] if self.bus_configs else ["--hub", self.hub]
+        return [
+            "--vehicle",
+            self.vehicle,
+            *hub,
+            "--out",
+            str(self.out),
+            "--rate",
+            f"{self.rate:g}",
+            "--log-level",
+            self.log_level,
+        ]
+
+    def args(self, service: str) -> list[str]:
+        common = self.base_args()
+        if self.lockstep:
+            common.append("--lockstep")
+        if self.x64:
+            common.append("--x64")
+        plan = [
+            "--payload-g",
+            f"{self.payload_g:g}",
+            "--speed",
+            f"{self.speed:g}",
+            "--seed",
+            str(self.seed),
+            "--release",
+            f"{self.release:g}",
+        ]
+        if self.duration is not None:
+            plan += ["--duration", f"{self.duration:g}"]
+        if self.hover_s is not None:
+            plan += ["--hover-s", f"{self.hover_s:g}"]
+        if tuple(self.origin) != (0.0, 0.0):
+            plan.append(f"--origin={self.origin[0]:g},{self.origin[1]:g}")  # may start with "-"
+        own: list[str] = []
+        if service in ("sim", "controller"):
+            own += plan
+        if service in ("adapter", "controller") and self.weights is not None:
+            own += ["--weights", str(self.weights)]
+        if service == "adapter":
+            own += ["--checkpoint", str(self.checkpoint_path())]
+        if service in ("adapter", "controller"):  # one value on both, never one alone
+            own += ["--link-delay", f"{self.link_delay_s:g}"]
+        if service == "sim":
+            own += ["--ready-timeout", f"{self.ready_timeout:g}"]
+            consumers = [s for s in self.services() if s != "sim"]  # incl. the recorder
+            own += ["--wait-for", ",".join(consumers)]
+            if self.truth_state:
+                own.append("--truth-state")
+        if not self.lockstep and self.realtime_priority and service in REALTIME_PRIORITY:
+            own += [
+                "--realtime-priority",
+                str(REALTIME_PRIORITY[service]),
+                "--cpu-wakeup-latency-us",
+                str(CPU_WAKEUP_LATENCY_US),
+            ]
+        if not self.lockstep and service in NICE:
+            own += ["--nice", str(NICE[service])]
+        return [*common, *own, *self.extra.get(service, [])]
+
+
+def _absolute(path: str | os.PathLike[str]) -> Path:
+    """``path`` relative to the current directory, made absolute (symlinks kept)."""
+    return Path(os.path.abspath(os.fspath(path)))

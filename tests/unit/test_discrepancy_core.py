@@ -1,0 +1,294 @@
+"""Discrepancy building blocks: the effect library, the models with effects, selection with
+bootstrap confidence, localisation. Fast; the end-to-end checks on simulated logs are in
+``test_discrepancy_quadrotor.py`` and ``test_discrepancy_cartpole.py``."""
+
+from __future__ import annotations
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from arcade import cli
+from arcade_core.discrepancy import cartpole as cp
+from arcade_core.discrepancy import quadrotor as qm
+from arcade_core.discrepancy.catalog import (
+    CARTPOLE_EFFECTS,
+    DETECTABLE,
+    EFFECTS,
+    QUADROTOR_EFFECTS,
+    magnitude,
+)
+from arcade_core.discrepancy.identify import SelectionConfig, identify
+from arcade_core.discrepancy.linearise import scaled_secants
+from arcade_core.discrepancy.localize import binned_rms, changepoints, segment_rms
+from arcade_core.discrepancy.subsets import Bounds, _solve_bounded
+from arcade_core.dynamics.cartpole import cartpole_true_step
+from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_NOMINAL, CARTPOLE_TRUE
+from arcade_io.discrepancy import quad_model_from_vehicle
+from arcade_io.vehicle import load_vehicle
+from simulator import EFFECTS as SIM_EFFECTS
+
+QUAD_NAMES = {
+    "rotor_drag",
+    "quadratic_drag",
+    "ground_effect",
+    "thrust_scale",
+    "motor_lag",
+    "rate_lag",
+    "com_offset",
+    "wind",
+}
+CART_NAMES = {
+    "cart_viscous_friction",
+    "pole_viscous_friction",
+    "coulomb_friction",
+    "force_bias",
+    "mass_mismatch",
+    "length_mismatch",
+}
+
+
+# ---------------------------------------------------------------- library
+
+
+def test_library_names_units_ranges_and_simulator_share_one_table(capsys):
+    assert set(QUADROTOR_EFFECTS) == QUAD_NAMES and set(CARTPOLE_EFFECTS) == CART_NAMES
+    for spec in EFFECTS.values():
+        assert spec.description and spec.acts_on
+        for p in spec.params.values():
+            assert p.unit and p.description and p.low < p.high
+    # The simulator validates against exactly these specs.
+    assert {k: dict(v) for k, v in SIM_EFFECTS.items()} == {
+        k: dict(s.params) for k, s in QUADROTOR_EFFECTS.items()
+    }
+    assert cli.main(["effects", "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)["effects"]
+    assert {e["name"] for e in listed} == QUAD_NAMES | CART_NAMES
+    drag = next(e for e in listed if e["name"] == "rotor_drag")
+    assert drag["system"] == "quadrotor"
+    assert drag["params"]["d"]["unit"] == "1/s" and drag["params"]["d"]["range"] == [0.0, 2.0]
+    assert drag["detectable_from"] == DETECTABLE["rotor_drag"]
+
+
+def test_every_quadrotor_effect_has_a_detectability_limit_inside_its_range():
+    vehicle = load_vehicle()
+    assert set(DETECTABLE) == set(QUADROTOR_EFFECTS)
+    for name, spec in QUADROTOR_EFFECTS.items():
+        p = next(iter(spec.params.values()))
+        top = {"thrust_scale": p.high - 1.0, "motor_lag": p.high - 0.025}.get(name, p.high)
+        if name in ("com_offset", "wind"):
+            top = p.high * 2**0.5  # horizontal length of a vector
+        assert 0.0 < DETECTABLE[name] < top, name
+    assert magnitude("thrust_scale", {"scale": 0.8}) == pytest.approx(0.2)
+    assert magnitude("motor_lag", {"time_constant_s": 0.1}, vehicle) == pytest.approx(0.075)
+    assert magnitude("com_offset", {"offset_m": [0.003, -0.004, 0.02]}) == pytest.approx(0.005)
+    assert magnitude("wind", {"velocity_mps": [3.0, 4.0, 0.0]}) == pytest.approx(5.0)
+
+
+def test_effect_tables_round_trip_through_theta():
+    model = quad_model_from_vehicle(load_vehicle())
+    tables = {
+        "rotor_drag": {"d": [0.4, 0.3, 0.1]},
+        "quadratic_drag": {"c": [0.05, 0.06, 0.07]},
+        "ground_effect": {"rotor_radius_m": 0.12},
+        "thrust_scale": {"scale": 0.9},
+        "motor_lag": {"time_constant_s": 0.04},
+        "rate_lag": {"delay_s": 0.02, "time_constant_s": 0.03},
+        "com_offset": {"offset_m": [0.01, -0.01, 0.0]},
+        "wind": {"velocity_mps": [1.0, -2.0, 0.0]},
+    }
+    theta = qm.theta_from_effects(model, tables)
+    for name, table in tables.items():
+        back = qm.effect_params(theta, name)
+        for k, v in table.items():
+            np.testing.assert_allclose(back[k], v, rtol=1e-12)
+    off = qm.theta_off(model)
+    assert off[8] == pytest.approx(0.025) and off[7] == 1.0  # the vehicle file's own model
+
+
+# ---------------------------------------------------------------- models
+
+
+def _excited_inputs(n, seed=0):
+    rng = np.random.default_rng(seed)
+    U = np.zeros((n, 4))
+    U[:, 0] = 0.57 * 9.81 + 0.5 * np.repeat(rng.normal(size=n // 5 + 1), 5)[:n]
+    U[:, 1:4] = 0.5 * np.repeat(rng.normal(size=(n // 5 + 1, 3)), 5, axis=0)[:n]
+    return U
+
+
+def test_rate_lag_delay_is_an_exact_input_shift():
+    model = quad_model_from_vehicle(load_vehicle())
+    n, dt = 120, 0.01
+    U = _excited_inputs(n)
+    X = np.tile(np.r_[0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0.1, -0.2, 0.05], (n, 1))
+    starts = jnp.arange(10, 100, 7)
+    delayed = qm.theta_off(model).at[9].set(2 * dt)
+    shifted = U.copy()
+    shifted[2:, 1:4] = U[:-2, 1:4]
+    shifted[:2, 1:4] = U[0, 1:4]
+    a = qm.predict_windows(model, delayed, jnp.asarray(X), jnp.asarray(U), starts, 5, dt)
+    b = qm.predict_windows(
+        model, qm.theta_off(model), jnp.asarray(X), jnp.asarray(shifted), starts, 5, dt
+    )
+    np.testing.assert_allclose(a, b, atol=1e-11)
+    # A fractional delay switches the input inside a step, exactly: half a step of delay
+    # equals one step of delay on a log sampled twice as fast (rates are solved exactly).
+    fine_U = np.repeat(U, 2, axis=0)
+    fine_U[1:, 1:4] = fine_U[:-1, 1:4]
+    fine_X = np.repeat(X, 2, axis=0)
+    half = qm.theta_off(model).at[9].set(0.5 * dt)
+    c = qm.predict_windows(model, half, jnp.asarray(X), jnp.asarray(U), starts, 5, dt)
+    f = qm.predict_windows(
+        model, qm.theta_off(model), jnp.asarray(fine_X), jnp.asarray(fine_U), 2 * starts, 10, dt / 2
+    )
+    np.testing.assert_allclose(np.asarray(c)[:, -1, 10:13], np.asarray(f)[:, -1, 10:13], atol=1e-10)
+
+
+def test_hover_is_an_equilibrium_and_rates_follow_setpoints():
+    model = quad_model_from_vehicle(load_vehicle())
+    theta = qm.theta_off(model)
+    n = 400
+    U = np.tile([0.57 * 9.81, 0.0, 0.0, 0.0], (n, 1))
+    X = np.tile(np.r_[0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0.0], (n, 1))
+    pred = np.asarray(
+        qm.predict_windows(model, theta, jnp.asarray(X), jnp.asarray(U), jnp.array([0]), 300, 0.01)
+    )[0]
+    np.testing.assert_allclose(pred[-1], X[0], atol=1e-9)
+    # A constant yaw-rate setpoint is tracked without steady-state error (PID integrator).
+    U[100:, 3] = 0.4
+    pred = np.asarray(
+        qm.predict_windows(model, theta, jnp.asarray(X), jnp.asarray(U), jnp.array([0]), 300, 0.01)
+    )[0]
+    assert pred[-1, 12] == pytest.approx(0.4, abs=2e-3)
+    assert abs(pred[99, 12]) < 1e-9  # pred[k] is the state at sample k + 1
+    assert 0.05 < pred[102, 12] < 0.3  # ... with the loop's lag (about 50 ms)
+
+
+def test_cartpole_model_with_the_papers_effects_is_the_papers_true_system():
+    model = cp.CartpoleModel.from_params(CARTPOLE_NOMINAL)
+    theta = cp.theta_from_effects(model, {
+        "cart_viscous_friction": {"mu_c": CARTPOLE_TRUE.mu_c},
+        "pole_viscous_friction": {"mu_p": CARTPOLE_TRUE.mu_p},
+        "force_bias": {"mean_n": CARTPOLE_TRUE.dist_mean},
+        "mass_mismatch": {"cart_mass_kg": CARTPOLE_TRUE.M, "pole_mass_kg": CARTPOLE_TRUE.m},
+        "length_mismatch": {"pole_length_m": CARTPOLE_TRUE.L},
+    })  # fmt: skip
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        x = jnp.asarray(rng.normal(size=4))
+        u, noise = rng.normal(scale=3.0), rng.normal(scale=0.7)
+        ours = cp.true_step(model, theta, x, u, CARTPOLE_DT, noise)
+        paper = cartpole_true_step(
+            None, x, u, CARTPOLE_TRUE, CARTPOLE_DT, u_dist=CARTPOLE_TRUE.dist_mean + noise
+        )
+        np.testing.assert_allclose(ours, paper, rtol=1e-12, atol=1e-12)
+    # Coulomb friction opposes the cart's motion.
+    x = jnp.array([0.0, 1.0, 0.0, 0.0])
+    off = cp.theta_off(model)
+    slowed = cp.step(model, off.at[2].set(1.0), x, 0.0, CARTPOLE_DT)
+    assert slowed[1] < cp.step(model, off, x, 0.0, CARTPOLE_DT)[1] - 0.02
+
+
+# ---------------------------------------------------------------- selection
+
+
+def _linear_problem(theta_true, n=1500, seed=0):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, 2, 5))
+    y = np.einsum("ncp,p->nc", A, theta_true) + rng.normal(size=(n, 2))
+
+    def residual_fn(theta):
+        return y - np.einsum("ncp,p->nc", A, np.asarray(theta))
+
+    return residual_fn
+
+
+GROUPS = [(0, 1), (2,), (3, 4)]
+LOW, HIGH = np.full(5, -5.0), np.full(5, 5.0)
+
+
+def test_identify_names_the_true_effects_with_confidence_and_intervals():
+    truth = np.array([0.8, -0.5, 0.0, 0.0, 0.6])
+    cfg = SelectionConfig(n_boot=100, block=50)
+    res = identify(_linear_problem(truth), np.zeros(5), GROUPS, LOW, HIGH, cfg)
+    assert set(res.selected) == {0, 2} and set(res.confident) == {0, 2}
+    assert res.confidence[0] >= 0.9 and res.confidence[2] >= 0.9 and res.confidence[1] < 0.5
+    np.testing.assert_allclose(res.theta, truth, atol=0.06)
+    lo, hi = np.percentile(res.samples, [5, 95], axis=0)
+    assert np.all((lo[[0, 1, 4]] <= truth[[0, 1, 4]]) & (truth[[0, 1, 4]] <= hi[[0, 1, 4]]))
+    assert np.all(hi[[0, 1, 4]] - lo[[0, 1, 4]] < 0.2)
+
+
+def test_identify_says_nothing_when_there_is_nothing():
+    res = identify(
+        _linear_problem(np.zeros(5), seed=3),
+        np.zeros(5),
+        GROUPS,
+        LOW,
+        HIGH,
+        SelectionConfig(n_boot=100, block=50),
+    )
+    assert res.confident == () and np.all(res.theta == 0.0)
+    assert np.all(res.confidence < 0.9)
+
+
+def test_a_long_delay_is_found_through_scaled_secants():
+    # A transport delay of 8 samples in a signal that decorrelates within 2: the tangent at
+    # zero delay (the signal's derivative) explains almost nothing of the gap, the secant
+    # over the whole range explains most of it; selection names the delay, the fit finds it.
+    rng = np.random.default_rng(2)
+    n, t = 1200, np.arange(1200.0)
+    sig = np.convolve(rng.normal(size=(n + 40)), np.ones(3) / 3.0, mode="same")[20:-20]
+    truth = 8.0
+
+    def shifted(delay):
+        return np.interp(t - delay, t, sig)
+
+    y = shifted(truth) + 0.05 * rng.normal(size=n)
+    other = rng.normal(size=n)
+
+    def residual_fn(theta):
+        th = np.asarray(theta)
+        return np.stack([y - shifted(th[0]) - other * th[1], other * 0.0], axis=1)
+
+    low, high = np.array([0.0, -1.0]), np.array([10.0, 1.0])
+    base = np.zeros(2)
+    jac = scaled_secants(residual_fn, base, low, high, residual_fn(base), (0.05, 0.25, 1.0))
+    np.testing.assert_allclose(jac[:, 0, 0], -(shifted(10.0) - sig) / 10.0)
+    res = identify(residual_fn, base, [(0,), (1,)], low, high, SelectionConfig(n_boot=50, block=50))
+    assert res.confident == (0,), res.confidence
+    assert res.theta[0] == pytest.approx(truth, abs=0.1)
+
+
+def test_bounded_solution_holds_unphysical_parameters_at_their_bound():
+    # Two nearly collinear columns (a delay and a filter time constant): the free solution
+    # makes one negative; bounded, it stays at 0 and the other takes the whole lag.
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=400)
+    A = np.stack([a, a + 0.05 * rng.normal(size=400)], axis=1)
+    y = A @ np.array([1.3, -0.3])
+    G, g = jnp.asarray(A.T @ A), jnp.asarray(A.T @ y)
+    mask = jnp.array([True, True])
+    b = Bounds(jnp.zeros(2), jnp.ones(2) * 10, jnp.ones(2) * 10)
+    delta = np.asarray(_solve_bounded(G, g, mask, b))
+    assert delta[1] == 0.0 and delta[0] == pytest.approx(1.0, abs=0.05)
+
+
+# ---------------------------------------------------------------- localisation
+
+
+def test_changepoints_and_regimes_localise_a_gap():
+    rng = np.random.default_rng(2)
+    resid = rng.normal(size=(600, 2))
+    resid[300:450, 1] += 3.0
+    cps = changepoints(resid, min_gap=20)
+    assert np.any(np.abs(cps - 300) <= 5) and np.any(np.abs(cps - 450) <= 5)
+    segs = segment_rms(resid, cps)
+    worst = max(segs, key=lambda s: s[2][1])
+    assert abs(worst[0] - 300) <= 5 and worst[2][1] > 2.5
+    var = np.r_[np.zeros(300), np.ones(150), np.zeros(150)] + 1e-3 * np.arange(600)
+    b = binned_rms(resid, var, bins=4)
+    assert np.argmax(b.rms[:, 1]) == 3 and b.count.sum() == 600

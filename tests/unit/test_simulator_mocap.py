@@ -1,0 +1,116 @@
+"""Motion-capture and gyro emulation: statistics match the configuration, timing is honest."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from arcade_core import frames
+from simulator import GyroConfig, MocapConfig, QuadrotorSim
+from simulator.mocap import GyroEmulator, MocapEmulator
+
+
+def rotvec_error(q_true: np.ndarray, q_meas: np.ndarray) -> np.ndarray:
+    """Body-frame rotation vector of q_true^-1 q_meas (small angles)."""
+    d = frames.multiply_np(frames.conjugate_np(q_true), q_meas)
+    return 2.0 * np.sign(d[0]) * d[1:]
+
+
+def test_mocap_noise_latency_and_drops_match_the_configuration():
+    cfg = MocapConfig(
+        rate_hz=200.0,
+        position_noise_m=3e-4,
+        attitude_noise_rad=np.deg2rad(0.2),
+        latency_s=0.008,
+        latency_jitter_s=0.001,
+        drop_probability=0.1,
+    )
+    emu = MocapEmulator(cfg, np.random.default_rng(7))
+    p0 = np.array([0.3, -1.2, 0.9])
+    q0 = frames.from_rotation_vector_np(np.array([0.1, -0.2, 0.7]))
+    for k in range(40000):  # 40 s on a 1 ms physics clock
+        emu.observe(k * 1e-3, p0, q0)
+    assert emu.n_captured == 8000
+    half = emu.read(20.0)
+    rest = emu.read(1e9)
+    samples = half + rest
+    assert all(s.arrival <= 20.0 for s in half) and rest[0].arrival > 20.0
+    n = len(samples)
+    # Drops: binomial(8000, 0.1) has a standard deviation of 0.0034 in the fraction.
+    drop_fraction = 1.0 - n / 8000
+    assert drop_fraction == pytest.approx(0.1, abs=0.015)
+    pos = np.array([s.position for s in samples])
+    np.testing.assert_allclose(pos.mean(axis=0), p0, atol=4 * 3e-4 / np.sqrt(n))
+    # The sample std of n ~ 7200 Gaussians is within 2.5 % (3 sigma) of the true one.
+    np.testing.assert_allclose(pos.std(axis=0), 3e-4, rtol=0.05)
+    att = np.array([rotvec_error(q0, s.quaternion) for s in samples])
+    np.testing.assert_allclose(att.std(axis=0), np.deg2rad(0.2), rtol=0.05)
+    np.testing.assert_allclose(np.linalg.norm([s.quaternion for s in samples], axis=1), 1.0)
+    lat = np.array([s.arrival - s.stamp for s in samples])
+    assert lat.mean() == pytest.approx(0.008, abs=1e-4)
+    assert lat.std() == pytest.approx(0.001, rel=0.1)
+    stamps = np.array([s.stamp for s in samples])
+    gaps = np.diff(stamps) / 0.005
+    np.testing.assert_allclose(gaps, np.round(gaps), atol=1e-6)  # on the 200 Hz grid
+    assert np.all(np.diff([s.arrival for s in samples]) >= 0.0)  # in order
+
+
+def test_gyro_bias_noise_rate_and_latency():
+    cfg = GyroConfig(rate_hz=250.0, noise_rad_s=0.004, bias_std_rad_s=0.01, latency_s=0.003)
+    emu = GyroEmulator(cfg, np.random.default_rng(3))
+    omega = np.array([0.5, -0.2, 0.1])
+    for k in range(20000):
+        emu.observe(k * 1e-3, omega)
+    s = emu.read(1e9)
+    assert len(s) == 5000
+    w = np.array([x.omega for x in s])
+    np.testing.assert_allclose(w.mean(axis=0), omega + emu.bias, atol=4 * 0.004 / np.sqrt(5000))
+    np.testing.assert_allclose(w.std(axis=0), 0.004, rtol=0.05)
+    assert np.linalg.norm(emu.bias) > 0.0
+    np.testing.assert_allclose([x.arrival - x.stamp for x in s], 0.003, atol=1e-12)
+    np.testing.assert_allclose(np.diff([x.stamp for x in s]), 0.004, atol=1e-9)
+
+
+def test_sim_delivers_only_arrived_samples_of_the_true_pose():
+    cfg = MocapConfig(rate_hz=120.0, latency_s=0.006, drop_probability=0.05)
+    sim = QuadrotorSim(mocap=cfg, seed=5)
+    truth = {0: sim.reset(velocity=(1.0, 0.5, 0.0))}
+    got = []
+    last_read = 0.0
+    for _ in range(400):  # 2 s in 5 ms control periods
+        for _ in range(5):
+            sim.step(0.001)
+            truth[round(sim.time * 1000)] = sim.state()
+        new = sim.read_mocap()
+        for s in new:
+            assert last_read < s.arrival <= sim.time + 1e-12  # delivered at the first read
+        got.extend(new)
+        last_read = sim.time
+    assert 0.88 * 241 < len(got) <= 241
+    err = np.array([s.position - truth[round(s.stamp * 1000)][0:3] for s in got])
+    assert np.abs(err).max() < 5 * 3e-4  # the stamp names the pose that was measured
+    att = np.array([rotvec_error(truth[round(s.stamp * 1000)][6:10], s.quaternion) for s in got])
+    assert np.abs(att).max() < 5 * np.deg2rad(0.2)
+    gyro = sim.read_gyro()
+    assert len(gyro) == pytest.approx(999, abs=3) and gyro[-1].arrival <= sim.time
+
+
+def test_sensor_streams_are_seeded():
+    def run(seed):
+        sim = QuadrotorSim(seed=seed)
+        sim.step(0.3)
+        return np.array([s.position for s in sim.read_mocap()]), sim.read_gyro()[-1].omega
+
+    (p1, g1), (p2, g2), (p3, _) = run(11), run(11), run(12)
+    np.testing.assert_array_equal(p1, p2)
+    np.testing.assert_array_equal(g1, g2)
+    assert not np.array_equal(p1, p3)
+
+
+def test_sensor_configs_are_validated():
+    with pytest.raises(ValueError):
+        MocapConfig(drop_probability=1.0)
+    with pytest.raises(ValueError):
+        MocapConfig(rate_hz=0.0)
+    with pytest.raises(ValueError):
+        GyroConfig(noise_rad_s=-1.0)

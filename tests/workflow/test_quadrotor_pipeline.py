@@ -1,0 +1,602 @@
+"""Quadrotor pipeline: expert-flight data, shipped VLD weights, a short closed-loop flight."""
+
+import math
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from arcade.training_quadrotor import QUADROTOR_COMMAND, QUADROTOR_WEIGHTS
+from arcade_control.guard import Guard, guard_from_metadata
+from arcade_control.knobs import (
+    BEAM_VARIANTS,
+    METHODS,
+    ORACLE,
+    TUNED_DEFAULTS,
+    TUNING_METHOD,
+    VARIANTS,
+    knob_owner,
+    knobs_of,
+)
+from arcade_control.learners import initial_learner, per_output_noise, scale_gp_noise
+from arcade_control.methods import make_method, matched_residual
+from arcade_control.nominal import CONTROL_DT, LOG_DT, LOG_PER_CONTROL, nominal_params
+from arcade_control.scenario import Scenario, reference
+from arcade_control.step import Carry, mpc_config
+from arcade_core import adaptation, encoder
+from arcade_core import frames as quat
+from arcade_io.weights import load_model, read_header
+from benchmarks import quadrotor_closedloop as cl
+from benchmarks.quadrotor_flights import (
+    DIAG_CHANGEPOINT,
+    Flight,
+    MocapEstimate,
+    Runner,
+    flight_metrics,
+)
+from simulator.expert_flights import flight_transitions, make_dataset
+
+MINUTES = 0.06  # 3.6 s per flight: mostly the hover lead, where the payload shows clearly
+PAYLOADS = (10.0, 200.0)
+
+
+@pytest.fixture(scope="module")
+def data():
+    return make_dataset(seed=3, minutes_per_payload=MINUTES, payloads_g=PAYLOADS, cache=False)
+
+
+def test_dataset_shapes_finite_and_deterministic(data):
+    steps = round(60 * MINUTES / CONTROL_DT)
+    n_log = steps * LOG_PER_CONTROL + 1
+    assert data["X"].shape == (len(PAYLOADS) * n_log, 13)
+    assert data["U"].shape == (len(PAYLOADS) * n_log, 4)
+    assert (
+        data["x"].shape
+        == data["x_next"].shape
+        == data["delta"].shape
+        == (len(PAYLOADS) * steps, 13)
+    )
+    assert data["u"].shape == (len(PAYLOADS) * steps, 4)
+    for key in ("X", "U", "x", "u", "delta"):
+        assert np.isfinite(data[key]).all(), key
+    # 100 Hz log, transitions at the 20 Hz control period, aligned with setpoint changes.
+    t0 = data["t"][data["flight"] == 0]
+    np.testing.assert_allclose(np.diff(t0), LOG_DT, atol=1e-12)
+    x0, u0, xn0, _ = flight_transitions(data, 0)
+    np.testing.assert_array_equal(x0, data["X"][data["flight"] == 0][:-1:5])
+    np.testing.assert_array_equal(xn0, data["X"][data["flight"] == 0][5::5])
+    np.testing.assert_array_equal(u0, data["U"][data["flight"] == 0][:-1:5])
+    # Inputs are held over a transition: the logged setpoint only changes every 5 samples.
+    U0 = data["U"][data["flight"] == 0][:-1].reshape(steps, LOG_PER_CONTROL, 4)
+    assert np.all(U0[:, :1] == U0)
+    again = make_dataset(seed=3, minutes_per_payload=MINUTES, payloads_g=PAYLOADS[:1], cache=False)
+    np.testing.assert_array_equal(again["X"], data["X"][data["flight"] == 0])
+
+
+def test_dataset_payload_is_applied(data):
+    """Hovering with a heavier payload needs more thrust, so the nominal model (which
+    knows only the airframe) over-predicts the climb rate by ``g dt (m_true / m_nom - 1)``."""
+    p = nominal_params()
+    mean_dvz = {}
+    for i, pay in enumerate(PAYLOADS):
+        sel = data["transition_flight"] == i
+        assert np.all(data["transition_payload_g"][sel] == pay)
+        mean_dvz[pay] = float(np.mean(data["delta"][sel, 5]))
+        m_true = float(p.mass) + pay / 1000.0
+        expected = -float(p.gravity) * CONTROL_DT * (m_true / float(p.mass) - 1.0)
+        assert mean_dvz[pay] == pytest.approx(expected, rel=0.3, abs=0.01)
+    assert mean_dvz[200.0] < mean_dvz[10.0] - 0.1
+
+
+def test_shipped_weights_load_and_predict():
+    assert QUADROTOR_WEIGHTS.stat().st_size < 300_000
+    model, config, extra = load_model(QUADROTOR_WEIGHTS)
+    assert config == encoder.quadrotor_config()
+    assert (
+        extra["command"] == QUADROTOR_COMMAND == read_header(QUADROTOR_WEIGHTS)["extra"]["command"]
+    )
+    assert extra["control_dt"] == CONTROL_DT
+    rng = np.random.default_rng(0)
+    x = np.tile([0.0, 0.0, 2.0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0], (64, 1))
+    x[:, :6] += rng.normal(0.0, 0.5, (64, 6))
+    u = np.column_stack([rng.uniform(4.0, 10.0, 64), rng.normal(0.0, 0.5, (64, 3))])
+    delta = jax.vmap(model.predict_residual)(jnp.asarray(x), jnp.asarray(u))
+    assert delta.shape == (64, 13)
+    assert bool(jnp.all(jnp.isfinite(delta)))
+    # The offline model has learned the payload effect: more hover thrust (a heavier
+    # payload in the training flights) goes with a more negative vertical residual.
+    hover = jnp.asarray([0.0, 0.0, 2.0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0])
+    light = model.predict_residual(hover, jnp.asarray([5.7, 0.0, 0.0, 0.0]))[5]
+    heavy = model.predict_residual(hover, jnp.asarray([7.6, 0.0, 0.0, 0.0]))[5]
+    assert float(heavy) < float(light) - 0.05
+
+
+@pytest.mark.parametrize("method", ["ours", "ours_held", "ours_matched"])
+def test_short_closed_loop_flight_of_ours(data, method):
+    """A few seconds of ARCADE in closed loop with a 75 g swinging payload stay on track,
+    with the learned residual inside the MPC rollout and held along the warm start, and
+    the matched-channel variant (intercept feature, thrust-axis residual).
+
+    The nominal MPC sags by about 0.35 m under this payload (no integral action); the
+    adapted model has to remove most of that for the bounds to hold.
+    """
+    vld, _, _ = load_model(QUADROTOR_WEIGHTS)
+    z = jax.vmap(vld.features)(jnp.asarray(data["x"]), jnp.asarray(data["u"]))
+    guard = Guard(
+        jnp.max(jnp.abs(jnp.asarray(data["delta"])), axis=0) * 2.0,
+        jnp.min(z, axis=0) - 2.0,
+        jnp.max(z, axis=0) + 2.0,
+    )
+    models = SimpleNamespace(vld=vld, closedloop={}, guard=guard)
+    scenario = Scenario(
+        payload_g=75.0, speed_mps=1.0, takeoff_s=1.0, hover_s=0.5, laps=0.3, release_fraction=0.2
+    )
+    flight = Runner(models).fly(method, scenario, seed=0)
+    assert not flight.crashed
+    assert flight.t[-1] > 5.0
+    err = np.linalg.norm(flight.error, axis=1)
+    assert np.all(np.isfinite(flight.u))
+    assert err.max() < 0.15, err.max()
+    assert flight.metrics["rmse_m"] < 0.08
+
+
+def test_matched_residual_keeps_what_the_thrust_can_cancel():
+    """``ours_matched`` plans with the translational residual along the body z axis only."""
+    rng = np.random.default_rng(4)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    x = jnp.asarray(np.r_[rng.normal(size=6), q, rng.normal(size=3)])
+    delta = jnp.asarray(rng.normal(size=13))
+    m = np.asarray(matched_residual(x, delta))
+    R = np.asarray(quat.to_rotation_matrix(jnp.asarray(q)))
+    zb = R[:, 2]
+    for part in (slice(0, 3), slice(3, 6)):
+        np.testing.assert_allclose(m[part], np.dot(np.asarray(delta[part]), zb) * zb, atol=1e-12)
+        np.testing.assert_allclose(np.dot(np.asarray(delta[part]) - m[part], zb), 0, atol=1e-12)
+    assert np.all(m[6:] == 0)
+    level = x.at[6:10].set(jnp.asarray([1.0, 0, 0, 0]))
+    np.testing.assert_allclose(matched_residual(level, delta)[3:6], [0, 0, delta[5]])
+
+
+def test_mass_oracle_carries_the_payload_until_the_release_step():
+    """The diagnostic oracle: the nominal model with the payload's mass until the release
+    step, without it from then on, and the thrust reference that holds that mass."""
+    method = make_method(ORACLE)
+    p = nominal_params()
+    a = initial_learner(ORACLE, None, jnp.float64)
+    a = a._replace(k_release=jnp.asarray(3, jnp.int32), payload_kg=jnp.asarray(0.175))
+    masses = []
+    for _ in range(5):  # the mass the MPC plans with at control steps 0..4
+        masses.append(float(method.model(a)))
+        a = method.learn(a, None, None, None)
+    np.testing.assert_allclose(masses, [p.mass + 0.175] * 3 + [p.mass] * 2)
+    # The reference thrust holds the heavier vehicle: no vertical acceleration at hover.
+    x = jnp.asarray(np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0])
+    u_ref = jnp.asarray([[p.mass * p.gravity, 0.0, 0.0, 0.0]])
+    m = jnp.asarray(p.mass + 0.175)
+    u = method.reference(m, x[None], u_ref)[0]
+    np.testing.assert_allclose(method.step_fn(x, u, m)[3:6], 0.0, atol=1e-12)
+
+
+def test_beam_variants_start_from_the_offline_decoder():
+    """A variant with the intercept starts with one more, zero, decoder column; its knobs
+    are its own (``ours_matched``) or ours' (the two changes one at a time)."""
+    vld, _, extra = load_model(QUADROTOR_WEIGHTS)
+    models = SimpleNamespace(
+        vld=vld, guard=guard_from_metadata(extra), closedloop={"ours_matched_beta": 0.5}
+    )
+    d, l = vld.theta0.shape
+    for name, (intercept, _) in BEAM_VARIANTS.items():
+        a = initial_learner(name, models, jnp.float64)
+        mean = np.asarray(a.beam.means[0])
+        assert mean.shape == (d, l + intercept), name
+        np.testing.assert_array_equal(mean[:, :l], np.asarray(vld.theta0))
+        if intercept:
+            assert np.all(mean[:, l] == 0)
+        want = 0.5 if name == "ours_matched" else TUNED_DEFAULTS["ours_beta"]
+        assert float(a.config.beta) == want, name
+
+
+def test_tuning_flies_only_the_methods_asked_for():
+    """The variants' knobs are tuned in their own run; the others keep their defaults."""
+    models = SimpleNamespace()
+    flown = set()
+
+    class FakeRunner:
+        def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
+            flown.add(method)
+            s2 = models.closedloop["ours_matched_sigma2"]
+            return SimpleNamespace(metrics={"rmse_m": abs(np.log(s2 / 1e-2))})
+
+    out = cl.tune(models, runner=FakeRunner(), methods=VARIANTS)
+    assert flown == {"ours_matched"}
+    assert set(out["chosen"]) == {"ours_matched_beta", "ours_matched_sigma2"}
+    assert out["chosen"]["ours_matched_sigma2"] == 1e-2
+    assert models.closedloop["ours_beta"] == TUNED_DEFAULTS["ours_beta"]
+
+
+def test_tuned_knobs_reach_the_learners():
+    """The closed-loop knobs (``models.closedloop``) set what each learner starts with."""
+    from arcade_core.baselines import gp
+
+    vld, _, _ = load_model(QUADROTOR_WEIGHTS)
+    guard = Guard(jnp.ones(13), -jnp.ones(8), jnp.ones(8))
+    models = SimpleNamespace(
+        vld=vld, guard=guard, closedloop={"ours_beta": 0.2, "ours_sigma2": 0.003}
+    )
+    for name in ("ours", "ours_no_cp"):
+        learner = initial_learner(name, models, jnp.float64)
+        assert float(learner.config.sigma2) == pytest.approx(0.003)
+    assert float(initial_learner("ours", models, jnp.float64).config.beta) == 0.2
+    for rates, applied in ((0.0, False), (10.0, True)):
+        models.closedloop = {"l1_cutoff": 40.0, "l1_cutoff_rates": rates}
+        params = initial_learner("l1", models, jnp.float64).params
+        assert bool(params.rotational) == applied and float(params.cutoff_thrust) == 40.0
+    model = gp.GPModel(gp.initial_hyperparams(17, 13, noise_var=0.1), None)
+    scaled = scale_gp_noise(model, 0.01)
+    np.testing.assert_allclose(np.exp(scaled.hyper.log_noise_var), 1e-3, rtol=1e-6)
+    np.testing.assert_array_equal(scaled.hyper.log_lengthscale, model.hyper.log_lengthscale)
+
+
+def test_tuning_passes_until_no_knob_changes():
+    """Coordinate descent: a knob tuned first is tuned again at the others' choice, so an
+    interaction between two knobs of one method (here: the best beta depends on sigma^2)
+    does not leave the first pass's choice in place; seeded flights are not re-flown."""
+    models = SimpleNamespace()
+    flights = []
+
+    class FakeRunner:
+        def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
+            k = dict(models.closedloop)
+            flights.append(
+                (method, seed, *(v for n, v in sorted(k.items()) if TUNING_METHOD[n] == method))
+            )
+            if method == "ours":  # best beta 0.05 at sigma^2 0.1, 0.2 at sigma^2 <= 0.01
+                want = 0.05 if k["ours_sigma2"] > 0.05 else 0.2
+                rmse = abs(np.log(k["ours_beta"] / want)) + abs(np.log(k["ours_sigma2"] / 1e-3))
+            else:
+                rmse = 1.0
+            return SimpleNamespace(metrics={"rmse_m": float(rmse)})
+
+    out = cl.tune(models, runner=FakeRunner())
+    assert out["chosen"]["ours_beta"] == 0.2 and out["chosen"]["ours_sigma2"] == 1e-3
+    assert out["passes"] == 3  # pass 2 moves beta, pass 3 confirms
+    first = out["rmse_m_by_pass"][0]["ours_beta"]  # at the starting sigma^2 = 0.1
+    assert len(out["rmse_m_by_pass"]) == 3 and min(first, key=first.get) == "0.05"
+    assert out["rmse_m_by_pass"][-1] == out["rmse_m"]
+    assert len(flights) == len(set(flights))  # no setting of a method flown twice
+    assert {f[1] for f in flights} == set(cl.TUNING_SEEDS)
+
+
+def test_a_run_records_only_the_knobs_of_the_methods_it_flies():
+    """A results file's setting names what its flights used, not another method's knobs;
+    the beam methods other than the matched variant fly with ours' knobs."""
+    paper = knobs_of({"ours_beta": 0.2}, METHODS)
+    assert set(paper) == {k for k, m in TUNING_METHOD.items() if m != "ours_matched"}
+    assert paper["ours_beta"] == 0.2 and paper["l1_a_s"] == TUNED_DEFAULTS["l1_a_s"]
+    assert set(knobs_of({}, ("ours_K5", "ours_no_cp_held"))) == {"ours_beta", "ours_sigma2"}
+    assert set(knobs_of({}, ("nominal",))) == set()
+    assert {knob_owner(m) for m in BEAM_VARIANTS} == {"ours", "ours_matched"}
+    assert knob_owner("ours_matched_held") == "ours_matched"
+
+
+def test_mpc_input_bounds_are_what_the_simulated_vehicle_executes():
+    """The MPC must not plan with thrust or body rates the vehicle clamps away."""
+    from simulator import QuadrotorSim
+
+    sim = QuadrotorSim(payload_mass=0.0)
+    cfg = mpc_config(jnp.float64)
+    np.testing.assert_allclose(cfg.u_max, [4.0 * sim.max_thrust, *sim.max_rate])
+    np.testing.assert_allclose(cfg.u_min[1:], -sim.max_rate)
+    too_much = np.asarray(cfg.u_max) + np.array([1.0, 0.5, 0.5, 0.5])
+    np.testing.assert_allclose(sim.set_setpoint(too_much), cfg.u_max)
+
+
+def _nominal_carry(runner: Runner, x, u, started: bool) -> Carry:
+    """The nominal MPC's carry at state ``x``, ``u`` warm-started and in flight."""
+    return Carry(
+        initial_learner("nominal", runner.models, jnp.float64),
+        jnp.broadcast_to(u, (runner.cfg.N, 4)),
+        u,
+        jnp.asarray(x),
+        jnp.asarray(started),
+    )
+
+
+def test_controller_step_does_not_depend_on_the_quaternion_sign():
+    """q and -q are one attitude: the MPC step must answer both with the same input.
+
+    (An estimator may start in either hemisphere; unaligned, -q looks like a vehicle
+    rotated by 360 degrees to the quaternion cost and the MPC commands a flip.)
+    """
+    runner = Runner(SimpleNamespace(closedloop={}), jnp.float64)
+    step = runner.step_fn("nominal")
+    x_ref_all, u_ref_all = reference(Scenario(), 40, runner.cfg.N)
+    x = np.asarray(x_ref_all[0]) + np.r_[0.05, -0.03, -0.1, 0.1, 0.0, 0.0, np.zeros(7)]
+    u0 = jnp.asarray([5.6, 0.0, 0.0, 0.0])
+    carry = _nominal_carry(runner, x, u0, started=False)
+    flipped = x.copy()
+    flipped[6:10] *= -1.0
+    _, u_pos, _ = step(carry, jnp.asarray(x), u0, 0, x_ref_all, u_ref_all)
+    _, u_neg, _ = step(carry, jnp.asarray(flipped), u0, 0, x_ref_all, u_ref_all)
+    np.testing.assert_allclose(np.asarray(u_neg), np.asarray(u_pos), rtol=1e-9, atol=1e-9)
+    assert float(u_pos[0]) > 4.0  # a climb back to the reference, not a cut in thrust
+
+
+def _logged_flight(method: str, u: np.ndarray, changepoint: np.ndarray) -> Flight:
+    """A flight record of 20 control steps at 0.05 s; the figure-eight starts at 0.5 s."""
+    n = len(u)
+    t = 0.05 * np.arange(n)
+    x = np.zeros((n, 13))
+    diag = np.zeros((n, 17))
+    diag[:, DIAG_CHANGEPOINT] = changepoint
+    scen = Scenario(takeoff_s=0.25, hover_s=0.25, release_fraction=-1.0)
+    return Flight(method, scen, 0, t, x, x.copy(), u, diag, float("nan"), False, t)
+
+
+def test_flight_diagnostics_measure_command_jumps_and_changepoints():
+    """Thrust alternating +-0.5 N and roll rate +-0.2 rad/s per period in the figure-eight
+    part (the first 10 steps hold still and are outside it); changepoints on 3 of 10 steps."""
+    n = 20
+    u = np.zeros((n, 4))
+    u[:, 0] = 5.0
+    u[10:, 0] += 0.5 * (-1.0) ** np.arange(10)
+    u[10:, 1] = 0.1 * (-1.0) ** np.arange(10)
+    cp = np.zeros(n)
+    cp[[2, 12, 15, 19]] = 1.0  # step 2 is before the figure-eight
+    m = flight_metrics(_logged_flight("ours", u, cp))
+    assert m["thrust_increment_rms_n"] == pytest.approx(1.0)
+    assert m["rate_increment_rms_rad_s"] == pytest.approx(np.sqrt(0.2**2 / 3))
+    assert m["changepoint_rate"] == pytest.approx(0.3)
+    # Methods without a changepoint detector report none, not zero.
+    assert np.isnan(flight_metrics(_logged_flight("l1", u, cp))["changepoint_rate"])
+
+
+def test_state_noise_adds_the_estimates_variance_through_the_model():
+    """Errors in variables, first order: the residual of two estimated states has variance
+    ``var_next + J var_prev J^T`` (diagonal), in the regression's units."""
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(13, 13))
+    var_prev, var_next = rng.uniform(0, 1e-3, 13), rng.uniform(0, 1e-3, 13)
+    scale = rng.uniform(0.5, 2.0, 13)
+    brute = np.diag(np.diag(var_next) + J @ np.diag(var_prev) @ J.T) / scale**2
+    got = adaptation.state_noise_sigma2(
+        jnp.full(13, 0.1), jnp.asarray(J), jnp.asarray(var_prev), jnp.asarray(var_next), scale
+    )
+    np.testing.assert_allclose(np.asarray(got), 0.1 + brute, rtol=1e-12)
+
+
+def test_per_output_noise_is_the_same_beam_while_the_variances_are_equal():
+    vld, _, extra = load_model(QUADROTOR_WEIGHTS)
+    models = SimpleNamespace(vld=vld, guard=guard_from_metadata(extra), closedloop={})
+    a = initial_learner("ours", models, jnp.float64)
+    b = per_output_noise(a)
+    assert b.config.sigma2.shape == (13,) and b.beam.sqrt_covariances.shape[1] == 13
+    method = make_method("ours")
+    rng = np.random.default_rng(1)
+    x = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
+    u = np.array([6.0, 0.0, 0.0, 0.0])
+    for _ in range(5):
+        x_next = x + np.r_[rng.normal(0, 1e-3, 6), np.zeros(7)]
+        a = method.learn(a, jnp.asarray(x), jnp.asarray(u), jnp.asarray(x_next))
+        b = method.learn(b, jnp.asarray(x), jnp.asarray(u), jnp.asarray(x_next))
+    np.testing.assert_allclose(method.model(b)[1], method.model(a)[1], rtol=1e-9, atol=1e-12)
+
+
+def test_the_estimated_state_is_what_the_emulated_motion_capture_allows():
+    """:class:`MocapEstimate` starts on the frame captured at t = 0 and then tracks the
+    hovering vehicle within the emulation's noise (0.3 mm, 0.2 deg; a few ms of latency)."""
+    from simulator import QuadrotorSim
+
+    sim = QuadrotorSim(payload_mass=0.0, seed=3)
+    sim.reset(np.array([0.0, 0.0, 1.0]))
+    runner = Runner(SimpleNamespace(), jnp.float64)
+    estimate = MocapEstimate(sim, jnp.float64, runner._estimation()[0])
+    errors = []
+    for _ in range(40):
+        x, var = estimate()
+        errors.append(x - sim.state())
+        assert np.all(var > 0) and np.all(np.isfinite(x))
+        sim.set_setpoint(np.array([sim.hover_thrust(), 0.0, 0.0, 0.0]))
+        sim.step(CONTROL_DT)
+    e = np.array(errors)
+    assert np.abs(e[0, :3]).max() < 2e-3  # initialised from the first frame
+    assert np.sqrt(np.mean(e[10:, :3] ** 2)) < 1e-3
+    assert np.sqrt(np.mean(e[10:, 3:6] ** 2)) < 0.05
+
+
+def test_a_runner_flies_the_estimator_settings_it_is_given():
+    """``Runner(filter_config=...)`` reaches the estimate: at hover a lower jerk density
+    gives a smoother velocity, on the same emulated frames."""
+    from arcade_core.estimation import FilterConfig
+    from simulator import QuadrotorSim
+
+    def velocity_noise(jerk_psd: float) -> float:
+        sim = QuadrotorSim(payload_mass=0.0, seed=3)
+        sim.reset(np.array([0.0, 0.0, 1.0]))
+        runner = Runner(SimpleNamespace(), jnp.float64, FilterConfig(jerk_psd=jerk_psd))
+        estimate = MocapEstimate(sim, jnp.float64, runner._estimation()[0])
+        errors = []
+        for _ in range(40):
+            errors.append(estimate()[0][3:6] - sim.state()[3:6])
+            sim.set_setpoint(np.array([sim.hover_thrust(), 0.0, 0.0, 0.0]))
+            sim.step(CONTROL_DT)
+        return float(np.sqrt(np.mean(np.array(errors[10:]) ** 2)))
+
+    assert velocity_noise(1.0) < 0.5 * velocity_noise(100.0)
+
+
+def test_the_estimator_tuning_does_not_sacrifice_one_method_for_another():
+    from benchmarks.quadrotor_variants import least_worst_loss
+
+    # b's best value (5) costs a 6x; 20 costs each method at most 3 %.
+    scores = {
+        "a": {100.0: 0.0191, 20.0: 0.0187, 10.0: 0.0193, 5.0: 0.1212},
+        "b": {100.0: 0.0631, 20.0: 0.0530, 10.0: 0.0523, 5.0: 0.0516},
+    }
+    assert least_worst_loss(scores) == 20.0
+    # A tie goes to the larger value (the less lagging filter).
+    assert least_worst_loss({"a": {30.0: 1.0, 20.0: 1.0}}) == 30.0
+    # One method: its best value.
+    assert least_worst_loss({"b": scores["b"]}) == 5.0
+    # A crashed setting is never picked; a method that always crashed cannot be tuned.
+    assert least_worst_loss({"a": {20.0: 2.0, 10.0: math.inf}}) == 20.0
+    with pytest.raises(ValueError, match="a has no finite score"):
+        least_worst_loss({"a": {20.0: math.inf}, "b": {20.0: 1.0}})
+
+
+def test_ours_stack_flies_the_adapter_s_knobs():
+    from arcade_control.stack import stack_knobs
+    from benchmarks.quadrotor_variants import STACK_KNOBS
+
+    assert stack_knobs() == STACK_KNOBS
+
+
+class _RecordingRunner:
+    """Stands in for :class:`Runner`: records what it is asked to fly, scores it by delay."""
+
+    def __init__(self, *args, **kwargs):
+        self.flown: list[tuple[str, Scenario, bool]] = []
+
+    def fly(self, method, scenario, seed=0, estimated=False, compensate_delay=False):
+        self.flown.append((method, scenario, compensate_delay))
+        rmse = 0.01 + scenario.command_delay_s + 0.1 * compensate_delay
+        return SimpleNamespace(metrics={"rmse_m": rmse, "rmse_z_m": rmse})
+
+
+def test_the_delay_diagnostic_flies_each_row_with_its_setpoint_delay(monkeypatch):
+    from benchmarks import quadrotor_variants as qv
+
+    runners: list[_RecordingRunner] = []
+
+    def runner(*args, **kwargs):
+        runners.append(_RecordingRunner())
+        return runners[-1]
+
+    monkeypatch.setattr(cl, "Runner", runner)
+    monkeypatch.setattr(qv, "models", lambda: SimpleNamespace(closedloop={}))
+    flown = [
+        qv.Flown("l1@0ms", "l1", {}),
+        qv.Flown("l1@20ms", "l1", {}, False, 0.02),
+        qv.Flown("l1_compensated@20ms", "l1", {}, False, 0.02, True),
+    ]
+    rows = qv._cell_means(flown, 1, ("rmse_m",))
+    assert len(rows) == 9 and len(runners) == 1  # one runner for the ground-truth rows
+    assert rows[0]["l1@0ms"]["rmse_m"] == pytest.approx(0.01)
+    assert rows[0]["l1@20ms"]["rmse_m"] == pytest.approx(0.03)
+    assert rows[0]["l1_compensated@20ms"]["rmse_m"] == pytest.approx(0.13)
+    # The tuning flies its cell with the delay it is given, compensated if it is told so.
+    for compensate in (False, True):
+        tuning = _RecordingRunner()
+        models = SimpleNamespace(closedloop={})
+        cl.tune(
+            models,
+            runner=tuning,
+            methods=("l1",),
+            command_delay_s=0.02,
+            compensate_delay=compensate,
+        )
+        scenarios = {s for _, s, _ in tuning.flown}
+        assert {s.command_delay_s for s in scenarios} == {0.02}
+        assert {(s.payload_g, s.speed_mps) for s in scenarios} == {cl.TUNING_CELL}
+        assert {c for *_, c in tuning.flown} == {compensate}
+
+
+def test_the_link_diagnostic_flies_the_stack_on_the_estimate_with_and_without_compensation(
+    monkeypatch,
+):
+    from benchmarks import quadrotor_variants as qv
+
+    flown = []
+
+    class Recorder:
+        def __init__(self, models, **kwargs):
+            self.models = models
+
+        def fly(self, method, scenario, seed=0, estimated=False, compensate_delay=False):
+            knobs = dict(self.models.closedloop)
+            flown.append((method, knobs, scenario, seed, estimated, compensate_delay))
+            rmse = 0.01 + scenario.command_delay_s * (0.5 if compensate_delay else 2.0)
+            if method == "l1":  # the tuning moves L1's pole off its stored value ...
+                rmse += 0.01 * abs(knobs.get("l1_a_s", -0.1) + 1.0)
+            else:  # ... and keeps ours at the stack's knobs
+                rmse += 0.001 * sum(knobs[k] != v for k, v in qv.STACK_KNOBS.items())
+            metrics = {"rmse_m": rmse, "rmse_z_m": rmse / 2, "changepoint_rate": 0.1}
+            return SimpleNamespace(metrics={**metrics, "settling_s": 0.0})
+
+    monkeypatch.setattr(cl, "Runner", Recorder)
+    monkeypatch.setattr(qv, "models", lambda: SimpleNamespace(closedloop={}))
+    r = qv.link_delay(trials=1)
+    assert all(est for *_, est, _ in flown)  # what the stack flies: the estimate
+    # The grid on the tuning cell: each delay without compensation, each non-zero one with
+    # it (0 ms is one flight), ours at the stack's knobs.
+    n = len(qv.LINK_DELAYS_S)
+    grid = flown[: 2 * (2 * n - 1) * len(cl.TUNING_SEEDS)]
+    assert {(s.payload_g, s.speed_mps) for _, _, s, *_ in grid} == {cl.TUNING_CELL}
+    assert all(f[1] == qv.STACK_KNOBS for f in grid if f[0] == "ours")
+    sens = r["sensitivity"]
+    assert sens["delays_s"] == list(qv.LINK_DELAYS_S)
+    comp, plain = sens["rows"]["ours_stack_compensated"], sens["rows"]["ours_stack"]
+    assert comp["rmse_m"][0] == plain["rmse_m"][0] == pytest.approx(0.01)
+    i = qv.LINK_DELAYS_S.index(0.02)
+    assert plain["rmse_m"][i] == pytest.approx(0.05) and comp["rmse_m"][i] == pytest.approx(0.02)
+    # The tuning and the cells fly the stack's condition: 20 ms, compensated.
+    rest = flown[len(grid) :]
+    assert {(s.command_delay_s, c) for _, _, s, _, _, c in rest} == {(0.02, True)}
+    assert r["tuning"]["chosen"]["l1_a_s"] == -1.0
+    names = [f["name"] for f in r["rows_flown"]]
+    # Ours keeps the stack's knobs: no re-tuned row of its own.
+    assert names == [
+        "ours_stack_compensated@20ms",
+        "l1_compensated@20ms",
+        "l1_retuned_compensated@20ms",
+    ]
+    assert len(r["rows"]) == 9 and all(n in r["rows"][0] for n in names)
+
+
+def test_a_runner_flies_the_scenarios_setpoint_delay(monkeypatch):
+    import simulator
+
+    class Built(Exception):
+        pass
+
+    def build(**kwargs):
+        raise Built(kwargs["command_delay_s"])
+
+    monkeypatch.setattr(simulator, "QuadrotorSim", build)
+    scen = Scenario(takeoff_s=0.25, hover_s=0.25, release_fraction=-1.0, command_delay_s=0.02)
+    runner = Runner(SimpleNamespace(closedloop={}), jnp.float64)
+    with pytest.raises(Built) as built:
+        runner.fly("nominal", scen)
+    assert built.value.args == (0.02,)
+
+
+def test_a_compensated_delay_plans_from_the_state_predicted_over_it():
+    """With ``delay_s`` the step answers ``x`` as the plain step answers the state one RK4
+    step of the nominal model later under the input in flight (the MPC's own last input),
+    and the reference for it is the same path that much later."""
+    from arcade_core.dynamics.quadrotor import quadrotor_step
+
+    runner = Runner(SimpleNamespace(closedloop={}), jnp.float64)
+    scen = Scenario(command_delay_s=0.02)
+    # One control period of offset is the next control instant's reference.
+    x_ref_all, u_ref_all = reference(scen, 40, runner.cfg.N)
+    x_late, u_late = reference(scen, 40, runner.cfg.N, CONTROL_DT)
+    np.testing.assert_allclose(x_late[:-1], x_ref_all[1:], atol=1e-12)
+    np.testing.assert_allclose(u_late[:-1], u_ref_all[1:], atol=1e-9)
+    x_ref_d, u_ref_d = reference(scen, 40, runner.cfg.N, 0.02)
+    x = np.asarray(x_ref_all[5]) + np.r_[0.05, -0.03, -0.1, 0.3, 0.0, 0.2, np.zeros(7)]
+    u_in_flight = jnp.asarray([6.5, 0.2, -0.1, 0.0])
+    carry = _nominal_carry(runner, x, u_in_flight, started=True)
+    x_pred = quadrotor_step(jnp.asarray(x), u_in_flight, nominal_params(), 0.02)
+    _, u_comp, _ = runner.step_fn("nominal", 0.02)(
+        carry, jnp.asarray(x), u_in_flight, 5, x_ref_d, u_ref_d
+    )
+    _, u_plain, _ = runner.step_fn("nominal")(carry, x_pred, u_in_flight, 5, x_ref_d, u_ref_d)
+    _, u_naive, _ = runner.step_fn("nominal")(
+        carry, jnp.asarray(x), u_in_flight, 5, x_ref_d, u_ref_d
+    )
+    np.testing.assert_allclose(np.asarray(u_comp), np.asarray(u_plain), rtol=1e-9, atol=1e-9)
+    assert np.max(np.abs(np.asarray(u_comp) - np.asarray(u_naive))) > 1e-3
