@@ -64,6 +64,7 @@ from typing import Any
 import numpy as np
 
 from arcade_core.discrepancy.catalog import QUADROTOR_EFFECTS, ParamSpec
+from arcade_core.discrepancy.tables import validate_tables
 
 #: Canonical effect names -> parameter name -> :class:`ParamSpec`. Single-sourced from the
 #: discrepancy library, so the simulator and the identification share units and ranges.
@@ -112,58 +113,20 @@ class Effects:
 NO_EFFECTS = Effects()
 
 
-def _check_value(name: str, pname: str, spec: ParamSpec, value: Any) -> float | np.ndarray:
-    where = f"effect [{name}] parameter {pname!r}"
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{where}: expected a number or list of numbers, got {value!r}") from exc
-    if arr.shape != spec.shape:
-        want = "a scalar" if spec.shape == () else f"a list of {spec.shape[0]} numbers"
-        raise ValueError(f"{where}: expected {want}, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{where}: non-finite value {value!r}")
-    if np.any(arr < spec.low) or np.any(arr > spec.high):
-        raise ValueError(
-            f"{where}: {value!r} outside the plausible range [{spec.low}, {spec.high}] {spec.unit}"
-        )
-    if spec.shape == ():
-        return float(arr)
-    arr = arr.copy()
+def _frozen(value: float | list[float]) -> float | np.ndarray:
+    """A checked parameter as the simulator holds it: a float, or a read-only array."""
+    if isinstance(value, float):
+        return value
+    arr = np.asarray(value, dtype=float)
     arr.setflags(write=False)
     return arr
 
 
 def validate_effects(tables: Mapping[str, Any]) -> Effects:
-    """Check effect tables against :data:`EFFECTS` and fill defaults."""
-    out: dict[str, dict[str, Any]] = {}
-    for name, table in tables.items():
-        if name not in EFFECTS:
-            known = ", ".join(sorted(EFFECTS))
-            raise ValueError(f"unknown effect {name!r}; known effects: {known}")
-        if not isinstance(table, Mapping):
-            raise ValueError(f"effect [{name}] must be a table of parameters, got {table!r}")
-        specs = EFFECTS[name]
-        unknown = set(table) - set(specs)
-        if unknown:
-            raise ValueError(
-                f"effect [{name}]: unknown parameter(s) {sorted(unknown)}; known: {sorted(specs)}"
-            )
-        values: dict[str, Any] = {}
-        for pname, spec in specs.items():
-            if pname in table:
-                values[pname] = _check_value(name, pname, spec, table[pname])
-            elif spec.default is None:
-                raise ValueError(f"effect [{name}]: missing required parameter {pname!r}")
-            else:
-                values[pname] = _check_value(name, pname, spec, spec.default)
-        out[name] = values
-    if "wind" in out and not ({"rotor_drag", "quadratic_drag"} & set(out)):
-        raise ValueError(
-            "effect [wind] acts through the drag terms: add [rotor_drag] and/or "
-            "[quadratic_drag] as well"
-        )
-    return Effects(out)
+    """Check effect tables against the library (:func:`arcade_core.discrepancy.tables.
+    validate_tables`) and fill defaults."""
+    checked = validate_tables("quadrotor", tables)
+    return Effects({n: {p: _frozen(v) for p, v in t.items()} for n, t in checked.items()})
 
 
 def load_effects(source: str | Path | Mapping[str, Any] | Effects | None) -> Effects:

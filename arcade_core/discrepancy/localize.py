@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from arcade_core import adaptation
+from arcade_core import adaptation, frames
 from arcade_core.discrepancy.prediction import rms
 
 
@@ -132,8 +132,8 @@ def localise_gap(model, X, U, dt, starts, H, theta, W) -> dict[str, Any]:
     names = [comps[d] for d in dyn]
     x0 = X[starts]
     if model.name == "quadrotor":
-        qx, qy = x0[:, 7], x0[:, 8]
-        tilt = np.degrees(np.arccos(np.clip(1 - 2 * (qx * qx + qy * qy), -1.0, 1.0)))
+        r22 = frames.to_rotation_matrix_np(x0[:, 6:10])[:, 2, 2]
+        tilt = np.degrees(np.arccos(np.clip(r22, -1.0, 1.0)))
         regimes = {
             "speed_mps": np.linalg.norm(x0[:, 3:6], axis=1),
             "height_m": x0[:, 2],
