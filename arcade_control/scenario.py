@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from arcade_control.nominal import CONTROL_DT as DT
@@ -127,3 +128,21 @@ def reference(
     times = jnp.arange(n_steps + N + 1, dtype=dtype) * DT + offset_s
     path = jax.tree.map(lambda a: jnp.asarray(a, dtype), scenario.path())
     return _reference(path, times)
+
+
+class Trial(NamedTuple):
+    """Per-trial randomness, derived from the seed exactly as the in-process evaluation
+    (:meth:`benchmarks.quadrotor_flights.Runner.fly`) and the simulator service derive it:
+    the simulator's noise seed, the start offset (2 cm std in x and y) and the release
+    jitter (up to two control periods)."""
+
+    sim_seed: int
+    start_offset: np.ndarray
+    release_jitter: int
+
+
+def trial(seed: int) -> Trial:
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x51]))
+    sim_seed = int(rng.integers(2**31))
+    offset = np.array([*rng.normal(0.0, 0.02, 2), 0.0])
+    return Trial(sim_seed, offset, int(rng.integers(-2, 3)))

@@ -23,7 +23,7 @@ from arcade_control.learners import initial_learner, per_output_noise
 from arcade_control.methods import BeamLearner, MassOracle, make_method
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import f_nom, nominal_params
-from arcade_control.scenario import Scenario, reference
+from arcade_control.scenario import Scenario, reference, trial
 from arcade_control.step import Carry, make_controller_step, mpc_config
 from arcade_core import adaptation, estimation, metrics
 from arcade_core.dynamics.quadrotor import predict_over_delay
@@ -162,10 +162,7 @@ class Runner:
         before it enters the observation noise. The metrics are of the true trajectory
         against the reference at the control instants either way.
         """
-        rng = np.random.default_rng(np.random.SeedSequence([seed, 0x51]))
-        sim_seed = int(rng.integers(2**31))
-        offset = np.array([*rng.normal(0.0, 0.02, 2), 0.0])
-        jitter = int(rng.integers(-2, 3))
+        sim_seed, offset, jitter = trial(seed)
         n = int(np.ceil(scenario.t_end / DT - 1e-9)) + 1
         k_release = round(scenario.t_release / DT) + jitter
         if scenario.release_fraction < 0:

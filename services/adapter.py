@@ -80,7 +80,7 @@ from typing import Any
 import numpy as np
 
 from arcade_io import atomicfile
-from services import runtime
+from services import options, runtime
 from services.messages import MAX_VARIANCE, Event, Model, Residual, Setpoint, State
 
 #: The shipped quadrotor VLD (``arcade train --system quadrotor`` writes it).
@@ -498,8 +498,8 @@ class Adapter(runtime.Service):
 
 
 def _extra(p) -> None:
-    runtime.add_weights_argument(p)
-    runtime.add_link_delay_argument(p)
+    options.add_weights_argument(p)
+    options.add_link_delay_argument(p)
     p.add_argument(
         "--checkpoint",
         type=Path,

@@ -72,7 +72,7 @@ import numpy as np
 
 from arcade_control.hover import HOVER_THRUST_STEPS, level_hover
 from arcade_core import frames
-from services import runtime
+from services import options, runtime
 from services.messages import MAX_STAMP_S, Model, Setpoint, State
 
 #: Shortest interval between two log lines about failing control steps [s].
@@ -113,7 +113,7 @@ class Controller(runtime.Service):
         self.u_max = np.asarray(cfg.u_max, float)
         p = nominal_params()
         self.u_hover = np.array([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0])
-        scen = runtime.scenario(a)
+        scen = options.scenario(a)
         N = cfg.N
         self.ref_dt = CONTROL_DT
         t_end = a.duration if a.duration is not None else scen.t_end
@@ -456,9 +456,9 @@ class Controller(runtime.Service):
 
 
 def _extra(p) -> None:
-    runtime.add_plan_arguments(p)
-    runtime.add_weights_argument(p)
-    runtime.add_link_delay_argument(p)
+    options.add_plan_arguments(p)
+    options.add_weights_argument(p)
+    options.add_link_delay_argument(p)
     p.add_argument(
         "--model-timeout",
         type=float,

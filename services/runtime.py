@@ -22,110 +22,23 @@ import logging
 import math
 import os
 import random
-import re
 import signal
 import struct
 import sys
 import threading
 import time
 from array import array
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from arcade_io import atomicfile, jsonout, signals
 from services.bus import DEFAULT_HUB, Bus, peer_config, read_config, zenoh_reason
+from services.options import common_parser, link_delay_problem
 
 log = logging.getLogger("arcade.service")
-
-
-class DefaultsHelpFormatter(argparse.HelpFormatter):
-    """Help that ends every option's text with its default (``none`` for ``None``, ``off``
-    for a flag), unless the text already speaks of its default."""
-
-    def _get_help_string(self, action: argparse.Action) -> str:
-        text = action.help or ""
-        if (
-            re.search(r"\bdefault\b", text)
-            or action.default is argparse.SUPPRESS
-            or not action.option_strings
-        ):
-            return text
-        if action.nargs == 0:  # a flag: its default is not giving it
-            return f"{text} (default: off)"
-        return f"{text} (default: {'none' if action.default is None else '%(default)s'})"
-
-
-def common_parser(name: str, description: str) -> argparse.ArgumentParser:
-    """Options every service takes (``--help`` shows each option's default)."""
-    p = argparse.ArgumentParser(
-        prog=f"python -m services {name}",
-        description=description,
-        formatter_class=DefaultsHelpFormatter,
-    )
-    p.add_argument("--vehicle", default="default", help="vehicle name on the bus (key prefix)")
-    p.add_argument(
-        "--hub",
-        default=None,
-        help=f"Zenoh hub endpoint of the peer session (default {DEFAULT_HUB})",
-    )
-    p.add_argument(
-        "--bus-config",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="Zenoh configuration (JSON5) of this process's session instead of the peer "
-        "session on --hub, e.g. a client of a router with user/password or TLS",
-    )
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="run folder: logs/<service>.log and stats/<service>.json go here",
-    )
-    p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ...")
-    p.add_argument("--x64", action="store_true", help="compute in float64 (default float32)")
-    p.add_argument(
-        "--lockstep",
-        action="store_true",
-        help="lockstep clock (simulated time, deterministic); default realtime",
-    )
-    p.add_argument("--rate", type=float, default=20.0, help="control rate [Hz]")
-    p.add_argument(
-        "--nice",
-        type=int,
-        default=0,
-        help="scheduling priority change (negative: higher; needs privileges, "
-        "ignored with a warning otherwise)",
-    )
-    p.add_argument(
-        "--realtime-priority",
-        type=int,
-        default=0,
-        metavar="P",
-        help="after warm-up, run every thread of the process under SCHED_FIFO at "
-        "priority P (1-99; 0: the normal policy). Needs CAP_SYS_NICE or an "
-        "rtprio limit; without, a warning and the normal policy",
-    )
-    p.add_argument(
-        "--cpu-wakeup-latency-us",
-        type=int,
-        default=None,
-        metavar="US",
-        help="after warm-up, ask the kernel (PM QoS, /dev/cpu_dma_latency) to keep "
-        "every CPU's wake-up latency <= US microseconds while this process "
-        "runs (0: idle CPUs poll instead of sleeping; costs power). Needs "
-        "root; without, a warning",
-    )
-    p.add_argument(
-        "--incarnation",
-        type=int,
-        default=0,
-        help="restart count given by the supervisor (0: first start)",
-    )
-    return p
 
 
 def bus_config(args: argparse.Namespace) -> Any:
@@ -676,135 +589,3 @@ def main_for(
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     return code
-
-
-# ----------------------------------------------------------------------- learned model
-
-
-def add_weights_argument(p: argparse.ArgumentParser) -> None:
-    """The learned model's weights, shared by the adapter and the controller (same file on
-    both: the controller rebuilds the features the adapter's posterior is over)."""
-    p.add_argument(
-        "--weights",
-        type=Path,
-        default=None,
-        help="VLD weights (default deploy/weights/quadrotor_vld.eqx)",
-    )
-
-
-def add_link_delay_argument(p: argparse.ArgumentParser) -> None:
-    """The link's delay, shared by the controller and the adapter (same value on both: the
-    controller plans from the state the adapter learns from)."""
-    p.add_argument(
-        "--link-delay",
-        type=seconds(1.0, high_open=True),  # the control period bounds it further
-        default=0.0,
-        metavar="S",
-        help="compensate the delay from a state's sample instant to when its setpoint "
-        "acts on the vehicle's rate loop, shorter than one control period: plan and learn "
-        "from the state predicted that far ahead with the setpoint in flight [s] "
-        "(default: 0, none)",
-    )
-
-
-def link_delay_problem(delay: float, rate: float) -> str | None:
-    """Why a link delay does not fit the control rate (it must be shorter than one
-    period: one setpoint in flight at a time), or None."""
-    if delay < 1.0 / rate:
-        return None
-    return (
-        f"--link-delay {delay:g} s: must be shorter than the control period "
-        f"({1.0 / rate:g} s at --rate {rate:g})"
-    )
-
-
-def seconds(high: float, high_open: bool = False) -> Callable[[str], float]:
-    """argparse ``type=``: a duration in ``[0, high]`` seconds (``high_open``: ``[0, high)``)."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = float("nan")
-        if not (0.0 <= value < high if high_open else 0.0 <= value <= high):
-            end = ")" if high_open else "]"
-            raise argparse.ArgumentTypeError(
-                f"must be a number of seconds in [0, {high:g}{end}, not {text}"
-            )
-        return value
-
-    return parse
-
-
-# ----------------------------------------------------------------------- flight plan
-
-
-def add_plan_arguments(p: argparse.ArgumentParser) -> None:
-    """The flight plan shared by the simulator and the controller (same values on both)."""
-    p.add_argument("--payload-g", type=float, default=175.0, help="swinging payload [g]")
-    p.add_argument("--speed", type=float, default=2.5, help="figure-eight mean speed [m/s]")
-    p.add_argument("--seed", type=int, default=0, help="trial seed (noise, start, release)")
-    p.add_argument(
-        "--duration",
-        type=float,
-        default=None,
-        help="flight duration [s] (default: take-off, hover, two laps)",
-    )
-    p.add_argument(
-        "--release",
-        type=float,
-        default=0.95,
-        help="release the payload at this fraction of the first lap "
-        "(negative: only on a release_payload command)",
-    )
-    p.add_argument(
-        "--hover-s",
-        type=float,
-        default=1.5,
-        help="hover this long at the centre before the figure-eight [s] "
-        "(longer than the flight: a take-off and hover plan)",
-    )
-    p.add_argument(
-        "--origin",
-        type=_xy,
-        default=(0.0, 0.0),
-        metavar="X,Y",
-        help="horizontal offset of the whole plan [m] (one per vehicle on a bus)",
-    )
-
-
-def _xy(text: str) -> tuple[float, float]:
-    x, y = (float(v) for v in text.split(","))
-    return x, y
-
-
-def scenario(args: argparse.Namespace) -> Any:
-    """The closed-loop scenario (take-off, hover, figure-eight) of the plan options."""
-    from arcade_control.scenario import Scenario
-
-    ox, oy = getattr(args, "origin", (0.0, 0.0))
-    base = Scenario()
-    return Scenario(
-        payload_g=float(args.payload_g),
-        speed_mps=float(args.speed),
-        release_fraction=float(args.release),
-        hover_s=float(getattr(args, "hover_s", base.hover_s)),
-        start=(base.start[0] + ox, base.start[1] + oy, base.start[2]),
-        center=(base.center[0] + ox, base.center[1] + oy, base.center[2]),
-    )
-
-
-class Trial(NamedTuple):
-    """Per-trial randomness, derived from the seed exactly as the in-process evaluation
-    (``benchmarks.quadrotor_flights.Runner.fly``) derives it."""
-
-    sim_seed: int
-    start_offset: np.ndarray
-    release_jitter: int
-
-
-def trial(seed: int) -> Trial:
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x51]))
-    sim_seed = int(rng.integers(2**31))
-    offset = np.array([*rng.normal(0.0, 0.02, 2), 0.0])
-    return Trial(sim_seed, offset, int(rng.integers(-2, 3)))

@@ -71,106 +71,27 @@ flight goes on, and ``unwritten_truth_rows`` counts what is lost), statistics to
 
 from __future__ import annotations
 
-import argparse
 import math
-import re
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from arcade_control.hover import hold_setpoint
+from arcade_control.scenario import trial
 from arcade_io import flightlog
-from services import runtime
+from services import options, runtime
 from services.csvlog import StreamedCsv
 from services.messages import Command, Event, Imu, Mocap, Setpoint, State
+from services.sim_options import add_sim_arguments as _extra
+from simulator.mocap_faults import MocapFault, MocapFaults
 
 MAX_GYRO = 99.0
 FLIGHT_COLUMNS = flightlog.columns("quadrotor")
 #: Position error [m] or height [m] at which a flight counts as crashed and stops.
 CRASH_ERROR_M = 2.0
 CRASH_HEIGHT_M = 0.02
-
-_FAULT = re.compile(
-    r"(dropout|freeze|outliers|clockjump)@([0-9.]+)(?:\+([0-9.]+))?"
-    r"((?:,\w+=[-0-9.e]+)*)"
-)
-
-
-@dataclass(frozen=True)
-class MocapFault:
-    """One injected mocap fault over the mission-time window ``[start, start + duration)``."""
-
-    kind: str
-    start: float
-    duration: float = math.inf
-    p: float = 1.0  # outliers: probability per frame
-    m: float = 0.5  # outliers: jump [m]
-    offset: float = 0.0  # clockjump: clock offset [s]
-
-    @classmethod
-    def parse(cls, spec: str) -> MocapFault:
-        """``KIND@START[+DURATION][,key=value...]`` (see the module docstring)."""
-        m = _FAULT.fullmatch(spec.strip())
-        if m is None:
-            raise ValueError(
-                f"bad mocap fault {spec!r}: KIND@START[+DURATION][,key=value...] "
-                "with KIND dropout|freeze|outliers|clockjump"
-            )
-        kw = {k: float(v) for k, v in (item.split("=") for item in m[4].split(",") if item)}
-        unknown = set(kw) - {"p", "m", "offset"}
-        if unknown:
-            raise ValueError(f"bad mocap fault {spec!r}: unknown {sorted(unknown)}")
-        start = float(m[2])
-        # Stamps count from the clock's origin (lockstep: the mission start): a backward
-        # jump larger than the time since then would stamp frames before it.
-        if kw.get("offset", 0.0) < -start:
-            raise ValueError(
-                f"bad mocap fault {spec!r}: offset {kw['offset']:g} s goes back past the "
-                f"start of the mission (at least -{start:g} s for a jump at {start:g} s)"
-            )
-        return cls(m[1], start, float(m[3]) if m[3] else math.inf, **kw)
-
-    def active(self, t: float) -> bool:
-        return self.start <= t < self.start + self.duration
-
-
-class MocapFaults:
-    """Applies :class:`MocapFault` s to the frames of one mocap stream (seeded)."""
-
-    def __init__(self, faults: list[MocapFault], seed: int):
-        self.faults = faults
-        self.rng = np.random.default_rng(np.random.SeedSequence([seed, 0xFA]))
-        self.last = None  # last genuine frame (what a frozen tracker repeats)
-        self.counts = {k: 0 for k in ("dropout", "freeze", "outliers", "clockjump")}
-
-    def apply(self, frames, t_mission) -> list:
-        """The frames to publish; ``t_mission(capture_stamp)`` gives mission time."""
-        out = []
-        for f in frames:
-            t = t_mission(f.stamp)
-            active = [x for x in self.faults if x.active(t)]
-            kinds = {x.kind for x in active}
-            if "dropout" in kinds:
-                self.counts["dropout"] += 1
-                continue
-            if "freeze" in kinds and self.last is not None:
-                self.counts["freeze"] += 1
-                f = f._replace(position=self.last.position, quaternion=self.last.quaternion)
-            else:
-                self.last = f
-            for x in active:
-                if x.kind == "outliers" and self.rng.random() < x.p:
-                    self.counts["outliers"] += 1
-                    d = self.rng.normal(size=3)
-                    f = f._replace(position=f.position + x.m * d / np.linalg.norm(d))
-                elif x.kind == "clockjump":
-                    self.counts["clockjump"] += 1
-                    f = f._replace(stamp=f.stamp + x.offset, arrival=f.arrival + x.offset)
-            out.append(f)
-        return out
 
 
 class SimNode(runtime.Service):
@@ -188,8 +109,8 @@ class SimNode(runtime.Service):
         from simulator import QuadrotorSim
 
         a = self.args
-        self.scen = runtime.scenario(a)
-        self.trial = runtime.trial(a.seed)
+        self.scen = options.scenario(a)
+        self.trial = trial(a.seed)
         self.period = 1.0 / a.rate
         t_end = a.duration if a.duration is not None else self.scen.t_end
         self.n_steps = math.ceil(t_end / self.period - 1e-9) + 1
@@ -654,79 +575,6 @@ class SimNode(runtime.Service):
         )
 
 
-def _extra(p) -> None:
-    runtime.add_plan_arguments(p)
-    p.add_argument(
-        "--step-timeout",
-        type=float,
-        default=5.0,
-        help="lockstep: longest wait for a setpoint before holding the last [s]",
-    )
-    p.add_argument(
-        "--preroll",
-        type=float,
-        default=1.0,
-        help="realtime: hover this long at the start pose before the mission [s]",
-    )
-    p.add_argument(
-        "--substep",
-        type=float,
-        default=0.005,
-        help="realtime: physics chunk between setpoint checks [s]",
-    )
-    p.add_argument(
-        "--wait-for",
-        default="estimator,adapter,controller",
-        help="comma-separated services that must be alive before take-off",
-    )
-    p.add_argument(
-        "--truth-state",
-        action="store_true",
-        help="diagnostic: publish the ground-truth state (run without the "
-        "estimator; this is what the in-process evaluation controls on)",
-    )
-    p.add_argument(
-        "--ready-timeout", type=float, default=600.0, help="longest wait for those services [s]"
-    )
-    p.add_argument(
-        "--failsafe-after",
-        type=float,
-        default=0.3,
-        help="no fresh setpoint for this long -> position hold (realtime: wall "
-        "clock; lockstep: simulated time) [s]",
-    )
-    p.add_argument(
-        "--failsafe-resume",
-        type=int,
-        default=3,
-        help="consecutive answered control instants that end the failsafe",
-    )
-    p.add_argument(
-        "--command-delay",
-        type=runtime.seconds(1.0),
-        default=0.0,
-        metavar="S",
-        help="emulate the link to the autopilot: every setpoint reaches the rate loop "
-        "this much later (whole ms; up to 1 s) [s]; the simulated PX4 has its own",
-    )
-    p.add_argument(
-        "--mocap-fault",
-        action="append",
-        type=_mocap_fault,
-        default=None,
-        metavar="SPEC",
-        help="inject a mocap fault: dropout@T+D, freeze@T+D, "
-        "outliers@T+D,p=P,m=M, clockjump@T[+D],offset=S (mission time)",
-    )
-
-
-def _mocap_fault(spec: str) -> MocapFault:
-    try:
-        return MocapFault.parse(spec)
-    except ValueError as err:  # argparse prints this message, not a generic one
-        raise argparse.ArgumentTypeError(str(err)) from None
-
-
 def main(argv: list[str] | None = None) -> int:
     return runtime.main_for(SimNode, argv, _extra)
 
@@ -734,8 +582,6 @@ def main(argv: list[str] | None = None) -> int:
 __all__ = [
     "FLIGHT_COLUMNS",
     "Event",
-    "MocapFault",
-    "MocapFaults",
     "SimNode",
     "main",
 ]

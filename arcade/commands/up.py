@@ -171,7 +171,7 @@ def usage_problem(args: argparse.Namespace) -> str | None:
     """Why these options do not fit together or do not parse (one line), or None."""
     if args.bus_configs is not None and args.hub is not None:
         return "--hub and --bus-configs exclude each other: the configurations name the endpoints"
-    from services.runtime import link_delay_problem
+    from services.options import link_delay_problem
 
     problem = (
         link_delay_problem(args.link_delay, args.rate)
@@ -231,9 +231,9 @@ def vehicle_name_problem(name: str) -> str | None:
 def parse_bridge_args(bridge_args: list[str]) -> argparse.Namespace:
     """``--bridge-arg`` values parsed with the bridge's own options and its geofence check,
     as the bridge will parse them; ``ValueError`` with one line otherwise."""
-    from services import px4_bridge, runtime
+    from services import options, px4_bridge
 
-    parser = runtime.common_parser("bridge", "PX4 bridge")
+    parser = options.common_parser("bridge", "PX4 bridge")
     px4_bridge._extra(parser)
 
     def refuse(message: str) -> None:  # instead of printing the usage and exiting
@@ -315,10 +315,10 @@ def service_parser(name: str) -> argparse.ArgumentParser:
     ``ValueError`` (one line) instead of exiting."""
     import importlib
 
-    from services import runtime
+    from services import options
     from services.__main__ import SERVICES
 
-    parser = runtime.common_parser(name, name)
+    parser = options.common_parser(name, name)
     extra = getattr(importlib.import_module(SERVICES[name]), "_extra", None)
     if extra is not None:
         extra(parser)

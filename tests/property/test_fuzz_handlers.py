@@ -34,7 +34,7 @@ from hypothesis import given
 from loopback import LoopbackSession
 
 from services import messages as wm
-from services import runtime
+from services import options, runtime
 from services.bus import Bus
 from services.messages import MessageError, Reason, decode
 
@@ -47,7 +47,7 @@ def build(
     module: Any, cls: type[runtime.Service], out: Path, *argv: str
 ) -> tuple[runtime.Service, LoopbackSession]:
     """A service wired exactly as ``Service.run`` wires it, on a loopback session."""
-    parser = runtime.common_parser(cls.name, "fuzz")
+    parser = options.common_parser(cls.name, "fuzz")
     extra = getattr(module, "_extra", None)
     if extra is not None:
         extra(parser)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from services import adapter as mod
-from services import runtime
+from services import options, runtime
 from services.messages import Command, Event, Setpoint, State
 
 X_HOVER = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
@@ -46,7 +46,7 @@ class FakeBus:
 def make_adapter(*argv: str) -> mod.Adapter:
     """An adapter set up as its process sets it up (no weights file: nothing compiled),
     then given a recording stand-in for the learning update."""
-    parser = runtime.common_parser("adapter", "test")
+    parser = options.common_parser("adapter", "test")
     mod._extra(parser)
     svc = mod.Adapter(parser.parse_args(["--weights", "/nonexistent/vld.eqx", *argv]))
     svc.bus = FakeBus()
@@ -230,7 +230,7 @@ def test_link_delay_must_be_shorter_than_the_control_period(capsys):
         runtime.main_for(mod.Adapter, ["--rate", "50", "--link-delay", "0.02"], mod._extra)
     assert exit_.value.code == 2
     assert "--link-delay 0.02 s: must be shorter than the control period" in capsys.readouterr().err
-    parser = runtime.common_parser("adapter", "test")
+    parser = options.common_parser("adapter", "test")
     mod._extra(parser)
     with pytest.raises(SystemExit):
         parser.parse_args(["--link-delay", "-0.01"])

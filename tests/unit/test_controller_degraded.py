@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from services import controller as mod
-from services import runtime
+from services import options
 from services.messages import Event, Setpoint, State
 
 X_HOVER = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
@@ -44,7 +44,7 @@ class FakeBus:
 
 @pytest.fixture(scope="module")
 def parser():
-    p = runtime.common_parser("controller", "test")
+    p = options.common_parser("controller", "test")
     mod._extra(p)
     return p
 
@@ -178,7 +178,7 @@ def test_a_link_delay_plans_from_the_predicted_state_against_the_later_reference
     plain = make_controller(parser)
     delayed = make_controller(parser, "--link-delay", "0.02")
     assert built == [0.0, 0.02]
-    scen = runtime.scenario(delayed.args)
+    scen = options.scenario(delayed.args)
     want = reference(scen, delayed.n_ref, delayed.cfg.N, 0.02)
     for got, expected, before in zip(
         (delayed.x_ref_all, delayed.u_ref_all), want, (plain.x_ref_all, plain.u_ref_all)

@@ -110,9 +110,9 @@ def test_frames_waiting_for_imu_are_bounded_and_counted(make):
 
 
 def _options(*argv: str):
-    from services import runtime
+    from services import options
 
-    parser = runtime.common_parser("estimator", "test")
+    parser = options.common_parser("estimator", "test")
     est_service._extra(parser)
     return parser.parse_args(list(argv))
 

@@ -18,7 +18,7 @@ from arcade_core import frames
 from arcade_core.frames import enu_to_ned, quat_enu_flu_to_ned_frd
 from arcade_core.px4_command import ThrustCurve
 from arcade_io.vehicle import load_vehicle
-from services import px4_bridge, runtime
+from services import options, px4_bridge
 from services.messages import Command, Event, Setpoint
 from services.px4_bridge import Px4Bridge
 from simulator.px4 import FlightMode, Px4Vehicle
@@ -249,7 +249,7 @@ class FakeAction:
 def bridge(*argv: str) -> Px4Bridge:
     """A bridge as ``setup`` leaves it, on a healthy vehicle armed in Hold, with the MAVSDK
     plugins and the bus replaced by recording fakes."""
-    parser = runtime.common_parser("bridge", "test")
+    parser = options.common_parser("bridge", "test")
     px4_bridge._extra(parser)
     b = Px4Bridge(parser.parse_args(list(argv)))
     b.bus = FakeBus()

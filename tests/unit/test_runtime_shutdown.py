@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from loopback import LoopbackSession
 
-from services import runtime
+from services import options, runtime
 from services.bus import Bus
 from services.messages import Command, MessageError, Mocap, Reason, State, encode
 
@@ -33,7 +33,7 @@ CHILD_ENV = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2])
 
 
 def args(out: Path | None) -> argparse.Namespace:
-    return runtime.common_parser("probe", "test").parse_args(
+    return options.common_parser("probe", "test").parse_args(
         ["--vehicle", "test"] + ([] if out is None else ["--out", str(out)])
     )
 
@@ -198,7 +198,7 @@ def test_service_help_shows_every_default():
     from services import estimator, px4_bridge
 
     for module, sample in ((estimator, "(default: 0.25)"), (px4_bridge, "(default: 0.3)")):
-        parser = runtime.common_parser("x", "test")
+        parser = options.common_parser("x", "test")
         module._extra(parser)  # the service's own options, on the same parser
         formatter = parser._get_formatter()
         for action in parser._actions:
@@ -257,12 +257,12 @@ def test_a_service_stops_when_its_launcher_dies():
 
 def test_a_backward_clock_jump_past_the_mission_start_is_refused_when_parsed(capsys):
     from services import sim_node
-    from services.sim_node import MocapFault
+    from simulator.mocap_faults import MocapFault
 
     with pytest.raises(ValueError, match="offset -2 s goes back past the start"):
         MocapFault.parse("clockjump@1+1,offset=-2")
     assert MocapFault.parse("clockjump@2+1,offset=-1.5").offset == -1.5
-    parser = runtime.common_parser("sim", "test")
+    parser = options.common_parser("sim", "test")
     sim_node._extra(parser)
     with pytest.raises(SystemExit):
         parser.parse_args(["--mocap-fault", "clockjump@1,offset=-2"])
@@ -312,9 +312,10 @@ def test_non_finite_physics_is_reported_as_a_crash_not_an_exception(tmp_path):
 
     from services import sim_node
     from services.messages import Setpoint
-    from services.sim_node import MocapFaults, SimNode
+    from services.sim_node import SimNode
+    from simulator.mocap_faults import MocapFaults
 
-    parser = runtime.common_parser("sim", "test")
+    parser = options.common_parser("sim", "test")
     sim_node._extra(parser)
     node = SimNode(parser.parse_args(["--lockstep", "--vehicle", "test"]))
     session = LoopbackSession()

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from loopback import LoopbackSession
 
-from services import runtime, sim_node
+from services import options, sim_node
 from services.bus import Bus
 from services.messages import Event, Setpoint, decode, encode
 
@@ -109,7 +109,7 @@ class ScriptedController:
 def make_node(
     *argv: str, n_steps: int = 30, out: Path | None = None
 ) -> tuple[sim_node.SimNode, LoopbackSession]:
-    parser = runtime.common_parser("sim", "test")
+    parser = options.common_parser("sim", "test")
     sim_node._extra(parser)
     if out is not None:
         argv = ("--out", str(out), *argv)
@@ -288,7 +288,7 @@ def test_a_full_disk_stops_the_ground_truth_not_the_flight(tmp_path):
 
 
 def test_the_simulator_service_emulates_the_links_command_delay():
-    parser = runtime.common_parser("sim", "test")
+    parser = options.common_parser("sim", "test")
     sim_node._extra(parser)
     for argv, steps in ((["--command-delay", "0.015"], 15), ([], 0)):
         node = sim_node.SimNode(parser.parse_args(["--vehicle", "test", *argv]))
