@@ -10,8 +10,18 @@ A test's kind is the folder it sits in, and its marker (``-m unit``, ``-m integr
 - ``workflow/``: offline workflows end to end (the cartpole evaluation, the discrepancy
   workflow, the quadrotor data, training and closed-loop pipeline).
 
+Tests that fly on the wall clock and assert on its timing are also marked ``realtime``:
+``make test`` runs them alone, after the others, so that what they measure is not the load
+of other tests.
+
 Modules shared by every folder (``loopback``) sit beside this file, which pytest puts on
-``sys.path``.
+``sys.path``. Expensive fixtures that tests only read are built once per session here.
+
+Scheduling over ``pytest-xdist`` workers (``-n 2 --dist loadfile``): the tests of one file
+run on one worker (their module fixtures are built once), except the files in
+:data:`BY_CASE`, whose cases are independent and spread over the workers; the slower kinds
+are queued first (integration, workflow, property, unit), so that the many short tests fill
+in at the end and the workers finish together.
 """
 
 import subprocess
@@ -25,16 +35,72 @@ jaxsetup.configure(x64=True)
 
 TESTS = Path(__file__).resolve().parent
 KINDS = ("unit", "property", "integration", "workflow")
+#: The order in which the kinds are queued for the workers: the slowest first.
+QUEUED = ("integration", "workflow", "property", "unit")
+
+
+#: Files whose parametrized cases (each a case of a module-scoped fixture) are independent:
+#: each case is a unit of work of its own (the others' units are whole files).
+BY_CASE = ("workflow/test_discrepancy_quadrotor.py",)
+
+
+def _kind(item: pytest.Item) -> str:
+    return Path(item.path).resolve().relative_to(TESTS).parts[0]
+
+
+def _unit(nodeid: str) -> str:
+    """The unit of work a test belongs to: its file, or its file and case (:data:`BY_CASE`)."""
+    path, _, name = nodeid.partition("::")
+    if path.removeprefix("tests/") in BY_CASE and name.endswith("]"):
+        return f"{path}[{name.rsplit('[', 1)[1]}"
+    return path
 
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items) -> None:
     """Mark every test with its folder's kind (before ``-m`` selects on the markers)."""
     for item in items:
-        folder = Path(item.path).resolve().relative_to(TESTS).parts[0]
-        if folder not in KINDS:
+        kind = _kind(item)
+        if kind not in KINDS:
             raise pytest.UsageError(f"{item.nodeid}: a test belongs in one of tests/{KINDS}")
-        item.add_marker(folder)
+        item.add_marker(kind)
+
+
+class _Queue:
+    @pytest.hookimpl(trylast=True)
+    def pytest_collection_modifyitems(self, items) -> None:
+        """Queue the slower kinds first, after pytest ordered the tests by their fixtures
+        (a stable sort: the order within a kind is kept)."""
+        items.sort(key=lambda item: QUEUED.index(_kind(item)))
+
+
+def pytest_configure(config) -> None:
+    config.pluginmanager.register(_Queue(), "arcade-test-queue")
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile``: units of work by :func:`_unit`, handed out in the collection's
+    order (the slower kinds first)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Units(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return _unit(nodeid)
+
+    config.option.loadscopereorder = False
+    return Units(config, log)
+
+
+@pytest.fixture(scope="session")
+def estimator_factory():
+    """:func:`loopback.lockstep_estimator`, its filter step compiled once for the session."""
+    from loopback import lockstep_estimator
+
+    est, _ = lockstep_estimator()
+    est.warmup()
+    return lockstep_estimator
 
 
 def _openssl(*args: str, cwd: Path) -> None:
@@ -100,7 +166,7 @@ def _signed(d: Path, name: str, ca: str) -> None:
     )
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def certs(tmp_path_factory) -> Path:
     """CA ``ca`` signs ``router`` (localhost), ``controller``, ``estimator`` and
     ``recorder``; an

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from loopback import lockstep_estimator
 
 from services import estimator as est_service
 from services.estimator import Estimator
@@ -14,13 +13,6 @@ from services.messages import Imu, Mocap
 T0 = 100.0
 MOCAP_DT = 1.0 / 120.0
 CONTROL_DT = 0.05
-
-
-@pytest.fixture(scope="module")
-def make():
-    est, _ = lockstep_estimator()
-    est.warmup()  # compile once for the module
-    return lockstep_estimator
 
 
 def frame(t: float) -> Mocap:
@@ -42,8 +34,8 @@ def fly_to(est: Estimator, t_end: float) -> None:
         est.on_imu(Imu(gyro=np.zeros(3), stamp=T0 + t))
 
 
-def test_a_frame_held_back_to_the_next_instant_is_fused_not_frozen(make):
-    est, bus = make()
+def test_a_frame_held_back_to_the_next_instant_is_fused_not_frozen(estimator_factory):
+    est, bus = estimator_factory()
     fly_to(est, 0.95)
     frames_before, n_states = est.stats["frames"], len(bus.states)
     # 0.99 is on time for the instant 1.00; 1.02 was captured after it (a stalled
@@ -82,8 +74,8 @@ def _fake_step(x: np.ndarray):
     ],
     ids=["out-of-range", "zero-quaternion", "non-finite"],
 )
-def test_a_diverged_filter_is_reset_with_a_fault_event(make, why, x):
-    est, bus = make()
+def test_a_diverged_filter_is_reset_with_a_fault_event(estimator_factory, why, x):
+    est, bus = estimator_factory()
     fly_to(est, 0.5)
     n_states = len(bus.states)
     good = est._step
@@ -100,8 +92,8 @@ def test_a_diverged_filter_is_reset_with_a_fault_event(make, why, x):
     assert len(bus.states) == n_states + 1  # running again
 
 
-def test_frames_waiting_for_imu_are_bounded_and_counted(make):
-    est, _ = make()
+def test_frames_waiting_for_imu_are_bounded_and_counted(estimator_factory):
+    est, _ = estimator_factory()
     for i in range(est_service.MAX_PENDING + 5):
         est.on_mocap(frame(i * MOCAP_DT))
     assert len(est._pending) == est_service.MAX_PENDING

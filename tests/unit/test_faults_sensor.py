@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from loopback import lockstep_estimator
 
 from services.messages import Imu, Mocap
 
@@ -26,13 +25,6 @@ JERK = RADIUS * OMEGA**3  # of the circle, m/s^3: the constant-acceleration mode
 
 def truth(t: float) -> np.ndarray:
     return CENTER + RADIUS * np.array([np.cos(OMEGA * t), np.sin(OMEGA * t), 0.0])
-
-
-@pytest.fixture(scope="module")
-def estimator_factory():
-    est, _ = lockstep_estimator()
-    est.warmup()  # compile once for the module
-    return lockstep_estimator
 
 
 def fly(

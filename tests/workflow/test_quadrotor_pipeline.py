@@ -29,6 +29,7 @@ from arcade_core import adaptation, encoder
 from arcade_core import frames as quat
 from arcade_io.weights import load_model, read_header
 from benchmarks import quadrotor_closedloop as cl
+from benchmarks import quadrotor_flights as flights
 from benchmarks.quadrotor_flights import (
     DIAG_CHANGEPOINT,
     Flight,
@@ -475,7 +476,7 @@ def test_the_delay_diagnostic_flies_each_row_with_its_setpoint_delay(monkeypatch
         runners.append(_RecordingRunner())
         return runners[-1]
 
-    monkeypatch.setattr(cl, "Runner", runner)
+    monkeypatch.setattr(flights, "Runner", runner)
     monkeypatch.setattr(qv, "models", lambda: SimpleNamespace(closedloop={}))
     flown = [
         qv.Flown("l1@0ms", "l1", {}),
@@ -526,7 +527,7 @@ def test_the_link_diagnostic_flies_the_stack_on_the_estimate_with_and_without_co
             metrics = {"rmse_m": rmse, "rmse_z_m": rmse / 2, "changepoint_rate": 0.1}
             return SimpleNamespace(metrics={**metrics, "settling_s": 0.0})
 
-    monkeypatch.setattr(cl, "Runner", Recorder)
+    monkeypatch.setattr(flights, "Runner", Recorder)
     monkeypatch.setattr(qv, "models", lambda: SimpleNamespace(closedloop={}))
     r = qv.link_delay(trials=1)
     assert all(est for *_, est, _ in flown)  # what the stack flies: the estimate
@@ -557,15 +558,13 @@ def test_the_link_diagnostic_flies_the_stack_on_the_estimate_with_and_without_co
 
 
 def test_a_runner_flies_the_scenarios_setpoint_delay(monkeypatch):
-    import simulator
-
     class Built(Exception):
         pass
 
     def build(**kwargs):
         raise Built(kwargs["command_delay_s"])
 
-    monkeypatch.setattr(simulator, "QuadrotorSim", build)
+    monkeypatch.setattr(flights, "QuadrotorSim", build)
     scen = Scenario(takeoff_s=0.25, hover_s=0.25, release_fraction=-1.0, command_delay_s=0.02)
     runner = Runner(SimpleNamespace(closedloop={}), jnp.float64)
     with pytest.raises(Built) as built:
