@@ -38,7 +38,7 @@ def variants_section(path: Path) -> list[str]:
         "",
         "`ours_matched` is not the paper's method: ours with an intercept feature, whose MPC "
         "plans only with the thrust-axis part of the learned residual "
-        "(`benchmarks.quadrotor_closedloop.beam_method`; read in "
+        "(`arcade_control.methods.beam_method`; read in "
         "`docs/quadrotor-closed-loop.md`). Scenario, seeds and metrics of `arcade eval "
         f"quadrotor`; mean over {r['trials']} trials per cell; every method tuned in the same "
         "run (" + ", ".join(f"{k} = {v:g}" for k, v in tuned.items()) + "); best in bold.",
@@ -129,7 +129,7 @@ def oracle_section(path: Path) -> list[str]:
         "",
         "`oracle_mass` is a diagnostic, not a method: the nominal model plus what hangs from "
         "the vehicle (payload and cable) as a rigid mass, known exactly and dropped at the "
-        "exact release step (`benchmarks.quadrotor_closedloop.oracle_mass_method`; read in "
+        "exact release step (`arcade_control.methods.oracle_mass_method`; read in "
         "`docs/quadrotor-closed-loop.md`). Scenario and seeds of `arcade eval quadrotor`, "
         f"the stored knobs; mean over {r['trials']} trials per cell; best in bold.",
         "",
