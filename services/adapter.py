@@ -80,6 +80,7 @@ from typing import Any
 import numpy as np
 
 from arcade_io import atomicfile
+from arcade_io.traced import load_or_trace
 from services import options, runtime
 from services.messages import MAX_VARIANCE, Event, Model, Residual, Setpoint, State
 
@@ -125,6 +126,12 @@ def load_checkpoint(path: Path, template: Any, meta: dict[str, Any]) -> Any | No
     return type(template)(**{k: jnp.asarray(v) for k, v in fields.items()})
 
 
+def _without_network(out: tuple) -> tuple:
+    """The adapter update's result with the learner's network left out: it does not change,
+    and the rest is plain arrays (storable, :mod:`arcade_io.traced`)."""
+    return (out[0]._replace(vld=None), *out[1:])
+
+
 class Adapter(runtime.Service):
     """Adapter: ARCADE online adaptation (Algorithm 1) of the residual model."""
 
@@ -133,7 +140,6 @@ class Adapter(runtime.Service):
     def setup(self, bus) -> None:
         # Imported here, like every JAX module of the services: after runtime.setup_jax
         # has set the precision, and not for `--help`.
-        import jax
         import jax.numpy as jnp
 
         from arcade_control.stack import adapter_learner, make_adapter_update, same_hemisphere
@@ -164,12 +170,34 @@ class Adapter(runtime.Service):
             getattr(self, "method", None), params, base_sigma2, exact
         )
 
-        self._predict = jax.jit(
-            lambda x, var, u: predict_over_delay(x, var, u, params, a.link_delay)
+        # Traced for these arguments, loaded from disk when traced before
+        # (arcade_io.traced): besides code they close over the rate's step and the link
+        # delay only. The update returns the learner without its (unchanged) network.
+        x0, u0, var0 = np.zeros(13), np.array([5.6, 0.0, 0.0, 0.0]), np.zeros(13)
+        sigma2 = None if base_sigma2 is None else np.asarray(base_sigma2).tolist()
+        key = f"link_delay={a.link_delay!r} exact={exact} sigma2={sigma2!r}"
+        self._predict = load_or_trace(
+            "adapter_predict",
+            lambda x, var, u: predict_over_delay(x, var, u, params, a.link_delay),
+            (x0, var0, u0),
+            key,
         )
         if self.learner is not None:
-            self._adapt = jax.jit(adapt)
-            self._marginal = jax.jit(marginal)
+            adapt_plain = load_or_trace(
+                "adapter_update",
+                lambda learner, *rest: _without_network(adapt(learner, *rest)),
+                (self.learner, x0, u0, x0, self.model_dt, False, var0, var0),
+                key,
+            )
+
+            def _adapt(learner, *rest):
+                new, *out = adapt_plain(learner, *rest)
+                return (new._replace(vld=learner.vld), *out)
+
+            self._adapt = _adapt
+            self._marginal = load_or_trace(
+                "adapter_marginal", marginal, (self.learner, x0, u0), key
+            )
             self._prior = self.learner
             if a.checkpoint is not None:
                 restored = load_checkpoint(a.checkpoint, self.learner.beam, self.meta)

@@ -72,6 +72,7 @@ import numpy as np
 
 from arcade_control.hover import HOVER_THRUST_STEPS, level_hover
 from arcade_core import frames
+from arcade_io.traced import load_or_trace
 from services import options, runtime
 from services.messages import MAX_STAMP_S, Model, Setpoint, State
 
@@ -82,6 +83,17 @@ STEP_ERROR_LOG_S = 5.0
 MAX_STAMP_LAG_S = 1.0
 
 
+def _without_learner(step):
+    """``step`` returning its new carry without the learner, and no diagnostics: what the
+    service keeps of a control step, as plain arrays (storable, :mod:`arcade_io.traced`)."""
+
+    def plain(*args):
+        new, u, _ = step(*args)
+        return new._replace(learner=None), u
+
+    return plain
+
+
 class Controller(runtime.Service):
     """Controller: uncertainty-modulated MPC on the latest state and model."""
 
@@ -90,7 +102,6 @@ class Controller(runtime.Service):
     def setup(self, bus) -> None:
         # Imported here, like every JAX module of the services: after runtime.setup_jax
         # has set the precision, and not for `--help`.
-        import jax
         import jax.numpy as jnp
 
         from arcade_control.methods import make_method
@@ -127,12 +138,8 @@ class Controller(runtime.Service):
         self.learner0 = None
         # The in-process per-step update, with learning left to the adapter.
         no_learn = {"learn": lambda learner, x_prev, u_prev, x: learner}
-        self._step_nominal = jax.jit(
-            with_finite_flag(
-                make_controller_step(
-                    make_method("nominal")._replace(**no_learn), cfg, delay_s=delay
-                )
-            )
+        step_nominal = make_controller_step(
+            make_method("nominal")._replace(**no_learn), cfg, delay_s=delay
         )
         self._learner_nominal = jnp.zeros((), dtype)
         if weights.is_file():
@@ -145,7 +152,6 @@ class Controller(runtime.Service):
                 carry = carry._replace(learner=learner._replace(beam=beam))
                 return step(carry, x, carry.u_mpc, k, x_ref_all, u_ref_all)
 
-            self._step_learned = jax.jit(with_finite_flag(learned))
             d, l = self.learner0.vld.theta0.shape
             self._theta0 = np.asarray(adaptation.marginal_decoder(self.learner0.beam)[0])
             self._cov0 = np.broadcast_to(
@@ -159,6 +165,32 @@ class Controller(runtime.Service):
             jnp.zeros(13, dtype),
             jnp.zeros((), bool),
         )
+        # The steps traced for these arguments, loaded from disk when traced before
+        # (arcade_io.traced): besides code they close over the link delay only. They
+        # return the carry without its learner, which the next solve sets anyway.
+        x0 = np.zeros(13, np.dtype(dtype))
+        refs = (self.x_ref_all, self.u_ref_all)
+        key = f"link_delay={delay!r}"
+        self._step_nominal = load_or_trace(
+            "controller_nominal",
+            _without_learner(with_finite_flag(step_nominal)),
+            (self.carry._replace(learner=self._learner_nominal), x0, u0, 0, *refs),
+            key,
+        )
+        if self.learner0 is not None:
+            self._step_learned = load_or_trace(
+                "controller_learned",
+                _without_learner(with_finite_flag(learned)),
+                (
+                    self.carry,
+                    x0,
+                    0,
+                    self._theta0.astype(x0.dtype),
+                    self._cov0.astype(x0.dtype),
+                    *refs,
+                ),
+                key,
+            )
         self.t0: float | None = None
         self._model: Model | None = None
         self._cond = threading.Condition()
@@ -209,12 +241,12 @@ class Controller(runtime.Service):
         carry = self.carry
         if posterior is None:
             carry = carry._replace(learner=self._learner_nominal)
-            new, u, _ = self._step_nominal(carry, x, carry.u_mpc, k, self.x_ref_all, self.u_ref_all)
+            new, u = self._step_nominal(carry, x, carry.u_mpc, k, self.x_ref_all, self.u_ref_all)
         else:
             carry = carry._replace(learner=self.learner0)
             theta, cov = (np.asarray(v, dt) for v in posterior)
-            new, u, _ = self._step_learned(carry, x, k, theta, cov, self.x_ref_all, self.u_ref_all)
-        self._new_carry = new
+            new, u = self._step_learned(carry, x, k, theta, cov, self.x_ref_all, self.u_ref_all)
+        self._new_carry = new._replace(learner=carry.learner)
         return np.asarray(u, dtype=float)  # (5,): the input and the finite-solution flag
 
     # -- inputs
