@@ -11,7 +11,7 @@ the first lap).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -113,10 +113,23 @@ class Scenario:
         )
 
 
-@jax.jit
-def _reference(path, times):
+def flat_reference(path, times) -> tuple[Array, Array]:
+    """Flat reference states and inputs of ``path`` at ``times`` (not jitted)."""
     params = nominal_params()
     return jax.vmap(lambda t: flat_state(path, t, params))(times)
+
+
+_reference = jax.jit(flat_reference)
+
+
+def reference_arguments(
+    scenario: Scenario, n_steps: int, N: int, offset_s: float = 0.0
+) -> tuple[Any, Array]:
+    """The arguments of :func:`flat_reference` that :func:`reference` evaluates."""
+    dtype = jnp.result_type(float)
+    times = jnp.arange(n_steps + N + 1, dtype=dtype) * DT + offset_s
+    path = jax.tree.map(lambda a: jnp.asarray(a, dtype), scenario.path())
+    return path, times
 
 
 def reference(
@@ -124,10 +137,7 @@ def reference(
 ) -> tuple[Array, Array]:
     """Flat reference states (n_steps + N + 1, 13) and inputs at every control instant
     (``offset_s`` later: the instants a delayed setpoint starts to act at)."""
-    dtype = jnp.result_type(float)
-    times = jnp.arange(n_steps + N + 1, dtype=dtype) * DT + offset_s
-    path = jax.tree.map(lambda a: jnp.asarray(a, dtype), scenario.path())
-    return _reference(path, times)
+    return _reference(*reference_arguments(scenario, n_steps, N, offset_s))
 
 
 class Trial(NamedTuple):

@@ -106,7 +106,7 @@ class Controller(runtime.Service):
 
         from arcade_control.methods import make_method
         from arcade_control.nominal import CONTROL_DT, nominal_params
-        from arcade_control.scenario import reference
+        from arcade_control.scenario import flat_reference, reference_arguments
         from arcade_control.stack import (
             load_learner,
             one_hypothesis_beam,
@@ -132,7 +132,10 @@ class Controller(runtime.Service):
         # With a link delay the plan starts where the setpoint will act: the reference
         # that much later, from the state predicted over it (``make_controller_step``).
         delay = a.link_delay
-        self.x_ref_all, self.u_ref_all = reference(scen, self.n_ref, N, delay)
+        # Traced once and kept on disk, like the steps below (arcade_io.traced).
+        ref_args = reference_arguments(scen, self.n_ref, N, delay)
+        reference = load_or_trace("reference", flat_reference, ref_args)
+        self.x_ref_all, self.u_ref_all = reference(*ref_args)
         weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
         self.weights = weights
         self.learner0 = None

@@ -81,6 +81,7 @@ import numpy as np
 from arcade_control.hover import hold_setpoint
 from arcade_control.scenario import trial
 from arcade_io import flightlog
+from arcade_io.traced import load_or_trace
 from services import options, runtime
 from services.csvlog import StreamedCsv
 from services.messages import Command, Event, Imu, Mocap, Setpoint, State
@@ -105,7 +106,7 @@ class SimNode(runtime.Service):
 
     def setup(self, bus) -> None:
         from arcade_control.nominal import CONTROL_DT as DT
-        from arcade_control.scenario import reference
+        from arcade_control.scenario import flat_reference, reference_arguments
         from simulator import QuadrotorSim
 
         a = self.args
@@ -119,7 +120,9 @@ class SimNode(runtime.Service):
             self.k_release = round(self.scen.t_release / self.period) + self.trial.release_jitter
         # Reference positions at the control instants (crash detection, truth log).
         n_ref = math.ceil(self.n_steps * self.period / DT) + 2
-        x_ref, _ = reference(self.scen, n_ref, 0)
+        # Traced once and kept on disk (arcade_io.traced), as the controller does.
+        ref_args = reference_arguments(self.scen, n_ref, 0)
+        x_ref, _ = load_or_trace("reference", flat_reference, ref_args)(*ref_args)
         self._ref_t = np.arange(x_ref.shape[0]) * DT
         self._ref_p = np.asarray(x_ref[:, :3], dtype=float)
         self.sim = QuadrotorSim(
