@@ -9,10 +9,27 @@ Eq. 9 changepoint posterior, Eq. 10 beam predictive. One step of Algorithm 1:
 1. predict with the beam mixture (Eq. 10, Sec. IV ``sigma_tot``);
 2. for every hypothesis and both branches ``c_k in {0, 1}`` (tempering ``gamma in
    {1, beta^2}``, Eq. 5) evaluate the marginal likelihood (Eq. 8), the changepoint
-   posterior (Eq. 9) and the candidate score (Eq. 7, Lemma 3);
+   posterior (Eq. 9) and the candidate score (Eq. 7, Lemma 3; see "Scores" below);
 3. keep the top-``K`` of the ``2K`` candidates and apply the posterior update (Eq. 6)
    to the survivors only. The update of a candidate depends on its parent and branch
    alone, so pruning before updating gives the same beam at half the work.
+
+Scores (``AdaptationConfig.score``, static). With ``l_c = log p(delta_k | z_k, c_k = c)``
+(Eq. 8) a candidate ``c`` of a hypothesis with score ``L`` scores
+
+- ``"algorithm1"`` (default; Algorithm 1 line by line): ``L + l_c + log p(c | delta_k, .)``
+  with the Eq. 9 *posterior*, so the data term enters twice;
+- ``"joint"``: ``L + l_c + log p(c)`` with the prior ``p(c = 1) = pi``, i.e. Eq. 7 with
+  its own conditioning (``c_{1:k-1}, x_{1:k}, u_{1:k}``, not ``delta_k``): the exact joint
+  log-probability ``log p(delta_{1:k}, c_{1:k} | x_{1:k}, u_{1:k})`` of the path, whose
+  softmax over the beam is the posterior of the paths it keeps.
+
+With the likelihood ratio ``Lambda_k = exp(l_1 - l_0)`` a changepoint branch outranks its
+no-change sibling when ``Lambda_k > sqrt((1 - pi) / pi)`` under ``"algorithm1"`` (4.36 for
+``pi = 0.05``) but only when ``Lambda_k > (1 - pi) / pi`` (19) under ``"joint"``.
+:mod:`.detection` reads a declaration off the ``"joint"`` posterior: the probability that
+the newest changepoint lies within the last ``m`` steps, thresholded with a refractory
+period.
 
 Optionally (``AdaptationConfig.prior_floor``) a changepoint re-injects the offline prior
 ``N(theta_0, tau^2 I)``: the tempered prior is ``p(theta | D)^gamma p_0(theta)^(rho (1 -
@@ -38,7 +55,8 @@ invariant to the shift, and float32 scores do not lose resolution as the raw cum
 log-likelihood grows without bound.
 
 Conventions. ``K`` is static and is read from the state's shapes by every function except
-:func:`init`; all other hyperparameters are traced, so changing them does not recompile.
+:func:`init`; ``score`` is static (auxiliary data of the config's pytree, so changing it
+recompiles); all other hyperparameters are traced, so changing them does not recompile.
 Step ``k`` counts processed observations (``0`` after :func:`init`). Unused beam slots
 (Algorithm 1 line 2 starts with a single hypothesis) carry the prior with a ``-inf``
 score: they get zero weight and are displaced by real candidates first.
@@ -48,11 +66,24 @@ Layout. :mod:`.config` holds the hyperparameters and the Appendix D presets;
 :mod:`.posterior` one hypothesis' regression (Eqs. 4-6 and 8); :mod:`.predictive` the
 Eq. 10 mixture and the Sec. IV variance; :mod:`.beam` one step of Algorithm 1 (expand,
 score, prune, update); :mod:`.packed` the same step on a few flat arrays for the real-time
-loop. Everything public is importable from ``arcade_core.adaptation``.
+loop; :mod:`.detection` the declaration rule. Everything public is importable from
+``arcade_core.adaptation``.
 """
 
 from arcade_core.adaptation.beam import step, top_k, update
-from arcade_core.adaptation.config import AdaptationConfig, cartpole_config, quadrotor_config
+from arcade_core.adaptation.config import (
+    SCORES,
+    AdaptationConfig,
+    cartpole_config,
+    quadrotor_config,
+)
+from arcade_core.adaptation.detection import (
+    Detector,
+    changepoint_probability_within,
+    dated_changepoint_within,
+    declare,
+    init_detector,
+)
 from arcade_core.adaptation.packed import (
     PackedBeam,
     make_packed_step,
@@ -71,13 +102,19 @@ from arcade_core.adaptation.predictive import (
 from arcade_core.adaptation.state import BeamState, Prediction, UpdateInfo, init
 
 __all__ = [
+    "SCORES",
     "AdaptationConfig",
     "BeamState",
+    "Detector",
     "PackedBeam",
     "Prediction",
     "UpdateInfo",
     "cartpole_config",
+    "changepoint_probability_within",
+    "dated_changepoint_within",
+    "declare",
     "init",
+    "init_detector",
     "make_packed_step",
     "map_last_changepoint",
     "marginal_decoder",

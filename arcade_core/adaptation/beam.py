@@ -1,8 +1,10 @@
 """One step of Algorithm 1 over the beam: expand, score, prune, update (Eqs. 5-10, Lemma 3).
 
 Every hypothesis branches into ``c_k in {0, 1}``; each candidate is scored with the Eq. 8
-marginal likelihood, the Eq. 9 changepoint posterior and the Eq. 7 recursion (Lemma 3);
-the top-``K`` survive (:func:`top_k`) and only they get the Eq. 6 posterior update.
+marginal likelihood and the Eq. 7 recursion (Lemma 3), whose changepoint term is the Eq. 9
+posterior (``AdaptationConfig.score = "algorithm1"``, Algorithm 1 as written) or the prior
+``pi`` (``"joint"``, the exact joint log-probability of the path); the top-``K`` survive
+(:func:`top_k`) and only they get the Eq. 6 posterior update.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from arcade_core.adaptation.config import AdaptationConfig
+from arcade_core.adaptation.config import AdaptationConfig, score_of
 from arcade_core.adaptation.posterior import (
     _log_marginal,
     _potter,
@@ -55,6 +57,7 @@ def _update(
 ) -> tuple[BeamState, UpdateInfo]:
     dtype = state.means.dtype
     K, d, _ = state.means.shape
+    score = score_of(config)  # static: one trace per scoring rule
     pi = jnp.asarray(config.pi, dtype)
     beta2 = jnp.square(jnp.asarray(config.beta, dtype))
     sigma2 = _noise(config.sigma2, d, dtype)
@@ -77,9 +80,17 @@ def _update(
     logp1 = jax.nn.log_sigmoid(logit)
     logp0 = jax.nn.log_sigmoid(-logit)
 
-    # Eq. 7 / Algorithm 1: L_k = L_{k-1} + log p(delta|z,c) + log p(c|.), both branches.
+    if score == "joint":
+        # Eq. 7 with its own conditioning (c_{1:k-1}, x_{1:k}, u_{1:k}: not delta_k), so
+        # log p(c_k|.) is the prior: the exact joint log-probability of the path.
+        logc0, logc1 = jnp.log1p(-pi), jnp.log(pi)
+    else:
+        # Algorithm 1 as written: log p(c_k|.) is the Eq. 9 posterior.
+        logc0, logc1 = logp0, logp1
+
+    # Eq. 7: L_k = L_{k-1} + log p(delta|z,c) + log p(c|.), both branches.
     prev = state.log_scores
-    cand = jnp.concatenate([prev + ll0 + logp0, prev + ll1 + logp1])
+    cand = jnp.concatenate([prev + ll0 + logc0, prev + ll1 + logc1])
     top, idx = top_k(cand, K)
     # A non-finite observation (or one no hypothesis can score) would turn every score
     # into NaN for good: it is skipped. Each hypothesis then keeps its slot on the c = 0
@@ -150,17 +161,37 @@ def update(
     """Algorithm 1 after "observe new data": expand every hypothesis into ``c_k in {0,1}``,
     score, prune.
 
-    For each hypothesis: Eq. 8 marginal log-likelihood under the tempered prior
-    ``N(mu, Sigma/gamma)`` for ``gamma in {1, beta^2}`` (Eq. 5), the Eq. 9 changepoint
-    posterior ``p1``, and the candidate scores ``L + log p(delta|z,c) + log(c p1 + (1-c)
-    (1-p1))`` (Eq. 7, Lemma 3); the top-``K`` of the ``2K`` candidates (:func:`top_k`, the
-    same selection as ``jax.lax.top_k``) get the Eq. 6 posterior update. The new beam is
-    sorted by score, so slot 0 is the MAP hypothesis.
+    For each hypothesis: Eq. 8 marginal log-likelihood ``l_c = log p(delta|z,c)`` under
+    the tempered prior ``N(mu, Sigma/gamma)`` for ``gamma in {1, beta^2}`` (Eq. 5), the
+    Eq. 9 changepoint posterior ``p1``, and the candidate scores (Eq. 7, Lemma 3)
+    chosen by the static ``config.score``:
 
-    Algorithm 1 is followed as written: ``log p(c_k|.)`` is the Eq. 9 *posterior*, which
-    already contains ``p(delta_k|c_k)``, so the data term enters a candidate's score twice
-    and two sibling candidates differ by ``2 log Lambda_k + log(pi / (1 - pi))`` (with
-    ``Lambda_k`` the Eq. 9 likelihood ratio) rather than by the log posterior odds.
+    - ``"algorithm1"`` (default, Algorithm 1 as written):
+      ``L + l_c + log(c p1 + (1 - c) (1 - p1))``;
+    - ``"joint"``: ``L + l_c + log(c pi + (1 - c) (1 - pi))``,
+
+    then the top-``K`` of the ``2K`` candidates (:func:`top_k`, the same selection as
+    ``jax.lax.top_k``) get the Eq. 6 posterior update. The new beam is sorted by score,
+    so slot 0 is the MAP hypothesis.
+
+    How the two differ. Eq. 7 conditions ``c_k`` on ``c_{1:k-1}, x_{1:k}, u_{1:k}``, not on
+    ``delta_k``, so its exact value is the prior and ``"joint"`` accumulates the joint
+    log-probability ``log p(delta_{1:k}, c_{1:k} | x, u)`` (App. "Changepoint Scoring"):
+    the beam weights (Eq. 10) are the exact posterior of the paths the beam keeps.
+    Algorithm 1 uses the Eq. 9 *posterior*, which already contains ``p(delta_k|c_k)``: per
+    step it adds ``log p(c_k|delta_k, .) - log p(c_k) = l_c - log(pi e^{l_1} + (1 - pi)
+    e^{l_0})`` to the joint score, so the data term enters twice. Two sibling candidates
+    differ by ``2 log Lambda_k + log(pi / (1 - pi))`` with ``"algorithm1"`` and by ``log
+    Lambda_k + log(pi / (1 - pi))`` (the log posterior odds) with ``"joint"``, where
+    ``Lambda_k = e^{l_1 - l_0}`` is the Eq. 9 likelihood ratio: the changepoint branch
+    outranks its sibling when ``Lambda_k > sqrt((1 - pi) / pi)`` (``sqrt(19) = 4.36`` for
+    ``pi = 0.05``) with ``"algorithm1"`` but only when ``Lambda_k > (1 - pi) / pi``
+    (``19``) with ``"joint"``, i.e. when its posterior probability exceeds 1/2. With
+    ``"algorithm1"`` the weights are not a posterior of the paths: each step multiplies a
+    path's weight by ``p(c_k|delta_k, .) / p(c_k)``, which sharpens towards whichever
+    branch the residual favours (a changepoint after a surprising residual). ``p_change``,
+    ``cp_prob`` and ``log_evidence`` in ``info`` are the same Eq. 9 / App. "LRT"
+    quantities under both scores (computed from the previous beam's weights).
 
     An observation with a non-finite ``z`` or ``delta`` (or one that no hypothesis can
     score) is skipped: the state comes back unchanged and ``info.accepted`` is False (see

@@ -1,19 +1,30 @@
-"""Hyperparameters of Algorithm 1 and the Appendix D presets (Eq. 5 tempering, Eq. 9 prior)."""
+"""Hyperparameters of Algorithm 1 and the Appendix D presets (Eq. 5 tempering, Eq. 9 prior).
+
+:class:`AdaptationConfig` is a pytree whose leaves are the numeric hyperparameters (``K``
+included, as in a plain named tuple) and whose ``score`` is static (part of the tree
+structure, like a ``static_argnames`` argument of ``jit``): a config can be passed through
+``jit``, ``vmap`` and ``scan`` as it is, and a change of ``score`` retraces.
+"""
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 from jax.typing import ArrayLike
+
+#: Hypothesis scores of :func:`arcade_core.adaptation.update` (see ``AdaptationConfig.score``).
+SCORES = ("algorithm1", "joint")
 
 
 class AdaptationConfig(NamedTuple):
     """Hyperparameters of Algorithm 1 (Appendix D, "Online Inference" tables).
 
-    ``K`` (beam size) is a static Python int used only by :func:`init`; the others may be
-    Python floats or arrays and are traced under ``jit``. ``beta`` is the temperature of
-    Eq. 5 (``gamma = beta^2`` on a changepoint). ``sigma2`` is a scalar or per-output
-    ``(d,)`` observation-noise variance.
+    ``K`` (beam size) must be a Python int for :func:`init` only (every other function
+    reads it from the state's shapes, so under ``jit`` it may be a traced leaf like the
+    others); the others may be Python floats or arrays and are traced under ``jit``.
+    ``beta`` is the temperature of Eq. 5 (``gamma = beta^2`` on a changepoint).
+    ``sigma2`` is a scalar or per-output ``(d,)`` observation-noise variance.
 
     ``prior_floor`` (``rho`` in ``[0, 1]``, default ``0``: Eq. 5 as written) re-injects
     part of the offline prior ``p_0 = N(theta_0, tau^2 I)`` at a changepoint: the tempered
@@ -27,6 +38,17 @@ class AdaptationConfig(NamedTuple):
     (``beta^-2`` per changepoint) in directions the data do not excite. As ``beta -> 0``
     the changepoint prior becomes the offline prior itself (a full reset, as in
     run-length changepoint detection). Needs ``tau2 > 0``.
+
+    ``score`` (static, one of :data:`SCORES`) is how a candidate ``c_k`` of a hypothesis
+    is scored (:func:`arcade_core.adaptation.update`); with ``l_c = log p(delta_k | z_k,
+    c_k = c)`` (Eq. 8) and ``p_1`` the Eq. 9 posterior:
+
+    - ``"algorithm1"`` (default): Algorithm 1 as written, ``L + l_c + log p(c_k | .)``
+      with the Eq. 9 *posterior* ``p(c_k = 1 | .) = p_1``, so the data term counts twice;
+    - ``"joint"``: the joint log-probability of the path, ``L + l_c + log p(c_k)`` with
+      the prior ``p(c_k = 1) = pi`` (Eq. 7 with its own conditioning ``c_{1:k-1}, x_{1:k},
+      u_{1:k}``, which excludes ``delta_k``; App. "Changepoint Scoring"). The beam weights
+      are then the exact posterior of the changepoint paths that the beam keeps.
     """
 
     K: int
@@ -35,6 +57,38 @@ class AdaptationConfig(NamedTuple):
     tau2: ArrayLike
     sigma2: ArrayLike
     prior_floor: ArrayLike = 0.0
+    score: str = "algorithm1"
+
+
+_LEAVES = AdaptationConfig._fields[:-1]  # every field but ``score``
+_N = len(_LEAVES)
+_KEYS = tuple(jax.tree_util.GetAttrKey(name) for name in _LEAVES)
+
+
+def _flatten(cfg: AdaptationConfig):
+    return cfg[:_N], cfg[_N]
+
+
+def _flatten_with_keys(cfg: AdaptationConfig):
+    return tuple(zip(_KEYS, cfg[:_N])), cfg[_N]
+
+
+def _unflatten(score: str, leaves) -> AdaptationConfig:
+    return AdaptationConfig(*leaves, score)
+
+
+# ``score`` is auxiliary data, never a leaf: a string cannot be traced. The flatten below
+# slices the tuple (the keyed one is used only for key paths), which keeps a jitted call
+# about as cheap as with a plain named tuple.
+jax.tree_util.register_pytree_with_keys(AdaptationConfig, _flatten_with_keys, _unflatten, _flatten)
+
+
+def score_of(config: AdaptationConfig) -> str:
+    """``config.score``, checked against :data:`SCORES` (a static Python string)."""
+    score = config.score
+    if score not in SCORES:
+        raise ValueError(f"AdaptationConfig.score must be one of {SCORES}, not {score!r}")
+    return score
 
 
 def quadrotor_config() -> AdaptationConfig:

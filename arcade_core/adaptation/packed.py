@@ -1,8 +1,9 @@
 """The real-time loop's form of Algorithm 1: a beam and its knobs in few arrays, one jitted step.
 
 A :class:`PackedBeam` carries a :class:`~arcade_core.adaptation.state.BeamState` and the
-traced hyperparameters in five arrays; :func:`packed_step` runs one iteration of
-Algorithm 1 (Eqs. 5-10) on it and returns the prediction and diagnostics in one buffer.
+traced hyperparameters in five arrays (and the static ``score``); :func:`packed_step` runs
+one iteration of Algorithm 1 (Eqs. 5-10) on it and returns the prediction and diagnostics
+in one buffer.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from arcade_core.adaptation.beam import step
-from arcade_core.adaptation.config import AdaptationConfig
+from arcade_core.adaptation.config import AdaptationConfig, score_of
 from arcade_core.adaptation.state import BeamState, Prediction, UpdateInfo
 
 
@@ -30,7 +31,9 @@ class PackedBeam(NamedTuple):
     ``ints = [num_changepoints (K), last_changepoint (K), is_changepoint (K), step]``.
     (Flattening the arrays into the float buffer too would save leaves but makes XLA fuse
     the update into one slow concatenation kernel: with the ``(d, l)`` prior mean in it a
-    step took three times as long.) See :func:`make_packed_step`.
+    step took three times as long.) ``score`` is ``AdaptationConfig.score``: static
+    (auxiliary data of the pytree, never a leaf), so a jitted step compiles once per
+    scoring rule. See :func:`make_packed_step`.
     """
 
     means: Array
@@ -38,6 +41,21 @@ class PackedBeam(NamedTuple):
     floats: Array
     ints: Array
     prior_mean: Array
+    score: str = "algorithm1"
+
+
+_ARRAYS = PackedBeam._fields[:-1]
+_KEYS = tuple(jax.tree_util.GetAttrKey(name) for name in _ARRAYS)
+_N = len(_ARRAYS)
+
+# The five arrays are the leaves and ``score`` the auxiliary data (a string cannot be
+# traced); the flatten slices the tuple, as cheap per call as a plain named tuple.
+jax.tree_util.register_pytree_with_keys(
+    PackedBeam,
+    lambda p: (tuple(zip(_KEYS, p[:_N])), p[_N]),
+    lambda score, arrays: PackedBeam(*arrays, score),
+    lambda p: (p[:_N], p[_N]),
+)
 
 
 def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
@@ -65,6 +83,7 @@ def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
         floats,
         ints,
         jnp.copy(state.prior_mean),
+        score_of(config),
     )
 
 
@@ -89,7 +108,7 @@ def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
     shared = packed.sqrt_covariances.shape[1] == 1
     noise = sigma2[0] if shared else sigma2  # keeps the shared-covariance contract
     return state, AdaptationConfig(
-        K=K, pi=pi, beta=beta, tau2=tau2, sigma2=noise, prior_floor=floor
+        K=K, pi=pi, beta=beta, tau2=tau2, sigma2=noise, prior_floor=floor, score=packed.score
     )
 
 
@@ -144,6 +163,6 @@ def make_packed_step():
     """Jitted :func:`packed_step` that donates the packed beam (updated in place).
 
     Returns ``fn(packed, inputs) -> (packed, outputs)``; the packed beam passed in must not
-    be used after the call. Compiles once per beam size, dimensions and dtype.
+    be used after the call. Compiles once per beam size, dimensions, dtype and ``score``.
     """
     return jax.jit(packed_step, donate_argnums=0)

@@ -65,7 +65,8 @@ class BeamState(NamedTuple):
 
     @property
     def raw_log_scores(self) -> Array:
-        """``(K,)`` cumulative scores ``L_{k,h}`` exactly as Algorithm 1 accumulates them."""
+        """``(K,)`` cumulative scores ``L_{k,h}`` exactly as accumulated (Eq. 7 with the
+        ``AdaptationConfig.score`` rule: Algorithm 1's, or the joint log-probability)."""
         return self.log_scores + self.log_offset
 
 
