@@ -88,13 +88,18 @@ def enabled() -> bool:
 
 
 class Traced:
-    """A function lowered for the arguments it was first given, jitted; called with
+    """A function lowered and compiled for the arguments it was first given; called with
     arguments of the same structure, shapes and dtypes. ``loaded``: it came from disk."""
 
-    def __init__(self, exported: Any, treedef: Any, result_tree: Any, loaded: bool):
+    def __init__(
+        self, exported: Any, leaves: Sequence[Any], treedef: Any, result_tree: Any, loaded: bool
+    ):
         import jax
 
-        self._call = jax.jit(exported.call)
+        # Compiled once for these arguments: a later call with arrays that differ only in
+        # how JAX holds them (committed to the device or not, e.g. a previous result) does
+        # not compile again, as a jitted function would on its first such call.
+        self._call = jax.jit(exported.call).lower(*leaves).compile()
         self._treedef = treedef
         self._result_tree = result_tree
         self.loaded = loaded
@@ -127,7 +132,7 @@ def load_or_trace(name: str, fn: Callable[..., Any], args: tuple, key: str = "")
             blob = pickle.loads(path.read_bytes())
             if blob["key"] == digest:
                 exported = export.deserialize(blob["exported"])
-                return Traced(exported, treedef, blob["result_tree"], loaded=True)
+                return Traced(exported, leaves, treedef, blob["result_tree"], loaded=True)
         except Exception:  # unreadable or another format: trace afresh below
             pass
     result_trees = []
@@ -153,4 +158,4 @@ def load_or_trace(name: str, fn: Callable[..., Any], args: tuple, key: str = "")
         path.parent.mkdir(parents=True, exist_ok=True)
         with contextlib.suppress(OSError):  # a read-only cache: the next start traces again
             write_bytes(path, data)
-    return Traced(exported, treedef, result_tree, loaded=False)
+    return Traced(exported, leaves, treedef, result_tree, loaded=False)
