@@ -40,8 +40,10 @@ QUEUED = ("integration", "workflow", "property", "unit")
 
 
 #: Files whose parametrized cases (each a case of a module-scoped fixture) are independent:
-#: each case is a unit of work of its own (the others' units are whole files).
-BY_CASE = ("workflow/test_discrepancy_quadrotor.py",)
+#: each case is a unit of work of its own (the others' units are whole files), except the
+#: cases named here, whose flight the file's other tests reuse (``_case`` is cached in the
+#: worker that runs them): they stay with those tests.
+BY_CASE = {"workflow/test_discrepancy_quadrotor.py": ("rotor_drag",)}
 
 
 def _kind(item: pytest.Item) -> str:
@@ -51,8 +53,11 @@ def _kind(item: pytest.Item) -> str:
 def _unit(nodeid: str) -> str:
     """The unit of work a test belongs to: its file, or its file and case (:data:`BY_CASE`)."""
     path, _, name = nodeid.partition("::")
-    if path.removeprefix("tests/") in BY_CASE and name.endswith("]"):
-        return f"{path}[{name.rsplit('[', 1)[1]}"
+    shared = BY_CASE.get(path.removeprefix("tests/"))
+    if shared is not None and name.endswith("]"):
+        case = name.rsplit("[", 1)[1].rstrip("]")
+        if case not in shared:
+            return f"{path}[{case}]"
     return path
 
 
