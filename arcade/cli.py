@@ -23,6 +23,7 @@ COMMANDS: tuple[str, ...] = (
     "simulate",
     "sim",
     "effects",
+    "log",
     "discrepancy",
 )
 

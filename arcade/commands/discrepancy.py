@@ -2,8 +2,9 @@
 
 The workflow of design §6 (:mod:`arcade_core.discrepancy.workflow`: align, localise, name,
 add, show) on one flight log (CSV with the columns of :mod:`arcade_io.flightlog`, any
-constant rate; inputs a zero-order hold per row) against the current model, the vehicle or
-model file (nominal model, motors, rate loop and the file's ``[effects]``). Options, the
+constant rate; inputs a zero-order hold per row; or a PX4 ULog, converted in memory as
+`arcade log convert` does: :mod:`arcade.commands.log`) against the current model, the
+vehicle or model file (nominal model, motors, rate loop and the file's ``[effects]``). Options, the
 log and the file are checked before a run folder is made; then :func:`run_workflow` runs
 the workflow (:func:`arcade_io.discrepancy.run_workflow`) and writes into ``--out`` the
 updated vehicle/model file (the confident effects added to its ``[effects]`` table), plots,
@@ -18,6 +19,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from arcade.commands.log import add_ulog_options
 from arcade_core.discrepancy.settings import HELDOUT_RANGE, Settings, check_log
 from arcade_io import atomicfile, jsonout
 
@@ -36,9 +38,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "      (u0 collective thrust [N], u1-u3 body-rate setpoints [rad/s], each in effect\n"
         "      from its row's t to the next row's)\n"
         f"  cartpole:  {', '.join(columns('cartpole'))}  (u: force on the cart [N])\n"
-        "`arcade simulate --out LOG` writes such a log."
+        "`arcade simulate --out LOG` writes such a log.\n"
+        "A PX4 flight log (ULog, .ulg) is converted in memory as `arcade log convert` does\n"
+        "(see its --help): give the vehicle's mass with --mass or --vehicle."
     )
-    p.add_argument("log", type=Path, help="flight log (CSV; the columns are listed below)")
+    p.add_argument(
+        "log", type=Path,
+        help="flight log (CSV: the columns are listed below; or a PX4 ULog, .ulg)",
+    )  # fmt: skip
     p.add_argument(
         "--system",
         choices=["quadrotor", "cartpole"],
@@ -94,6 +101,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--seed", type=count(0), default=s.seed, help="bootstrap seed (default: %(default)s)"
     )
+    add_ulog_options(p, vehicle=False, defaults=False)
 
 
 def _log_system(path: Path) -> str | None:
@@ -126,11 +134,13 @@ def effect_line(effect: dict[str, Any]) -> str:
 
 
 def run_workflow(
-    log, system: str, vehicle: Path | None, out: Path, settings: Settings, progress=None
-):
+    log, system: str, vehicle: Path | None, out: Path, settings: Settings, progress=None,
+    log_import: dict[str, Any] | None = None,
+):  # fmt: skip
     """The workflow on ``log`` with its outputs in the folder ``out`` (created if needed):
     the updated vehicle/model file, plots, ``report.md`` and ``result.json``. Returns the
-    :class:`~arcade_core.discrepancy.workflow.Outcome`, its result naming those files."""
+    :class:`~arcade_core.discrepancy.workflow.Outcome`, its result naming those files
+    (and, for a converted PX4 log, ``log_import``: what the conversion did)."""
     # Imported here, not at start-up: JAX and matplotlib are slow to import.
     from arcade.discrepancy_report import write_outputs
     from arcade_io import discrepancy
@@ -139,6 +149,8 @@ def run_workflow(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     result = outcome.result
+    if log_import is not None:
+        result["log_import"] = log_import
     model_file = discrepancy.write_model_file(out, system, vehicle, outcome.model_effects)
     result["model_file"] = str(model_file)
     result.update(write_outputs(out, result, outcome.details))
@@ -147,6 +159,7 @@ def run_workflow(
 
 
 def run(args: argparse.Namespace) -> int:
+    from arcade.commands.log import is_ulog, read_ulog_args, ulog_options_given, ulog_summary
     from arcade_io.discrepancy import check_model_file
     from arcade_io.flightlog import LogError, read_log
     from arcade_io.runs import check_output_dir, check_runs_root, new_run_dir
@@ -164,15 +177,25 @@ def run(args: argparse.Namespace) -> int:
         check_model_file(args.system, args.vehicle)
         if args.log.is_dir():
             raise ValueError(f"flight log {args.log} is a directory, not a CSV file")
-        try:
-            log = read_log(args.log, args.system)
-        except LogError:
-            other = _log_system(args.log)
-            if other is not None and other != args.system:
-                raise LogError(
-                    f"{args.log}: this looks like a {other} log: pass --system {other}"
-                ) from None
-            raise
+        log_import = None
+        if is_ulog(args.log):
+            if args.system != "quadrotor":
+                raise ValueError(f"{args.log}: a PX4 ULog is a quadrotor log, not {args.system}")
+            log_import = read_ulog_args(args, args.log)
+            log = log_import.log
+        else:
+            given = ulog_options_given(args)
+            if given:
+                raise ValueError(f"{', '.join(given)}: for a PX4 ULog (.ulg) only")
+            try:
+                log = read_log(args.log, args.system)
+            except LogError:
+                other = _log_system(args.log)
+                if other is not None and other != args.system:
+                    raise LogError(
+                        f"{args.log}: this looks like a {other} log: pass --system {other}"
+                    ) from None
+                raise
         check_log(args.system, len(log), log.dt, settings)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -186,8 +209,23 @@ def run(args: argparse.Namespace) -> int:
     def progress(msg: str) -> None:
         print(f"[discrepancy] {msg}", file=sys.stderr, flush=True)
 
+    if log_import is not None:
+        from arcade_io.ulog import import_mass
+        from arcade_io.vehicle import DEFAULT_VEHICLE
+
+        for line in ulog_summary(log_import.meta):
+            progress(f"{args.log}: {line}")
+        model_mass = import_mass(None, args.vehicle or DEFAULT_VEHICLE)[0]
+        if abs(log_import.meta["thrust_conversion"]["mass_kg"] - model_mass) > 0.01 * model_mass:
+            progress(
+                f"warning: the thrust is scaled to {args.mass:g} kg, the model's mass is "
+                f"{model_mass:g} kg: the difference reads as a thrust_scale effect"
+            )
     try:
-        outcome = run_workflow(log, args.system, args.vehicle, out, settings, progress)
+        outcome = run_workflow(
+            log, args.system, args.vehicle, out, settings, progress,
+            log_import=None if log_import is None else log_import.meta,
+        )  # fmt: skip
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
