@@ -26,7 +26,9 @@ from arcade_core.baselines import gp, l1, mlp
 
 def no_cp_config(cfg: adaptation.AdaptationConfig) -> adaptation.AdaptationConfig:
     """Ours without changepoints: a single hypothesis that never tempers (Appendix D 5)."""
-    return adaptation.AdaptationConfig(K=1, pi=0.0, beta=1.0, tau2=cfg.tau2, sigma2=cfg.sigma2)
+    return adaptation.AdaptationConfig(
+        K=1, pi=0.0, beta=1.0, tau2=cfg.tau2, sigma2=cfg.sigma2, score=cfg.score
+    )
 
 
 def scale_gp_noise(model: gp.GPModel, scale: float) -> gp.GPModel:
@@ -93,6 +95,7 @@ def initial_learner(name: str, models, dtype) -> Any:
         tau2=jnp.asarray(cfg.tau2, dtype),
         sigma2=jnp.asarray(cfg.sigma2, dtype),
         prior_floor=jnp.asarray(cfg.prior_floor, dtype),
+        score=cfg.score,
     )
     zero = jnp.zeros((), dtype)
     return BeamLearner(vld, beam, traced_cfg, guard, zero, zero)

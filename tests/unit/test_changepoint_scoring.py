@@ -418,3 +418,11 @@ def test_joint_raises_no_false_alarm_without_a_change():
         theta0, Z, D = problem(1000 + seed, 2, 3, 500)
         steps, _ = declarations(theta0, Z, D, DETECT)
         assert len(steps) == 0, (seed, steps)
+
+
+def test_the_control_library_keeps_the_score_of_a_config():
+    from arcade_control.learners import no_cp_config
+
+    cfg = A.cartpole_config()._replace(score="joint")
+    assert no_cp_config(cfg).score == "joint"
+    assert no_cp_config(A.cartpole_config()).score == "algorithm1"
