@@ -3,6 +3,7 @@ bit-identical to ``jax.jit``, and a bad file is traced afresh."""
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import equinox as eqx
@@ -75,7 +76,9 @@ def test_what_the_function_depends_on_is_in_its_key(store):
     for name, a, key in different:
         assert not traced.load_or_trace(name, _solve, a, key).loaded, (name, key)
     assert len(list(store.iterdir())) == 1 + len(different)
-    with jax.enable_x64(not jax.config.jax_enable_x64):
+    # The same arguments in the other precision (float64 arrays become float32 ones).
+    with jax.enable_x64(not jax.config.jax_enable_x64), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "Explicitly requested dtype", UserWarning)
         assert not traced.load_or_trace("solve", _solve, args).loaded
 
 
