@@ -5,11 +5,13 @@ ARCADE's input is ``u = [collective thrust N, body rates FLU rad/s (3)]``. PX4 t
 rates in FRD, in rad/s on the wire but deg/s in MAVSDK's offboard API, and thrust
 normalised to ``[0, 1]``.
 
-Thrust: PX4 maps normalised throttle ``s`` to thrust with the ``THR_MDL_FAC`` model
-``T / T_max = fac * s^2 + (1 - fac) * s`` with ``T_max`` = 4 x the rotor's maximum thrust.
-:class:`ThrustCurve` evaluates it and its inverse (the root of the quadratic in the
-cancellation-free form ``s = 2 r / ((1 - fac) + sqrt((1 - fac)^2 + 4 fac r))``, exact for
-``fac = 0`` too).
+Thrust: PX4's normalised thrust setpoint ``s`` is linear in force, ``T = T_max * s`` with
+``T_max`` = the rotor count x the rotor's maximum thrust. The motors are not linear: their
+relative thrust at motor signal ``m`` is ``fac * m^2 + (1 - fac) * m`` (PX4's ``THR_MDL_FAC``
+model), and PX4's mixer / control allocation inverts that model at its outputs. So the
+thrust curve is applied once, by PX4, and never here: with ``THR_MDL_FAC`` set to the
+vehicle file's ``[thrust_curve] thr_mdl_fac`` the setpoint ``s = T / T_max`` gives ``T``.
+:class:`ThrustCurve` holds both numbers and converts N <-> ``s``.
 """
 
 from __future__ import annotations
@@ -35,11 +37,14 @@ def deg_to_rad(x: Any) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ThrustCurve:
-    """PX4's ``THR_MDL_FAC`` thrust model of the whole vehicle.
+    """The vehicle's collective thrust in PX4's normalised thrust (module docstring).
 
     Attributes:
-        fac: ``THR_MDL_FAC`` in ``[0, 1]`` (0: thrust linear in throttle, 1: quadratic).
-        max_thrust_n: collective thrust at full throttle, N (4 x the rotor maximum).
+        fac: the motors' thrust model, what PX4's ``THR_MDL_FAC`` must be set to, in
+            ``[0, 1]`` (0: thrust linear in the motor signal, 1: quadratic). PX4 inverts
+            it at the motor outputs, so it does not enter :meth:`thrust` or
+            :meth:`throttle`.
+        max_thrust_n: collective thrust at full throttle, N (rotor count x rotor maximum).
     """
 
     fac: float
@@ -60,17 +65,14 @@ class ThrustCurve:
         return cls(fac=fac, max_thrust_n=n_rotors * float(rotors["max_thrust_n"]))
 
     def thrust(self, s: Any) -> np.ndarray:
-        """Collective thrust [N] at normalised throttle ``s`` (clipped to ``[0, 1]``)."""
-        s = np.clip(np.asarray(s, dtype=np.float64), 0.0, 1.0)
-        return self.max_thrust_n * (self.fac * s * s + (1.0 - self.fac) * s)
+        """Collective thrust [N] of PX4's normalised thrust ``s`` (clipped to ``[0, 1]``):
+        ``max_thrust_n * s``."""
+        return self.max_thrust_n * np.clip(np.asarray(s, dtype=np.float64), 0.0, 1.0)
 
     def throttle(self, thrust_n: Any) -> np.ndarray:
-        """Normalised throttle in ``[0, 1]`` that gives ``thrust_n`` (clipped to the range)."""
-        r = np.clip(np.asarray(thrust_n, dtype=np.float64) / self.max_thrust_n, 0.0, 1.0)
-        a = 1.0 - self.fac
-        den = a + np.sqrt(a * a + 4.0 * self.fac * r)
-        # den = 0 only for fac = 1 and r = 0, where the root is 0.
-        return np.divide(2.0 * r, den, out=np.zeros_like(r), where=den > 0.0)
+        """PX4's normalised thrust in ``[0, 1]`` for ``thrust_n`` [N] (clipped to the range):
+        ``thrust_n / max_thrust_n``."""
+        return np.clip(np.asarray(thrust_n, dtype=np.float64) / self.max_thrust_n, 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -92,8 +94,11 @@ class Limits:
 def attitude_rate_command(u: Any, limits: Limits) -> tuple[np.ndarray, float, bool]:
     """``u = [thrust N, rates FLU rad/s]`` -> (rates FRD deg/s, throttle, clamped?).
 
-    Rates are clamped per axis to the vehicle's ``max_rate`` and thrust to the throttle
-    range ``[0, max_throttle]`` (non-finite input is an error: it never reaches PX4).
+    The throttle is PX4's normalised thrust ``T / T_max``, linear (PX4 applies
+    ``THR_MDL_FAC`` itself). Rates are clamped per axis to the vehicle's ``max_rate`` and
+    the throttle to ``[0, max_throttle]``; ``clamped`` says that a rate or the thrust was
+    cut (thrust above ``T_max`` or above ``max_throttle``). Non-finite input is an error: it
+    never reaches PX4.
     """
     u = np.asarray(u, dtype=float)
     if u.shape != (4,) or not np.all(np.isfinite(u)):

@@ -23,10 +23,12 @@ States are timed by ``timestamp_sample`` where the topic has one, setpoints by
 ``timestamp``. The log is the longest airborne stretch in which every signal is logged
 without a gap over ``max_gap_s``, resampled at ``rate_hz`` (:mod:`arcade_io.resample`:
 linear for positions, velocities and rates, nlerp for quaternions, zero-order hold for
-setpoints), changed to ENU/FLU with :mod:`arcade_core.frames`. Thrust in newtons: the
-``THR_MDL_FAC`` curve scaled so that the hover thrust gives ``m g``
-(:func:`collective_thrust`, :func:`hover_thrust`); the mass comes from the caller or a
-vehicle file (:func:`import_mass`). docs/discrepancy.md has the details.
+setpoints), changed to ENU/FLU with :mod:`arcade_core.frames`. Thrust in newtons: linear
+in the normalised thrust, ``m g s / s_hover`` (:func:`collective_thrust`,
+:func:`hover_thrust`), since PX4's mixer applies ``THR_MDL_FAC`` at its outputs and the
+setpoint it logs is linear in force (``THR_MDL_FAC`` is reported, not used); the mass
+comes from the caller or a vehicle file (:func:`import_mass`). docs/discrepancy.md has
+the details.
 
 Every problem (unreadable, truncated or corrupted file, missing topic, too short an
 airborne segment, no mass) raises :class:`ULogError` with a one-line message.
@@ -45,7 +47,6 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from arcade_core.frames import frd_to_flu, ned_to_enu, quat_ned_frd_to_enu_flu
-from arcade_core.px4_command import ThrustCurve
 from arcade_io import resample
 from arcade_io.flightlog import MIN_ROWS, FlightLog, LogError, continuous_quaternions, from_arrays
 from arcade_io.resample import DEFAULT_MAX_GAP_S, DEFAULT_MIN_AIRBORNE_S, DEFAULT_RATE_HZ
@@ -228,24 +229,16 @@ def find_signal(topics, quantity: str, t0: int) -> tuple[Signal, resample.Cleane
 # --------------------------------------------------------------------------- conversion
 
 
-def normalised_force(s, fac: float) -> np.ndarray:
-    """PX4's ``THR_MDL_FAC`` curve: normalised command ``s`` -> normalised force."""
-    return ThrustCurve(fac, 1.0).thrust(s)
-
-
-def collective_thrust(s, hover: float, fac: float, mass_kg: float, gravity: float):
+def collective_thrust(s, hover: float, mass_kg: float, gravity: float):
     """Collective thrust [N] of normalised thrust commands ``s`` (clipped to ``[0, 1]``):
-    the ``THR_MDL_FAC`` curve scaled so that the hover command ``hover`` gives
+    ``mass_kg * gravity * s / hover``, linear, so that the hover command ``hover`` gives
     ``mass_kg * gravity``.
 
-    PX4 itself applies ``THR_MDL_FAC`` at its motor outputs, so the setpoint it logs may
-    already be linear in force; the two readings agree for ``fac = 0`` and at hover."""
-    if not 0.0 <= fac <= 1.0:
-        raise ULogError(f"THR_MDL_FAC {fac:g} is not in [0, 1]")
+    The setpoint PX4 logs is linear in force: its mixer inverts the ``THR_MDL_FAC`` motor
+    model at the outputs, so the model does not enter here."""
     if not 0.0 < hover <= 1.0:
         raise ULogError(f"hover thrust {hover:g} is not in (0, 1]")
-    scale = mass_kg * gravity / float(normalised_force(hover, fac))
-    return ThrustCurve(fac, scale).thrust(s)
+    return mass_kg * gravity / hover * np.clip(np.asarray(s, dtype=np.float64), 0.0, 1.0)
 
 
 def state_enu_flu(pos_vel_ned, q_ned_frd, rates_frd) -> np.ndarray:
@@ -424,15 +417,20 @@ def convert(
     hover, hover_source = hover_thrust(ulog, segment)
     fac = float(ulog.initial_parameters.get("THR_MDL_FAC", 0.0))
     s = resample.hold(thr.t, thr.y, t)[:, 0]
-    U = np.column_stack([collective_thrust(s, hover, fac, mass_kg, gravity), frd_to_flu(w_sp)])
+    U = np.column_stack([collective_thrust(s, hover, mass_kg, gravity), frd_to_flu(w_sp)])
     try:
         log = from_arrays("quadrotor", t, X, U)
     except LogError as exc:
         raise ULogError(f"{name}: {exc}") from None
 
     for p, _v, _n in ulog.changed_parameters:
-        if p in ("THR_MDL_FAC", "MPC_THR_HOVER"):
+        if p == "MPC_THR_HOVER":
             warnings.append(f"parameter {p} changes during the log: its first value is used")
+        elif p == "THR_MDL_FAC":
+            warnings.append(
+                f"parameter {p} changes during the log: its first value is reported "
+                "(the thrust conversion does not use it)"
+            )
     rates_hz = _quality(topics, found, segment, rate_hz, t0, warnings)
     meta = {
         "source": name,

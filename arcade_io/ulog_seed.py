@@ -1,15 +1,16 @@
 """What a PX4 ULog says about the vehicle: the start of a vehicle file (:mod:`arcade_io.vehicle`).
 
 A ULog holds PX4's parameters, not the vehicle's physics. :func:`vehicle_seed` takes what
-they give: the thrust curve (``THR_MDL_FAC``), the hover thrust, the rate limits
+they give: the motors' thrust model (``THR_MDL_FAC``), the hover thrust, the rate limits
 (``MC_*RATE_MAX``) and rate-loop gains (``MC_*RATE_K`` times ``_P``, ``_I``, ``_D``;
 ``_FF``), the rate-loop rate and derivative cut-off (``IMU_GYRO_RATEMAX``,
 ``IMU_DGYRO_CUTOFF``), the rotor count (``CA_ROTOR_COUNT``, else ``MAV_TYPE``), the arm
 length and the yaw-moment coefficient from the rotor geometry (``CA_ROTORn_PX``, ``_PY``,
 ``_KM``), and with a mass given, each rotor's maximum thrust (``m g`` over the hover
-thrust's normalised force and the rotor count). It lists what the log does not hold (the
-mass, the inertia, ...): :func:`seed_toml` writes both as a TOML file that
-:func:`arcade_io.vehicle.load_vehicle` refuses until those are filled in.
+thrust and the rotor count: PX4's normalised thrust is linear in force, its mixer applies
+``THR_MDL_FAC``). It lists what the log does not hold (the mass, the inertia, ...):
+:func:`seed_toml` writes both as a TOML file that :func:`arcade_io.vehicle.load_vehicle`
+refuses until those are filled in.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from arcade_io.ulog import DEFAULT_GRAVITY, hover_thrust, normalised_force, open_ulog
+from arcade_io.ulog import DEFAULT_GRAVITY, hover_thrust, open_ulog
 
 #: MAVLink MAV_TYPE -> rotors, for the multicopter types.
 MAV_TYPE_ROTORS = {2: 4, 13: 6, 14: 8, 15: 3}
@@ -64,13 +65,13 @@ def vehicle_seed(
     if mass_kg:
         body["mass_kg"] = float(mass_kg)
         if count:
-            rotors["max_thrust_n"] = mass_kg * gravity / float(normalised_force(h, fac)) / count
+            rotors["max_thrust_n"] = mass_kg * gravity / float(h) / count
             notes.append(
-                "max_thrust_n per rotor = m g / (normalised force at the hover "
-                "thrust x rotors), as the ULog import scales the thrust"
+                "max_thrust_n per rotor = m g / (hover thrust x rotors): PX4's normalised "
+                "thrust is linear in force, as the ULog import scales it"
             )
     if "max_thrust_n" not in rotors:
-        missing["rotors.max_thrust_n"] = "give the mass: m g / (hover force x rotors)"
+        missing["rotors.max_thrust_n"] = "give the mass: m g / (hover thrust x rotors)"
 
     n = int(count or 0)
     xy = [(p.get(f"CA_ROTOR{i}_PX"), p.get(f"CA_ROTOR{i}_PY")) for i in range(n)]

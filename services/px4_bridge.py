@@ -5,9 +5,10 @@ any MAVSDK URL: ``udpin://0.0.0.0:14540`` for SITL or a telemetry radio bridge,
 ``serial:///dev/ttyACM0:921600`` for USB), waits for a connected, healthy autopilot, then:
 
 - ``setpoint`` -> ``set_attitude_rate``: body rates FLU rad/s -> FRD deg/s clamped to the
-  vehicle file's ``max_rate_rad_s``; collective thrust N -> normalised throttle through the
-  vehicle's ``THR_MDL_FAC`` thrust curve, clamped to ``[0, --max-throttle]``
-  (:mod:`arcade_core.px4_command`). Only while offboard control is engaged by this bridge.
+  vehicle file's ``max_rate_rad_s``; collective thrust N -> PX4's normalised thrust
+  ``T / T_max`` (linear: PX4's mixer applies ``THR_MDL_FAC`` itself), clamped to
+  ``[0, --max-throttle]`` (:mod:`arcade_core.px4_command`). Only while offboard control is
+  engaged by this bridge.
 - ``mocap`` -> PX4 ``ODOMETRY`` (MAVSDK mocap plugin): position NED, attitude FRD-to-NED, in
   a ``LOCAL_FRD`` world frame (the mocap frame need not face north), estimator type vision,
   so that PX4's EKF2 has the external-vision position it needs to hold or land by itself.

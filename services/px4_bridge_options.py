@@ -17,7 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--vehicle-file",
         default=None,
-        help="vehicle file (thrust curve, rate limits); default: the shipped one",
+        help="vehicle file (maximum thrust, rate limits); default: the shipped one",
     )
     p.add_argument(
         "--connect-timeout",

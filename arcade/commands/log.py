@@ -26,9 +26,10 @@ what the conversion does (docs/discrepancy.md, "PX4 flight logs"):
   resample  one constant rate (--rate): linear for positions, velocities and rates,
             normalised linear for the attitude quaternion, zero-order hold for setpoints
   frames    PX4's NED/FRD -> ENU/FLU (arcade_core.frames)
-  thrust    the normalised thrust command through PX4's THR_MDL_FAC curve, scaled so that
-            the hover thrust (hover_thrust_estimate, else MPC_THR_HOVER) gives m*g; a ULog
-            has no mass: give --mass or --vehicle
+  thrust    the normalised thrust command, linear in force: m*g*s/s_hover, with the hover
+            thrust s_hover from hover_thrust_estimate, else MPC_THR_HOVER (PX4 applies
+            THR_MDL_FAC at its motor outputs: reported, not used); a ULog has no mass:
+            give --mass or --vehicle
   rates     vehicle_rates_setpoint; without it the measured rates stand in (a warning)
 examples:
   arcade log convert flight.ulg --out flight.csv --mass 1.45

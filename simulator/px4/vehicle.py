@@ -26,6 +26,11 @@ Behaviour, after PX4 (v1.14/1.15):
   motors idle. **Take-off** climbs ``MIS_TAKEOFF_ALT`` above the ground and switches to
   Hold. **Land** descends at ``MPC_LAND_SPEED``; without a valid position it is PX4's
   Descend: level, no horizontal correction (the vehicle keeps its drift).
+- **Thrust.** The offboard thrust setpoint is PX4's normalised thrust, linear in force:
+  ``s`` gives ``T_max * s`` (:class:`~arcade_core.px4_command.ThrustCurve`). The simulated
+  PX4's mixer inverts the motors' thrust curve exactly, i.e. its ``THR_MDL_FAC`` equals the
+  vehicle file's ``[thrust_curve] thr_mdl_fac``; a real PX4 with a wrong ``THR_MDL_FAC``
+  would be off by the mismatch, which this vehicle does not model.
 """
 
 from __future__ import annotations
@@ -232,7 +237,8 @@ class Px4Vehicle:
     # ------------------------------------------------------------------ inputs
 
     def set_attitude_target(self, type_mask: int, q_ned_frd, rates_frd, thrust: float) -> bool:
-        """A SET_ATTITUDE_TARGET: rates FRD [rad/s], normalised thrust [0, 1]."""
+        """A SET_ATTITUDE_TARGET: rates FRD [rad/s], normalised thrust [0, 1] (linear in
+        force: ``s`` gives ``T_max * s``, the motors' curve is inverted by the mixer)."""
         rates = np.asarray(rates_frd, dtype=float)
         rates = np.where(
             [bool(type_mask & b) for b in (IGNORE_ROLL_RATE, IGNORE_PITCH_RATE, IGNORE_YAW_RATE)],
@@ -252,6 +258,7 @@ class Px4Vehicle:
         if type_mask & IGNORE_THROTTLE:
             thrust_n = self.offboard_sp.thrust if self.offboard_sp else 0.0
         else:
+            # PX4's mixer inverts the motors' THR_MDL_FAC curve: the force is T_max * s.
             thrust_n = float(self.curve.thrust(thrust))
         self.offboard_sp = OffboardSetpoint(thrust_n, frd_to_flu(rates), attitude, self.time)
         return True

@@ -118,8 +118,10 @@ def test_convert_help_explains_the_conversion(capsys):
     assert _code(["log", "convert", "--help"]) == 0
     out = " ".join(capsys.readouterr().out.split())
     for text in ("THR_MDL_FAC", "hover_thrust_estimate", "zero-order hold", "--mass KG",
-                 "measured rates stand in", "(default: 100)", "(default: 30;"):  # fmt: skip
+                 "measured rates stand in", "(default: 100)", "(default: 30;",
+                 "linear in force: m*g*s/s_hover", "reported, not used"):  # fmt: skip
         assert text in out
+    assert "through PX4's THR_MDL_FAC curve" not in out  # the curve is PX4's, not applied
 
 
 # ----------------------------------------------------------- arcade discrepancy .ulg

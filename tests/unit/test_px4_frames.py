@@ -1,4 +1,4 @@
-"""ENU/FLU <-> NED/FRD conversions and the PX4 thrust curve, against hand-computed cases.
+"""ENU/FLU <-> NED/FRD conversions and PX4's normalised thrust, against hand-computed cases.
 
 ``_rot`` writes the rotation matrix out on purpose: an independent reference."""
 
@@ -110,31 +110,39 @@ def test_attitude_round_trips_exactly():
     np.testing.assert_allclose(fr.to_rpy_np(fr.from_rpy_np(e)), e, atol=1e-12)
 
 
-def test_thrust_curve_hand_cases():
+def test_normalised_thrust_hand_cases():
+    # PX4's normalised thrust is linear in force (its mixer applies THR_MDL_FAC): the
+    # vehicle file's thr_mdl_fac is kept but enters neither direction.
     curve = ThrustCurve.from_vehicle(
         {"rotors": {"max_thrust_n": 4.0}, "thrust_curve": {"thr_mdl_fac": 0.3}}
     )
-    assert curve.max_thrust_n == 16.0
+    assert curve.max_thrust_n == 16.0 and curve.fac == 0.3
     assert curve.throttle(0.0) == 0.0 and curve.thrust(0.0) == 0.0
-    assert curve.throttle(16.0) == pytest.approx(1.0) and curve.thrust(1.0) == 16.0
-    # Hover of the 0.57 kg vehicle: 5.5917 N = 16 (0.3 s^2 + 0.7 s) -> s = 0.42269 (by hand).
+    assert curve.throttle(16.0) == 1.0 and curve.thrust(1.0) == 16.0
+    # Hover of the 0.57 kg vehicle: 5.5917 N / 16 N = 0.34948 (by hand), not the 0.42269
+    # of the THR_MDL_FAC 0.3 quadratic applied a second time.
     hover = 0.57 * 9.81
-    s = curve.throttle(hover)
-    assert s == pytest.approx((-0.7 + math.sqrt(0.49 + 4 * 0.3 * hover / 16)) / 0.6, rel=1e-12)
-    assert s == pytest.approx(0.42269, abs=1e-5)
-    # Half throttle: 16 (0.3/4 + 0.35) = 6.8 N.
-    assert curve.thrust(0.5) == pytest.approx(6.8)
+    assert curve.throttle(hover) == pytest.approx(0.34948, abs=1e-5)
+    # Half throttle: half the maximum thrust, 8 N (not 16 (0.3/4 + 0.35) = 6.8 N).
+    assert curve.thrust(0.5) == pytest.approx(8.0, rel=1e-15)
+    assert curve.throttle(8.0) == pytest.approx(0.5, rel=1e-15)
     # Out of range: clipped, never extrapolated.
     assert curve.throttle(-1.0) == 0.0 and curve.throttle(100.0) == 1.0
-    with pytest.raises(ValueError):
-        ThrustCurve(fac=1.5, max_thrust_n=16.0)
+    assert curve.thrust(-0.2) == 0.0 and curve.thrust(1.5) == 16.0
+    # Six rotors: T_max is the rotor count x the rotor maximum.
+    six = ThrustCurve.from_vehicle({"rotors": {"max_thrust_n": 4.0, "count": 6}})
+    assert six.max_thrust_n == 24.0 and six.fac == 0.0 and six.throttle(6.0) == 0.25
+    for fac, tmax in ((1.5, 16.0), (-0.1, 16.0), (0.3, 0.0)):
+        with pytest.raises(ValueError):
+            ThrustCurve(fac=fac, max_thrust_n=tmax)
 
 
-@pytest.mark.parametrize("fac", [0.0, 1e-12, 0.3, 0.7, 1.0])
-def test_thrust_curve_round_trip(fac):
+@pytest.mark.parametrize("fac", [0.0, 0.3, 0.7, 1.0])
+def test_normalised_thrust_is_linear_for_any_fac(fac):
     curve = ThrustCurve(fac=fac, max_thrust_n=16.0)
     s = np.concatenate([[0.0, 1e-9, 1.0], RNG.uniform(0, 1, 500)])
+    np.testing.assert_allclose(curve.thrust(s), 16.0 * s, rtol=1e-15, atol=0.0)
     np.testing.assert_allclose(curve.throttle(curve.thrust(s)), s, rtol=1e-12, atol=1e-15)
     t = RNG.uniform(0, 16, 500)
+    np.testing.assert_allclose(curve.throttle(t), t / 16.0, rtol=1e-15, atol=0.0)
     np.testing.assert_allclose(curve.thrust(curve.throttle(t)), t, rtol=1e-12, atol=1e-12)
-    assert np.all(np.diff(curve.throttle(np.linspace(0, 16, 101))) > 0)  # monotonic

@@ -1,6 +1,7 @@
-"""Pieces of the simulated PX4: the default vehicle's thrust curve, mode encoding, parameter
-encoding, and the commander's rules (arming, offboard entry, offboard loss) on simulated
-time. The frame and thrust-curve conversions themselves are tested in test_px4_frames.
+"""Pieces of the simulated PX4: the default vehicle's thrust range, mode encoding, parameter
+encoding, and the commander's rules (arming, offboard entry, offboard loss, the offboard
+thrust) on simulated time. The frame and thrust conversions themselves are tested in
+test_px4_frames.
 Then the PX4 bridge's offboard logic (engaging, every exit, watchdog, send errors) with
 MAVSDK's plugins and the bus replaced by recording fakes, and px4sim's mission start."""
 
@@ -26,15 +27,18 @@ from simulator.px4.airframe import Px4Airframe
 from simulator.px4.link import parse_url
 from simulator.px4.mavlink_vehicle import _param_from_wire, _param_wire
 
-# ------------------------------------------------------------------ thrust curve
+# ------------------------------------------------------------------ thrust
 
 
-def test_thrust_curve_of_the_default_vehicle():
+def test_thrust_of_the_default_vehicle():
     curve = ThrustCurve.from_vehicle(load_vehicle())
+    # THR_MDL_FAC 0.3 is the motors' model, inverted by PX4's mixer: the normalised thrust
+    # is linear in force.
     assert curve.max_thrust_n == 16.0 and curve.fac == 0.3
-    assert curve.thrust(0.5) == pytest.approx(16.0 * (0.3 * 0.25 + 0.7 * 0.5))
+    assert curve.thrust(0.5) == pytest.approx(8.0)
     assert curve.thrust(1.0) == pytest.approx(16.0)
     assert curve.throttle(0.0) == 0.0
+    assert curve.throttle(4.0) == pytest.approx(0.25)
     # Out-of-range requests saturate instead of extrapolating.
     assert curve.throttle(40.0) == 1.0
     assert curve.thrust(-0.2) == 0.0
@@ -172,6 +176,32 @@ def test_takeoff_then_hold_keeps_the_height(airframe):
     assert v.state()[2] == pytest.approx(v.ground_z + 1.0, abs=0.1)
     np.testing.assert_allclose(v.own_target(), target)  # holds where the take-off ended
     assert not v.disarm()[0]  # not in the air
+
+
+@pytest.mark.parametrize("fac", [0.0, 0.3, 1.0])
+def test_offboard_thrust_is_max_thrust_times_the_setpoint_for_any_thr_mdl_fac(fac):
+    """The simulated PX4's mixer inverts the motors' THR_MDL_FAC curve: ``s`` gives
+    ``T_max * s`` whatever the vehicle file's ``thr_mdl_fac``, and ``m g / T_max`` hovers."""
+    vehicle = load_vehicle()
+    vehicle["thrust_curve"] = {"thr_mdl_fac": fac}
+    airframe = Px4Airframe(vehicle)
+    v = Px4Vehicle(airframe, start=(0.0, 0.0, 2.0), airborne=True, vision_required=False)
+    assert v.curve.fac == fac
+    t_max = 4.0 * float(vehicle["rotors"]["max_thrust_n"])
+    for s in (0.0, 0.1, 0.25, 0.5, 0.8, 1.0):
+        assert v.set_attitude_target(128, [1, 0, 0, 0], [0.0, 0.0, 0.0], s)
+        assert v.offboard_sp.thrust == pytest.approx(t_max * s, rel=1e-15, abs=0.0)
+    hover = airframe.hover_thrust() / t_max
+
+    def stream():  # attitude ignored (128), zero rates, the hover thrust
+        v.set_attitude_target(128, [1, 0, 0, 0], [0.0, 0.0, 0.0], hover)
+
+    stream()
+    assert v.set_mode(FlightMode.OFFBOARD)[0]
+    z0 = v.state()[2]
+    fly(v, 1.0, stream)
+    assert v.mode is FlightMode.OFFBOARD
+    assert v.state()[2] == pytest.approx(z0, abs=0.05) and abs(v.state()[5]) < 0.1
 
 
 def test_offboard_attitude_setpoint_is_tracked_in_px4_frames(airframe):

@@ -115,19 +115,19 @@ def test_nose_up_and_right_roll_keep_their_meaning():
     assert (R @ [0.0, 1.0, 0.0])[2] == pytest.approx(math.sin(0.2))  # the left side goes up
 
 
-def test_thrust_curve_scaled_to_hover():
+def test_thrust_is_linear_and_scaled_to_hover():
+    # PX4's logged normalised thrust is linear in force (its mixer applies THR_MDL_FAC):
+    # the hover command gives m g, twice it 2 m g, whatever the motors' model.
     m = 1.5
-    # THR_MDL_FAC 0: force linear in the command; the hover command gives m g.
-    np.testing.assert_allclose(collective_thrust([0.0, 0.4, 0.8], 0.4, 0.0, m, G),
-                               [0.0, m * G, 2 * m * G])  # fmt: skip
-    fac, s, h = 0.6, np.array([0.2, 0.5, 0.9]), 0.45
-    f = fac * s**2 + (1 - fac) * s
-    expect = m * G * f / (fac * h**2 + (1 - fac) * h)
-    np.testing.assert_allclose(collective_thrust(s, h, fac, m, G), expect)
-    with pytest.raises(ULogError, match="THR_MDL_FAC"):
-        collective_thrust(s, h, 1.5, m, G)
-    with pytest.raises(ULogError, match="hover thrust"):
-        collective_thrust(s, 0.0, 0.0, m, G)
+    np.testing.assert_allclose(collective_thrust([0.0, 0.4, 0.8], 0.4, m, G),
+                               [0.0, m * G, 2 * m * G], rtol=1e-15)  # fmt: skip
+    s, h = np.array([0.2, 0.45, 0.9]), 0.45
+    np.testing.assert_allclose(collective_thrust(s, h, m, G), m * G * s / h, rtol=1e-15)
+    # Clipped to [0, 1] like PX4's setpoint.
+    np.testing.assert_allclose(collective_thrust([-0.1, 1.2], 0.5, m, G), [0.0, 2 * m * G])
+    for bad in (0.0, -0.2, 1.01):
+        with pytest.raises(ULogError, match="hover thrust"):
+            collective_thrust(s, bad, m, G)
 
 
 # ---------------------------------------------------------- synthetic ULog-like logs
@@ -173,6 +173,26 @@ def test_synthetic_hover_facing_east():
     np.testing.assert_allclose(log.U[:, 1:], np.tile([0.0, 0.0, -0.5], (len(log), 1)))
     assert meta["thrust_conversion"]["hover_thrust_source"] == "parameter MPC_THR_HOVER"
     assert meta["stand_ins"] == [] and meta["warnings"] == []
+
+
+@pytest.mark.parametrize("fac", [0.0, 0.6, 1.0])
+def test_thrust_import_is_independent_of_thr_mdl_fac(fac):
+    """Hover command 0.4 for 15 s, then 0.8: m g, then 2 m g, for any THR_MDL_FAC; the
+    parameter is reported, not used."""
+    ulog = _fake_ulog()
+    ulog.initial_parameters.update({"MPC_THR_HOVER": 0.4, "THR_MDL_FAC": fac})
+    ulog.changed_parameters = [("THR_MDL_FAC", 10**7, fac / 2)]
+    thr = ulog.data_list[3].data
+    t = (thr["timestamp"].astype(np.int64) - 10**6) * 1e-6
+    thr["xyz[2]"] = np.where(t < 20.0, -0.4, -0.8)
+    imp = convert(ulog, 1.2, rate_hz=50.0, min_airborne_s=10.0)
+    log, th = imp.log, imp.meta["thrust_conversion"]
+    np.testing.assert_allclose(log.U[log.t < 19.9, 0], 1.2 * G, rtol=1e-12)
+    np.testing.assert_allclose(log.U[log.t > 20.1, 0], 2 * 1.2 * G, rtol=1e-12)
+    assert th["thr_mdl_fac"] == fac and th["hover_thrust"] == 0.4
+    assert th["hover_force_n"] == pytest.approx(1.2 * G)
+    assert any("THR_MDL_FAC changes" in w and "does not use it" in w
+               for w in imp.meta["warnings"])  # fmt: skip
 
 
 def test_missing_rate_setpoints_are_stood_in_by_the_measured_rates_and_flagged():
@@ -388,7 +408,7 @@ def test_vehicle_seed_holds_what_the_log_has_and_lists_the_rest(tmp_path):
     assert veh["px4"]["hover_thrust"] == pytest.approx(0.49, abs=0.01)
     for entry in ("mass_kg", "inertia_kgm2", "motor_time_constant_s", "max_thrust_n"):
         assert entry in missing
-    # With the mass, each rotor's maximum thrust: m g / (hover force x 4).
+    # With the mass, each rotor's maximum thrust: m g / (hover thrust x 4), linear.
     seed = vehicle_seed(EVENTS, 2.0)
     h = seed["vehicle"]["px4"]["hover_thrust"]
     assert seed["vehicle"]["rotors"]["max_thrust_n"] == pytest.approx(2.0 * G / h / 4)
@@ -412,3 +432,13 @@ def test_vehicle_seed_of_the_old_vtol_log_says_what_it_cannot_derive():
     missing = " ".join(seed["missing"])
     assert "count" in missing and "arm_length_m" in missing
     assert any("MAV_TYPE 22" in n for n in seed["notes"])
+
+
+@pytest.mark.parametrize("fac", [0.0, 0.6])
+def test_vehicle_seed_keeps_thr_mdl_fac_as_the_motor_model_and_scales_linearly(fac):
+    ulog = _fake_ulog()
+    ulog.initial_parameters.update({"MPC_THR_HOVER": 0.4, "THR_MDL_FAC": fac})
+    veh = vehicle_seed(ulog, 1.2)["vehicle"]
+    assert veh["thrust_curve"]["thr_mdl_fac"] == fac
+    # m g / (s_hover x rotors): full throttle is m g / s_hover, whatever THR_MDL_FAC.
+    assert veh["rotors"]["max_thrust_n"] == pytest.approx(1.2 * G / 0.4 / 4, rel=1e-15)
