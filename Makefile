@@ -22,8 +22,8 @@ demo: $(STAMP)
 # are built once); the integration tests run real-time loops and run alone so that their
 # timing assertions are not measured on a starved CPU.
 test: lint
-	$(PY) -m pytest -q -m "not integration" -n 2 --dist loadfile
-	$(PY) -m pytest -q -m integration
+	$(PY) -m pytest -q -m "not integration" -n 2 --dist loadfile --durations=15
+	$(PY) -m pytest -q -m integration --durations=15
 
 # ruff, then the import contract of design §2 (pyproject.toml's [tool.importlinter]).
 lint: $(STAMP)

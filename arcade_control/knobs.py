@@ -83,3 +83,29 @@ ORACLE = "oracle_mass"
 def base_name(name: str) -> str:
     """``name`` without the :data:`HELD` suffix."""
     return name.removesuffix(HELD)
+
+
+#: Outputs a changepoint detector can watch (indices into the 13 residual outputs): every
+#: one, the translational ones (position and velocity) or the vertical ones (z, vz), where
+#: a change of the carried mass shows first.
+DETECTION_OUTPUTS = {
+    "all": tuple(range(13)),
+    "translational": tuple(range(6)),
+    "vertical": (2, 5),
+}
+#: The detector the adapter runs beside the learner
+#: (:class:`arcade_core.adaptation.DetectionConfig`): knobs chosen by detection quality
+#: (F1 of the release declarations) on the tuning seeds of ``arcade eval changepoints``
+#: (benchmarks/results/changepoints/, 2-core AMD EPYC), separately from the learner's,
+#: which are chosen by tracking error. ``beta`` and ``tau2`` are the learner's, the score is
+#: the exact joint. ``pi``, ``tracking``, ``threshold`` and ``refractory_steps`` landed on
+#: the edges of that grid.
+DETECTION_DEFAULTS = {
+    "outputs": "vertical",
+    "pi": 0.2,
+    "beta": 0.05,
+    "tracking": 0.0,
+    "window": 5,
+    "threshold": 0.95,
+    "refractory_steps": 20,
+}

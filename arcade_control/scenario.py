@@ -60,6 +60,8 @@ class Scenario:
     laps: float = 2.0
     release_fraction: float = 0.95  # of the first lap; a negative value: no release
     cable_length_m: float | None = None
+    #: The payload fixed under the vehicle (no swing) instead of on its cable.
+    rigid_payload: bool = False
     #: Transport delay of every setpoint to the rate loop (``QuadrotorSim``'s
     #: ``command_delay_s``); the evaluation's cells fly without one.
     command_delay_s: float = 0.0

@@ -100,7 +100,9 @@ def make_adapter_update(method: Any, params: Any, base_sigma2: Any, exact: bool)
         theta, cov = adaptation.marginal_decoder(learner.beam)
         return theta, cov, method.sigma(learner, x, u)
 
-    def adapt(learner, xp, up, x, h, learn, var_p, var_x):
+    def transition(learner, xp, up, x, h, var_p, var_x):
+        """``(z, dn, sigma2)``: the features, the normalised residual of the nominal step
+        and the observation noise of the transition ``xp -> x``."""
         vld = learner.vld
         z = learner_features(learner, xp, up)
         dn = vld.normalise_residual(x - quadrotor_step(xp, up, params, h))
@@ -108,6 +110,11 @@ def make_adapter_update(method: Any, params: Any, base_sigma2: Any, exact: bool)
         # first order): its normalised variance adds to the observation noise sigma_j^2.
         J = jax.jacfwd(lambda xx: quadrotor_step(xx, up, params, h))(xp)
         sigma2 = adaptation.state_noise_sigma2(base_sigma2, J, var_p, var_x, vld.delta_scale)
+        return z, dn, sigma2
+
+    def adapt(learner, xp, up, x, h, learn, var_p, var_x):
+        vld = learner.vld
+        z, dn, sigma2 = transition(learner, xp, up, x, h, var_p, var_x)
         learner = learner._replace(config=learner.config._replace(sigma2=sigma2))
         pred = adaptation.predict(learner.beam, z, vld.latent_variance(xp, up))
         if exact:
@@ -123,7 +130,12 @@ def make_adapter_update(method: Any, params: Any, base_sigma2: Any, exact: bool)
         dated = adaptation.map_last_changepoint(new.beam)
         return new, dn, pred, new.cp_prob, cp, theta, cov, sig, dated
 
-    return adapt, marginal
+    def detect(state, config, learner, xp, up, x, h, learn, var_p, var_x):
+        """The detector's step on the same transition (:func:`detection_step`)."""
+        z, dn, sigma2 = transition(learner, xp, up, x, h, var_p, var_x)
+        return adaptation.detection_step(state, z, dn, sigma2, learn, config)
+
+    return adapt, marginal, detect
 
 
 def same_hemisphere(xp: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -180,3 +192,37 @@ def with_finite_flag(step):
         return new, jnp.append(u, ok.astype(u.dtype)), diag
 
     return flagged
+
+
+def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, score: str = "joint"):
+    """The adapter's changepoint detector (:class:`arcade_core.adaptation.DetectionConfig`)
+    from :data:`arcade_control.knobs.DETECTION_DEFAULTS` updated with ``knobs``: a beam of
+    ``K = 15`` scored as the exact joint, at the quadrotor preset's ``tau^2`` and offline
+    prior floor, watching the outputs the knob names with the learner's noise. ``score``:
+    the hypothesis score (``"algorithm1"`` only to compare, see ``docs/changepoints.md``)."""
+    from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_OUTPUTS
+
+    k = {**DETECTION_DEFAULTS, **(knobs or {})}
+    if k["outputs"] not in DETECTION_OUTPUTS:
+        raise ValueError(f"unknown detector outputs {k['outputs']!r}")
+    dtype = dtype or jnp.result_type(float)
+    scale = np.full(13, np.inf)
+    scale[list(DETECTION_OUTPUTS[k["outputs"]])] = 1.0
+    beam = adaptation.quadrotor_config()._replace(pi=k["pi"], beta=k["beta"], score="joint")
+    f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
+    return adaptation.DetectionConfig(
+        beam=adaptation.AdaptationConfig(
+            K=beam.K,
+            pi=f(beam.pi),
+            beta=f(beam.beta),
+            tau2=f(beam.tau2),
+            sigma2=f(1.0),
+            prior_floor=f(beam.prior_floor),
+            score=score,
+        ),
+        noise_scale=f(scale),
+        tracking=f(k["tracking"]),
+        window=jnp.asarray(k["window"], jnp.int32),
+        threshold=f(k["threshold"]),
+        refractory_steps=jnp.asarray(k["refractory_steps"], jnp.int32),
+    )

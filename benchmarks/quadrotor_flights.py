@@ -88,6 +88,11 @@ class Flight:
     crashed: bool
     step_ms: np.ndarray  # (n,) wall time of the jitted update per step
     metrics: dict[str, float] = field(default_factory=dict)
+    #: Beam methods: what the learner learned from at each step, ``{"xp", "up", "x"
+    #: (n, 13|4|13), "sigma2" (n, 13) or (n,), "learned" (n,) bool}`` (the transition
+    #: ``xp -> x`` under ``up`` with its observation noise), for replaying the beam
+    #: offline (:mod:`benchmarks.changepoints`); ``None`` for the other methods.
+    learning: dict[str, np.ndarray] | None = None
 
     @property
     def error(self) -> np.ndarray:
@@ -176,6 +181,7 @@ class Runner:
         sim = QuadrotorSim(
             payload_mass=scenario.payload_g / 1000.0,
             cable_length=scenario.cable_length_m,
+            rigid_payload=scenario.rigid_payload,
             seed=sim_seed,
             command_delay_s=scenario.command_delay_s,
         )
@@ -220,6 +226,14 @@ class Runner:
         x_ref_np = np.asarray(x_ref_all[:n])
         crashed = False
         n_done = n
+        beam = isinstance(learner, BeamLearner)
+        rec = {
+            "xp": np.zeros((n, 13)),
+            "up": np.zeros((n, 4)),
+            "x": np.zeros((n, 13)),
+            "sigma2": [],
+            "learned": np.zeros(n, bool),
+        }
         for k in range(n):
             if k == k_release:
                 sim.release_payload()
@@ -236,6 +250,10 @@ class Runner:
                     learner=state_noise(carry.learner, x_from, u_applied, var_prev, var)
                 )
             x_prev, var_prev = x_seen, var
+            if beam:
+                rec["xp"][k], rec["up"][k] = np.asarray(carry.x_prev), u_applied
+                rec["sigma2"].append(np.asarray(carry.learner.config.sigma2, float))
+                rec["learned"][k] = bool(carry.started)
             carry, u, diag = step(
                 carry,
                 jnp.asarray(x_seen, dt),
@@ -245,6 +263,8 @@ class Runner:
                 u_ref_ctrl,
             )
             u = np.asarray(u)
+            if beam:
+                rec["x"][k] = np.asarray(carry.x_prev)
             T_ms[k] = 1e3 * (time.perf_counter() - t0)
             D[k] = np.asarray(diag)
             u_applied = sim.set_setpoint(u)
@@ -272,6 +292,10 @@ class Runner:
             crashed,
             T_ms[:n_done],
         )
+        if beam:
+            flight.learning = {
+                k: np.asarray(v)[:n_done] for k, v in rec.items() if k != "sigma2"
+            } | {"sigma2": np.stack(rec["sigma2"])}
         flight.metrics = flight_metrics(flight)
         return flight
 

@@ -1,12 +1,16 @@
 """Adapter service: residuals -> ARCADE update (Algorithm 1) -> decoder posterior.
 
 Subscribes ``state`` and ``setpoint``; publishes ``residual`` and ``model`` for every state,
-and an ``event`` (kind ``changepoint``) whenever the MAP history gains a changepoint later
-than any reported before. (The MAP history can switch to a path whose latest changepoint is
-dated at or before one already reported, and the core's flag rises again: not reported,
-counted in ``changepoint_repeats``.) The event names the step the changepoint is dated to
-(``changepoint_step``: evidence can date it a few steps back) and the stamp of that
-transition's newer state (``changepoint_stamp``).
+and an ``event`` (kind ``changepoint``) when the changepoint detector declares one: a second
+beam beside the learner, on the same features, residuals and noise, scored as the exact
+joint and tuned for detection (:func:`arcade_control.stack.detection_config`,
+:func:`arcade_core.adaptation.detection_step`), declares when the posterior probability of a
+changepoint within its window reaches the threshold, then waits a refractory period. The
+event carries that probability (``cp_prob``), the step the change is dated to
+(``changepoint_step``) and the stamp of that transition's newer state
+(``changepoint_stamp``). The learner's own flag (its MAP path gained a changepoint: with the
+knobs it flies, a forgetting step more than a detection) stays in the ``residual`` message.
+A restarted adapter's detector starts again from the prior.
 
 Per state ``k`` (after the first): the transition ``(x_{k-1}, u_{k-1}, x_k)`` with
 ``u_{k-1}`` the setpoint answering state ``k-1`` (lockstep: waited for; realtime: see
@@ -142,7 +146,12 @@ class Adapter(runtime.Service):
         # has set the precision, and not for `--help`.
         import jax.numpy as jnp
 
-        from arcade_control.stack import adapter_learner, make_adapter_update, same_hemisphere
+        from arcade_control.stack import (
+            adapter_learner,
+            detection_config,
+            make_adapter_update,
+            same_hemisphere,
+        )
         from arcade_core import adaptation
         from arcade_core.dynamics import predict_over_delay
         from arcade_io.vehicle import load_vehicle, quadrotor_params
@@ -166,7 +175,7 @@ class Adapter(runtime.Service):
         # runs; at other rates the same update with the nominal step over the elapsed time.
         exact = abs(1.0 / a.rate - self.model_dt) < 1e-9
         base_sigma2 = None if self.learner is None else self.learner.config.sigma2
-        adapt, marginal = make_adapter_update(
+        adapt, marginal, detect = make_adapter_update(
             getattr(self, "method", None), params, base_sigma2, exact
         )
 
@@ -195,6 +204,28 @@ class Adapter(runtime.Service):
                 return (new._replace(vld=learner.vld), *out)
 
             self._adapt = _adapt
+            self._detect_config = detection_config(dtype=self.dtype)
+            self._detection0 = adaptation.init_detection(
+                self.learner.beam.prior_mean, self._detect_config
+            )
+            self._detection = self._detection0
+            self._detect = load_or_trace(
+                "adapter_detect",
+                detect,
+                (
+                    self._detection,
+                    self._detect_config,
+                    self.learner,
+                    x0,
+                    u0,
+                    x0,
+                    self.model_dt,
+                    False,
+                    var0,
+                    var0,
+                ),
+                key,
+            )
             self._marginal = load_or_trace(
                 "adapter_marginal", marginal, (self.learner, x0, u0), key
             )
@@ -204,8 +235,6 @@ class Adapter(runtime.Service):
                 if restored is not None:
                     self.learner = self.learner._replace(beam=restored)
                     self._restored = int(restored.step)
-                    # Its changepoints were reported by the adapter that wrote it.
-                    self._cp_reported = int(adaptation.map_last_changepoint(restored))
                 elif Path(a.checkpoint).is_file():
                     self.log.warning(
                         "checkpoint %s does not match this learner (weights, preset or "
@@ -223,7 +252,6 @@ class Adapter(runtime.Service):
             steps=0,
             learned=0,
             changepoints=0,
-            changepoint_repeats=0,
             skipped=0,
             not_applied=0,
             input_fallback=0,
@@ -242,7 +270,6 @@ class Adapter(runtime.Service):
         self.pub_res = bus.publisher("residual")
 
     _restored: int | None = None
-    _cp_reported = -1  # the newest changepoint step reported (the MAP history's dating)
 
     def warmup(self) -> None:
         if self.learner is None:
@@ -251,6 +278,18 @@ class Adapter(runtime.Service):
         u = np.array([5.6, 0.0, 0.0, 0.0])
         for _ in range(3):
             self._adapt(self.learner, x, u, x, self.model_dt, False, np.zeros(13), np.zeros(13))
+            self._detect(
+                self._detection,
+                self._detect_config,
+                self.learner,
+                x,
+                u,
+                x,
+                self.model_dt,
+                False,
+                np.zeros(13),
+                np.zeros(13),
+            )
             self._marginal(self.learner, x, u)
             if self.args.link_delay > 0.0:
                 self._predict(x, np.zeros(13), u)
@@ -387,17 +426,24 @@ class Adapter(runtime.Service):
                 h = self.model_dt  # bit-identical to the fixed-step nominal model
             xp, var_p, x, var_x = pair
             out = self._adapt(self.learner, xp, sp.u, x, h, learn, var_p, var_x)
-            self.learner, dn, pred, cp_prob, cp, theta, cov, sig, dated = out
+            self.learner, dn, pred, cp_prob, cp, theta, cov, sig, _ = out
             self.stats["learned"] += learn
-            step, dated = int(self.learner.beam.step), int(dated)
+            step = int(self.learner.beam.step)
             if learn:
                 self._step_stamps[step] = s.stamp
                 self._step_stamps.pop(step - STEP_STAMPS, None)
-            # The MAP history can switch to a path whose changepoint is dated at or before
-            # one already reported: the flag rises again, for nothing new.
-            repeat = bool(cp) and dated <= self._cp_reported
-            self.stats["changepoint_repeats"] += repeat
-            cp = bool(cp) and not repeat
+            self._detection, det = self._detect(
+                self._detection,
+                self._detect_config,
+                self.learner,
+                xp,
+                sp.u,
+                x,
+                h,
+                learn,
+                var_p,
+                var_x,
+            )
             pred_np = type(pred)(*(np.asarray(p, dtype=float) for p in pred))
             pred_np = pred_np._replace(
                 **{
@@ -417,9 +463,9 @@ class Adapter(runtime.Service):
                         stamp=s.stamp,
                     )
                 )
-            if cp:
-                self._cp_reported = dated
+            if bool(det.declared):
                 self.stats["changepoints"] += 1
+                dated = int(det.dated)
                 at = self._step_stamps.get(dated)
                 # Dated to the transition that ended in the state stamped ``at``.
                 dated_at = {} if at is None else {"changepoint_stamp": at}
@@ -432,7 +478,7 @@ class Adapter(runtime.Service):
                     "changepoint",
                     text,
                     stamp=s.stamp,
-                    cp_prob=float(cp_prob),
+                    cp_prob=float(np.clip(det.probability, 0.0, 1.0)),
                     step=step,
                     state_seq=s.seq,
                     changepoint_step=dated,
@@ -454,8 +500,8 @@ class Adapter(runtime.Service):
                 state_seq=s.seq,
                 resets=self.stats["nonfinite_resets"],
             )
-            self.learner = self._prior
-            self._cp_reported, self._step_stamps = -1, {}  # the steps count from 0 again
+            self.learner, self._detection = self._prior, self._detection0
+            self._step_stamps = {}  # the steps count from 0 again
             return
         self.pub_model.put(
             Model.from_marginal(

@@ -1,4 +1,5 @@
-"""`arcade eval cartpole|quadrotor` — the paper's tables, all methods in one run."""
+"""`arcade eval cartpole|quadrotor|changepoints` — the paper's tables, all methods in one run,
+and the changepoint detection quality of both systems."""
 
 from __future__ import annotations
 
@@ -11,21 +12,24 @@ from arcade_io import atomicfile, jsonout
 
 HELP = (
     "reproduce the paper's evaluations, all methods in one run (cartpole: Table I, Fig. 3, "
-    "App. E, ~2 min on 2 cores; quadrotor: Tables II, III, V, Figs. 4-5, ~25 min on 2 cores)"
+    "App. E, ~2 min on 2 cores; quadrotor: Tables II, III, V, Figs. 4-5, ~25 min on 2 cores; "
+    "changepoints: detection quality on both systems, ~1 h, --quick ~6 min)"
 )
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from arcade_io.runs import count
 
-    p.add_argument("system", choices=["cartpole", "quadrotor"], help="which evaluation")
+    p.add_argument(
+        "system", choices=["cartpole", "quadrotor", "changepoints"], help="which evaluation"
+    )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument(
         "--trials",
         type=count(1),
         default=None,
-        help="cartpole: online trajectories; quadrotor: trials per cell; at least 1 "
-        "(default: 10; with --quick 4 for cartpole, 1 for quadrotor)",
+        help="cartpole: online trajectories; quadrotor and changepoints: trials (seeds) per "
+        "cell; at least 1 (default: 10; with --quick 4 for cartpole, 1 for the quadrotor)",
     )
     p.add_argument("--quick", action="store_true", help="small, fast variant (smoke test)")
     p.add_argument(
@@ -57,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     progress = lambda m: print(f"[eval] {m}", file=sys.stderr, flush=True)  # noqa: E731
     if args.system == "quadrotor":
         result, table = _quadrotor(args, out, progress)
+    elif args.system == "changepoints":
+        result, table = _changepoints(args, progress)
     else:
         result, table = _cartpole(args, out, progress)
     from benchmarks.common import machine
@@ -103,3 +109,16 @@ def _quadrotor(args, out, progress):
         progress("residual held along the warm start vs inside the rollout")
         result["residual_ablation"] = qc.run_residual_ablation(models=models, progress=progress)
     return result, qc.format_table(result)
+
+
+def _changepoints(args, progress):
+    from benchmarks import changepoints as qcp
+    from benchmarks import changepoints_cartpole as ccp
+
+    trials = args.trials if args.trials is not None else (1 if args.quick else 10)
+    progress("quadrotor: flights as the stack flies them, the detector replayed on each")
+    quad = qcp.run_changepoints(quick=args.quick, trials=trials, progress=progress)
+    progress("cartpole: the declaration rule on the evaluation's online trajectories")
+    cart = ccp.cartpole_detection(quick=args.quick, progress=progress)
+    result = {"quadrotor": quad, "cartpole": cart}
+    return result, qcp.format_table(result)

@@ -78,10 +78,15 @@ from arcade_core.adaptation.config import (
     quadrotor_config,
 )
 from arcade_core.adaptation.detection import (
+    Detection,
+    DetectionConfig,
+    DetectionState,
     Detector,
     changepoint_probability_within,
     dated_changepoint_within,
     declare,
+    detection_step,
+    init_detection,
     init_detector,
 )
 from arcade_core.adaptation.packed import (
@@ -105,6 +110,9 @@ __all__ = [
     "SCORES",
     "AdaptationConfig",
     "BeamState",
+    "Detection",
+    "DetectionConfig",
+    "DetectionState",
     "Detector",
     "PackedBeam",
     "Prediction",
@@ -113,7 +121,9 @@ __all__ = [
     "changepoint_probability_within",
     "dated_changepoint_within",
     "declare",
+    "detection_step",
     "init",
+    "init_detection",
     "init_detector",
     "make_packed_step",
     "map_last_changepoint",

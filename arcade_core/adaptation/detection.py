@@ -36,7 +36,10 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from arcade_core.adaptation.state import BeamState
+from arcade_core.adaptation.beam import update
+from arcade_core.adaptation.config import AdaptationConfig
+from arcade_core.adaptation.predictive import predict
+from arcade_core.adaptation.state import BeamState, init
 
 #: ``Detector.last_declared`` before the first declaration.
 NO_DECLARATION = -1
@@ -137,3 +140,107 @@ def declare(
         count=detector.count + declared.astype(jnp.int32),
     )
     return new, declared, jnp.where(declared, when, -1).astype(jnp.int32)
+
+
+# --------------------------------------------------------------------------- a detector
+
+
+class DetectionConfig(NamedTuple):
+    """A changepoint detector: a beam of its own, scored as the exact joint, and the
+    declaration rule.
+
+    The learner that the controller flies keeps its knobs (chosen by prediction error);
+    the detector runs a second beam on the same features and residuals with knobs chosen by
+    detection quality (issue "Changepoints that mean a change"), so what is declared is
+    not what happens to help the prediction.
+
+    Attributes:
+        beam: its :class:`~arcade_core.adaptation.AdaptationConfig`; ``score`` should be
+            ``"joint"`` (the weights are then a posterior), ``sigma2`` is ignored (see
+            ``noise_scale``).
+        noise_scale: ``(d,)`` calibrated per-output factor on the observation noise that
+            the learner is given (``sigma_j^2`` of the step): what the residuals of flights
+            without a change show beyond it (model error, a payload's swing). ``inf``
+            leaves an output out of the detector.
+        tracking: rate ``a`` in ``[0, 1)`` of the online noise tracking: the factor is
+            multiplied by ``max(1, r_j)`` where ``r_j`` is an exponential average (rate
+            ``a``) of the squared innovations of output ``j`` over their predicted variance;
+            ``0`` turns it off.
+        window: ``m`` of :func:`changepoint_probability_within`.
+        threshold: declaration threshold on that probability.
+        refractory_steps: of :func:`declare`.
+    """
+
+    beam: AdaptationConfig
+    noise_scale: ArrayLike
+    tracking: ArrayLike
+    window: ArrayLike
+    threshold: ArrayLike
+    refractory_steps: ArrayLike
+
+
+class DetectionState(NamedTuple):
+    """State of :func:`detection_step`: the detector's beam, its declarations and the
+    tracked noise ratio ``r`` (``(d,)``, 1 at first)."""
+
+    beam: BeamState
+    detector: Detector
+    noise_ratio: Array
+
+
+class Detection(NamedTuple):
+    """What one :func:`detection_step` returns (all ``()``): the probability that a
+    changepoint lies within the window, whether one is declared now, and the step it is
+    dated to (``-1`` unless declared)."""
+
+    probability: Array
+    declared: Array
+    dated: Array
+
+
+def init_detection(theta0: ArrayLike, config: DetectionConfig) -> DetectionState:
+    """A detector at the offline prior ``theta0`` (``(d, l)``) that has declared nothing;
+    ``config.beam.K`` must be a Python int."""
+    theta0 = jnp.asarray(theta0)
+    d = theta0.shape[0]
+    beam = init(theta0, config.beam._replace(sigma2=jnp.ones(d, theta0.dtype)))
+    return DetectionState(beam, init_detector(), jnp.ones(d, theta0.dtype))
+
+
+def detection_step(
+    state: DetectionState,
+    z: ArrayLike,
+    delta: ArrayLike,
+    sigma2: ArrayLike,
+    learn: ArrayLike,
+    config: DetectionConfig,
+) -> tuple[DetectionState, Detection]:
+    """One observation ``(z_k, delta_k)`` with the learner's noise ``sigma2`` (``(d,)``):
+    the detector's beam learns it (Algorithm 1 with ``config.beam``; the Eq. 8 noise
+    ``sigma_j^2 noise_scale_j max(1, r_j)``), then :func:`declare` on
+    :func:`changepoint_probability_within`. ``learn = False`` leaves the state as it was
+    and declares nothing."""
+    beam = state.beam
+    dtype = beam.means.dtype
+    z = jnp.asarray(z, dtype)
+    delta = jnp.asarray(delta, dtype)
+    base = jnp.asarray(sigma2, dtype) * jnp.asarray(config.noise_scale, dtype)
+    noise = base * jnp.maximum(1.0, state.noise_ratio)
+    # Outputs left out (an infinite scale) carry no evidence: a huge finite variance.
+    noise = jnp.where(jnp.isfinite(noise), noise, jnp.asarray(1e12, dtype))
+    pred = predict(beam, z)
+    new, _ = update(beam, z, delta, config.beam._replace(sigma2=noise))
+    learn = jnp.asarray(learn, bool) & jnp.all(jnp.isfinite(delta)) & jnp.all(jnp.isfinite(z))
+    new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, beam)
+    # Innovation over its predicted variance at the calibrated (untracked) noise.
+    q = (delta - pred.mean) ** 2 / (
+        pred.param + pred.between + jnp.where(jnp.isfinite(base), base, 1.0)
+    )
+    a = jnp.asarray(config.tracking, dtype)
+    ratio = jnp.where(learn, (1.0 - a) * state.noise_ratio + a * q, state.noise_ratio)
+    prob = jnp.where(learn, changepoint_probability_within(new, config.window), 0.0)
+    dated = dated_changepoint_within(new, config.window)
+    detector, declared, when = declare(
+        state.detector, prob, new.step, config.threshold, config.refractory_steps, dated
+    )
+    return DetectionState(new, detector, ratio), Detection(prob, declared & learn, when)

@@ -10,19 +10,17 @@ before the second lap), seed 0, float64:
    ``model`` message carries);
 2. the full stack with the estimator in the loop: the estimate must track the ground truth.
 
-Both: no changepoint event in the steady take-off and hover, a changepoint event within
-1 s of the release, far fewer events once the payload is gone than while it swung, no
-rejected message, no error in any service log, every process exits cleanly.
+Both: the changepoint detector declares the release within 0.25 s, nothing in the steady
+take-off and hover, and at most a quarter as many changepoints as the learner's MAP path
+gains (this cell, 2.5 m/s with the payload swinging, is where ``arcade eval changepoints``
+finds the detector's false alarms); no rejected message, no error in any service log,
+every process exits cleanly.
 
-Changepoint events and the release: with the shipped quadrotor weights and the tuned
-temperature the swinging payload's pull, which the features of the vehicle state cannot
-explain, makes the MAP history gain changepoints about 3-5 times a second during the
-figure-eight (seed 0: 20 events in the 5.75 s before the release with the ground-truth
-state, 29 with the estimator). The release is one more jump: an event 0.05 s after it in
-both flights. Afterwards the events stop (none in the ~4 s after that first second): the
-rate drop, not the single event, is what says the detector follows the payload. A release
-in steady hover is a ~3 sigma innovation for one step that the posterior absorbs within a
-few steps, and raises no event (``test_stack_release``).
+Changepoint events come from the adapter's detector (a joint-scored beam beside the
+learner, :func:`arcade_control.stack.detection_config`), not from the learner's MAP path,
+which with the tuned temperature gains a changepoint several times a second while the
+payload swings (seed 0: 20 such flags in the 5.75 s before the release with the
+ground-truth state, 29 with the estimator); ``arcade eval changepoints`` measures both.
 """
 
 from __future__ import annotations
@@ -48,20 +46,14 @@ def check_clean_run(out: Path, summary: dict) -> None:
     for log in (out / "logs").glob("*.log"):
         text = log.read_text()
         assert " ERROR " not in text and "Traceback" not in text, log.name
-    # The payload was released; no changepoint event in the steady take-off and hover
-    # (before the figure-eight starts), while the figure-eight raises some.
+    # The payload was released: the detector declares it within 0.25 s (a hit in
+    # `arcade eval changepoints`) and nothing in the steady take-off and hover.
     assert summary["t_release_s"] is not None
     cps = np.array(summary["changepoints_s"])
     t_figure = Scenario().t_figure
     assert np.sum(cps < t_figure) == 0, cps
-    assert np.sum(cps >= t_figure) > 0
-    # An event within 1 s of the release, and the events nearly stop with the payload gone:
-    # their rate after that second at most a quarter of the rate while the payload swung.
-    t_rel, t_end = summary["t_release_s"], Scenario().t_end
-    assert np.any((cps >= t_rel) & (cps <= t_rel + 1.0)), (t_rel, cps)
-    rate_swinging = np.sum((cps >= t_figure) & (cps < t_rel)) / (t_rel - t_figure)
-    rate_released = np.sum(cps > t_rel + 1.0) / (t_end - t_rel - 1.0)
-    assert rate_released <= 0.25 * rate_swinging, (rate_released, rate_swinging)
+    t_rel = summary["t_release_s"]
+    assert np.any((cps > t_rel) & (cps <= t_rel + 0.25 + 1e-9)), (t_rel, cps)
     # The recorder's flight log and MCAP exist and are complete.
     rows = (out / "flight_log.csv").read_text().splitlines()
     truth = read_truth(out / "truth.csv")
@@ -71,6 +63,15 @@ def check_clean_run(out: Path, summary: dict) -> None:
     with (out / "bus.mcap").open("rb") as f:
         stats = make_reader(f).get_summary().statistics
     assert stats.channel_message_counts and stats.message_count > 5 * truth["t"].size
+    # The learner's own flags (its MAP path gained a changepoint) ride on the residual
+    # messages; the detector declares at most a quarter as many changepoints.
+    with (out / "bus.mcap").open("rb") as f:
+        flags = sum(
+            json.loads(m.data)["changepoint"]
+            for _, ch, m in make_reader(f).iter_messages()
+            if ch.topic.endswith("/residual")
+        )
+    assert cps.size <= 0.25 * flags, (cps.size, flags)
     assert json.loads((out / "metrics.json").read_text())["rmse_m"] == summary["rmse_m"]
 
 

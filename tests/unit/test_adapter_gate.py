@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from arcade_core import adaptation
 from services import adapter as mod
 from services import options, runtime
 from services.messages import Command, Event, Setpoint, State
@@ -61,7 +62,11 @@ def make_adapter(*argv: str) -> mod.Adapter:
         cov = np.zeros((13, 1, 1))
         return learner, nan, Pred(nan, nan), 0.0, False, svc.theta, cov, nan * 0, -1
 
-    svc._adapt = adapt
+    def detect(state, config, learner, *rest):  # declares nothing
+        return state, adaptation.Detection(np.asarray(0.0), np.asarray(False), np.asarray(-1))
+
+    svc._adapt, svc._detect = adapt, detect
+    svc._detection = svc._detection0 = svc._detect_config = None
     svc._marginal = lambda learner, x, u: (np.zeros((13, 1)), np.zeros((13, 1, 1)), np.zeros(13))
     return svc
 
@@ -239,37 +244,45 @@ def test_link_delay_must_be_shorter_than_the_control_period(capsys):
 # ------------------------------------------------------------------ changepoint events
 
 
-def test_a_changepoint_is_reported_once_and_dated():
-    """The MAP history gains a changepoint (flag) dated to a step: reported with that
-    step's stamp; a MAP history that switches back to a reported changepoint's path raises
-    the flag again, which is counted, not reported."""
+def test_a_declared_changepoint_is_reported_with_its_date():
+    """Events follow the detector's declarations, not the learner's flag: a declaration
+    dated to a step is reported with that step's stamp and probability; the learner's
+    flag stays in the residual messages and raises no event by itself."""
     svc = make_adapter("--lockstep", "--step-timeout", "0")
-    # Per learning step: (changepoint flag, step the MAP history dates its changepoint to).
-    script = iter([(False, -1), (False, -1), (True, 2), (True, 4), (False, 2), (True, 4)])
+    # Per learning step: the learner's flag, and the detector's (declared, dated step).
+    flags = iter([False, True, True, False, True, False])
+    script = iter([(False, -1), (False, -1), (True, 2), (False, -1), (True, 5), (False, -1)])
     steps = iter(range(1, 7))
 
     def adapt(learner, xp, up, x, h, learn, var_p, var_x):
-        cp, dated = next(script)
+        cp = next(flags)
         learner = SimpleNamespace(beam=SimpleNamespace(step=next(steps)))
         z = np.zeros(13)
         pred = Prediction(z, z, z, z, z)
-        return learner, z, pred, 0.9 * cp, cp, svc.theta, np.zeros((13, 1, 1)), z, dated
+        return learner, z, pred, 0.9 * cp, cp, svc.theta, np.zeros((13, 1, 1)), z, -1
 
-    svc._adapt = adapt
+    def detect(state, config, learner, xp, up, x, h, learn, var_p, var_x):
+        declared, dated = next(script)
+        return state, adaptation.Detection(
+            np.asarray(0.8 if declared else 0.1), np.asarray(declared), np.asarray(dated)
+        )
+
+    svc._adapt, svc._detect = adapt, detect
     svc.on_command(start(1.0))
     for k in range(7):
         svc.on_setpoint(setpoint(1.0 + 0.05 * k, 5.0, seq=k + 1))
         svc.on_state(state(1.0 + 0.05 * k, k + 1))
     reported = svc.bus.events("changepoint")
-    assert [e.data["changepoint_step"] for e in reported] == [2, 4]
+    assert [e.data["changepoint_step"] for e in reported] == [2, 5]
     # Step j is the transition into state j + 1 (stamp 1.0 + 0.05 j).
-    assert [e.data["changepoint_stamp"] for e in reported] == pytest.approx([1.1, 1.2])
-    assert [e.data["step"] for e in reported] == [3, 4]
+    assert [e.data["changepoint_stamp"] for e in reported] == pytest.approx([1.1, 1.25])
+    assert [e.data["step"] for e in reported] == [3, 5]
+    assert [e.data["cp_prob"] for e in reported] == pytest.approx([0.8, 0.8])
     texts = [e.text for e in reported]
     assert texts == ["changepoint detected, dated 0.05 s back", "changepoint detected"]
-    assert svc.stats["changepoints"] == 2 and svc.stats["changepoint_repeats"] == 1
-    flags = [r.changepoint for r in svc.bus.sent if type(r).__name__ == "Residual"]
-    assert flags == [False, False, True, True, False, False]
+    assert svc.stats["changepoints"] == 2
+    residual_flags = [r.changepoint for r in svc.bus.sent if type(r).__name__ == "Residual"]
+    assert residual_flags == [False, True, True, False, True, False]
 
 
 # ------------------------------------------------------------------ non-finite reset
