@@ -311,11 +311,12 @@ def test_operator_hold_pauses_learning_until_offboard_is_engaged_again(tmp_path)
 
 
 def test_long_mocap_dropout_lands_and_arming_waits_for_tracking(tmp_path):
-    # Mocap lost for 4 s, 2 s into the mission: the controller hovers level without
+    # Mocap lost for 6 s, 2 s into the mission (long enough that the failsafe chain below
+    # is through before it ends, also on a loaded machine): the controller hovers level without
     # position feedback, gives up after its --max-hover-s (1 s, a failsafe event), the
     # bridge leaves offboard; PX4 has no position estimate, so it denies Hold and the
     # bridge commands Land. Arming is refused until the controller tracks again.
-    cfg = _px4_config(tmp_path, extra={"px4sim": ["--mocap-fault", "dropout@2.0+4.0"]})
+    cfg = _px4_config(tmp_path, extra={"px4sim": ["--mocap-fault", "dropout@2.0+6.0"]})
     events = EventWaiter()
 
     with Stack(cfg, on_event=events) as stack:
