@@ -387,6 +387,33 @@ class Adapter(runtime.Service):
                 self.stats["input_missing"] += 1
             return None
 
+    def _declare(self, xp, up, x, h, learn, var_p, var_x, s: State, step: int) -> None:
+        """The detector's step on the transition just learned; an event if it declares."""
+        self._detection, det = self._detect(
+            self._detection, self._detect_config, self.learner, xp, up, x, h, learn, var_p, var_x
+        )
+        if bool(det.declared):
+            self.stats["changepoints"] += 1
+            dated = int(det.dated)
+            at = self._step_stamps.get(dated)
+            # Dated to the transition that ended in the state stamped ``at``.
+            dated_at = {} if at is None else {"changepoint_stamp": at}
+            text = "changepoint detected"
+            if at is None:
+                text += ", dated before the steps kept"
+            elif at < s.stamp:
+                text += f", dated {s.stamp - at:.2f} s back"
+            self.event(
+                "changepoint",
+                text,
+                stamp=s.stamp,
+                cp_prob=float(np.clip(det.probability, 0.0, 1.0)),
+                step=step,
+                state_seq=s.seq,
+                changepoint_step=dated,
+                **dated_at,
+            )
+
     def on_state(self, s: State) -> None:
         if not self.args.lockstep and self._controller_alive():
             # The controller solves on this state with the newest model it has (this
@@ -412,6 +439,7 @@ class Adapter(runtime.Service):
             prev = None
         sp = self._input_for(prev) if prev is not None else None
         pair = None if sp is None else self._transition(prev, s, sp)
+        detect_args = None
         if pair is None:
             if sp is None:
                 self._predicted = None  # the setpoint in flight at ``s`` is not known
@@ -432,18 +460,6 @@ class Adapter(runtime.Service):
             if learn:
                 self._step_stamps[step] = s.stamp
                 self._step_stamps.pop(step - STEP_STAMPS, None)
-            self._detection, det = self._detect(
-                self._detection,
-                self._detect_config,
-                self.learner,
-                xp,
-                sp.u,
-                x,
-                h,
-                learn,
-                var_p,
-                var_x,
-            )
             pred_np = type(pred)(*(np.asarray(p, dtype=float) for p in pred))
             pred_np = pred_np._replace(
                 **{
@@ -463,27 +479,7 @@ class Adapter(runtime.Service):
                         stamp=s.stamp,
                     )
                 )
-            if bool(det.declared):
-                self.stats["changepoints"] += 1
-                dated = int(det.dated)
-                at = self._step_stamps.get(dated)
-                # Dated to the transition that ended in the state stamped ``at``.
-                dated_at = {} if at is None else {"changepoint_stamp": at}
-                text = "changepoint detected"
-                if at is None:
-                    text += ", dated before the steps kept"
-                elif at < s.stamp:
-                    text += f", dated {s.stamp - at:.2f} s back"
-                self.event(
-                    "changepoint",
-                    text,
-                    stamp=s.stamp,
-                    cp_prob=float(np.clip(det.probability, 0.0, 1.0)),
-                    step=step,
-                    state_seq=s.seq,
-                    changepoint_step=dated,
-                    **dated_at,
-                )
+            detect_args = (xp, sp.u, x, h, learn, var_p, var_x, s, step)
         theta, cov, sig = (np.asarray(v, dtype=float) for v in (theta, cov, sig))
         # Huge but finite state variances (a long dropout) must not make the message invalid.
         cov = np.clip(cov, -MAX_VARIANCE, MAX_VARIANCE)
@@ -514,6 +510,11 @@ class Adapter(runtime.Service):
                 stamp=s.stamp,
             )
         )
+        if detect_args is not None:
+            # The changepoint detector runs once the model is out: its cost never delays
+            # the controller's model.
+            self._declare(*detect_args)
+
         self.stats["steps"] += 1
         self._lat.append(self.now() - t0)
         every = self.args.checkpoint_every
