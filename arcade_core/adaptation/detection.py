@@ -36,9 +36,8 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from arcade_core.adaptation.beam import update
+from arcade_core.adaptation.beam import step
 from arcade_core.adaptation.config import AdaptationConfig
-from arcade_core.adaptation.predictive import predict
 from arcade_core.adaptation.state import BeamState, init
 
 #: ``Detector.last_declared`` before the first declaration.
@@ -228,8 +227,8 @@ def detection_step(
     noise = base * jnp.maximum(1.0, state.noise_ratio)
     # Outputs left out (an infinite scale) carry no evidence: a huge finite variance.
     noise = jnp.where(jnp.isfinite(noise), noise, jnp.asarray(1e12, dtype))
-    pred = predict(beam, z)
-    new, _ = update(beam, z, delta, config.beam._replace(sigma2=noise))
+    # One projection of the beam serves the prediction and the update (Algorithm 1 step).
+    new, pred, _ = step(beam, z, delta, config.beam._replace(sigma2=noise))
     learn = jnp.asarray(learn, bool) & jnp.all(jnp.isfinite(delta)) & jnp.all(jnp.isfinite(z))
     new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, beam)
     # Innovation over its predicted variance at the calibrated (untracked) noise.
