@@ -13,9 +13,12 @@ from collections.abc import Sequence
 import numpy as np
 
 METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
+#: The product's own controller (:func:`arcade_control.methods.arcade_method`): what the
+#: stack flies by default; not the paper's method.
+FLAGSHIP = "arcade"
 #: Variants of ours that are not the paper's method, flown beside it by
 #: :mod:`benchmarks.quadrotor_variants` (:func:`beam_method`).
-VARIANTS = ("ours_matched",)
+VARIANTS = ("ours_matched", "arcade")
 #: ``(intercept, matched)`` of :func:`beam_method` per variant: ``ours_matched`` and its two
 #: changes one at a time (these two with ours' knobs; the ablation of
 #: :mod:`benchmarks.quadrotor_variants`).
@@ -38,6 +41,10 @@ TUNING_METHOD = {
     "l1_a_s": "l1",
     "ours_matched_beta": "ours_matched",
     "ours_matched_sigma2": "ours_matched",
+    "arcade_beta": FLAGSHIP,
+    "arcade_sigma2": FLAGSHIP,
+    "arcade_l1_cutoff": FLAGSHIP,
+    "arcade_l1_a_s": FLAGSHIP,
 }
 #: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
 #: the choice under "tuning"); used when the tuning is skipped (``quick``).
@@ -52,6 +59,10 @@ TUNED_DEFAULTS = {
     # Tuned by `arcade bench variants` (benchmarks/results/quadrotor_variants/), 2-core AMD EPYC.
     "ours_matched_beta": 0.2,
     "ours_matched_sigma2": 0.0001,
+    "arcade_beta": 0.05,
+    "arcade_sigma2": 0.1,
+    "arcade_l1_cutoff": 80.0,
+    "arcade_l1_a_s": -0.1,
 }
 
 

@@ -12,6 +12,7 @@ from arcade_control.guard import make_guard
 from arcade_control.knobs import (
     BEAM_VARIANTS,
     FIFO,
+    FLAGSHIP,
     MLP_INPUT_STD,
     ORACLE,
     TUNED_DEFAULTS,
@@ -44,27 +45,13 @@ def initial_learner(name: str, models, dtype) -> Any:
         return _cast(tree, dtype)
 
     name = base_name(name)
-    p = nominal_params()
     if name == "nominal":
         return jnp.zeros((), dtype)
     if name == ORACLE:  # the flight fills in its payload and release step
         return MassOracle(jnp.zeros((), jnp.int32), -jnp.ones((), jnp.int32), jnp.zeros((), dtype))
     tuned = {**TUNED_DEFAULTS, **getattr(models, "closedloop", {})}
     if name == "l1":
-        # The rate channel (matched body-rate disturbance) is applied when it has a bandwidth.
-        c, c_rates = tuned["l1_cutoff"], tuned["l1_cutoff_rates"]
-        return l1.init(
-            l1.L1Params(
-                mass=p.mass,
-                gravity=p.gravity,
-                rate_tau=p.rate_tau,
-                a_s=tuned["l1_a_s"],
-                cutoff_thrust=c,
-                cutoff_rates=c_rates if c_rates > 0 else c,
-                rotational=c_rates > 0,
-            ),
-            dtype,
-        )
+        return _l1_state(tuned["l1_cutoff"], tuned["l1_cutoff_rates"], tuned["l1_a_s"], dtype)
     guard = make_guard(models, dtype)
     if name == "gp":
         return cast(gp.init(scale_gp_noise(models.gp, tuned["gp_noise_scale"]), FIFO)), guard
@@ -85,7 +72,7 @@ def initial_learner(name: str, models, dtype) -> Any:
         cfg = cfg._replace(K=int(name[len("ours_K") :]))
     vld = cast(models.vld)
     theta0 = vld.theta0
-    if BEAM_VARIANTS.get(name, (False, False))[0]:  # the intercept's column starts at zero
+    if name == FLAGSHIP or BEAM_VARIANTS.get(name, (False, False))[0]:  # intercept: zero column
         theta0 = jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
     beam = adaptation.init(theta0, cfg)
     traced_cfg = adaptation.AdaptationConfig(
@@ -98,7 +85,29 @@ def initial_learner(name: str, models, dtype) -> Any:
         score=cfg.score,
     )
     zero = jnp.zeros((), dtype)
-    return BeamLearner(vld, beam, traced_cfg, guard, zero, zero)
+    learner = BeamLearner(vld, beam, traced_cfg, guard, zero, zero)
+    if name == FLAGSHIP:  # thrust channel only
+        l1_state = _l1_state(tuned["arcade_l1_cutoff"], 0.0, tuned["arcade_l1_a_s"], dtype)
+        learner = learner._replace(l1=l1_state)
+    return learner
+
+
+def _l1_state(cutoff: float, cutoff_rates: float, a_s: float, dtype) -> l1.L1State:
+    """An L1 augmentation at take-off: the rate channel (matched body-rate disturbance) is
+    applied when it has a bandwidth."""
+    p = nominal_params()
+    return l1.init(
+        l1.L1Params(
+            mass=p.mass,
+            gravity=p.gravity,
+            rate_tau=p.rate_tau,
+            a_s=a_s,
+            cutoff_thrust=cutoff,
+            cutoff_rates=cutoff_rates if cutoff_rates > 0 else cutoff,
+            rotational=cutoff_rates > 0,
+        ),
+        dtype,
+    )
 
 
 def per_output_noise(learner: BeamLearner) -> BeamLearner:

@@ -7,8 +7,9 @@
 - ``ours_no_cp``: VLD + BLR without changepoints (``K = 1``, ``pi = 0``);
 - ``ours``: full ARCADE: beam-marginal decoder mean inside the rollout, ``Q`` modulated by
   ``sigma_tot^2`` (Sec. IV);
-- variants of ours that are not the paper's method (:data:`~arcade_control.knobs.VARIANTS`)
-  and the mass oracle, a diagnostic.
+- variants of ours that are not the paper's method (:data:`~arcade_control.knobs.VARIANTS`),
+  among them the product's own controller ``arcade`` (:func:`arcade_method`), and the mass
+  oracle, a diagnostic.
 
 The variance that modulates ``Q`` is unit-free: the variance of the residual in the units
 each model learns in (the VLD's normalised residual for ours, the standardised output for
@@ -24,7 +25,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from arcade_control.guard import Guard, clip_residual
-from arcade_control.knobs import BEAM_VARIANTS, METHODS, ORACLE, base_name
+from arcade_control.knobs import BEAM_VARIANTS, FLAGSHIP, METHODS, ORACLE, base_name
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import f_nom, nominal_params
 from arcade_core import adaptation, encoder
@@ -184,6 +185,8 @@ class BeamLearner(NamedTuple):
     guard: Guard
     changepoint: Array
     cp_prob: Array
+    #: The flagship's matched-disturbance estimate (:func:`arcade_method`); ``None`` in ours.
+    l1: l1.L1State | None = None
 
 
 def clipped_features(vld: encoder.VLD, guard: Guard, x: Array, u: Array) -> Array:
@@ -248,12 +251,39 @@ def beam_method(name: str = "ours", intercept: bool = False, matched: bool = Fal
     return Method(name, step_fn, learn, model, sigma, _no_correction, info, learned=True)
 
 
+def arcade_method() -> Method:
+    """The product's controller ``arcade``: the ARCADE model in the MPC, the remainder
+    cancelled every period (not the paper's method; ``docs/quadrotor-closed-loop.md``).
+
+    - The MPC plans with ``f_nom + theta phi`` through its thrust axis (the beam of
+      ``ours_matched``: changepoint-aware BLR on the VLD features plus an intercept).
+    - An L1 augmentation of the collective thrust whose state predictor includes that
+      learned model (L1-GP): its piecewise-constant law estimates, and its low-pass filter
+      cancels, only the force the learned model misses over the last period; the thrust
+      correction acts between the MPC's plans like integral action.
+    """
+    base = beam_method("arcade", intercept=True, matched=True)
+
+    def learn(a: BeamLearner, xp, up, x):
+        a = base.learn(a, xp, up, x)
+        # What the updated model (the one the next plan uses) predicts over the interval.
+        known = (base.step_fn(xp, up, base.model(a)) - f_nom(xp, up))[3:6] / DT
+        return a._replace(l1=l1.update(a.l1, x, up, DT, known_accel=known))
+
+    def correction(a: BeamLearner, x):
+        return l1.correction(a.l1, x)
+
+    return base._replace(learn=learn, correction=correction)
+
+
 def make_method(name: str) -> Method:
     name = base_name(name)
     if name == "nominal":
         return nominal_method()
     if name == "l1":
         return l1_method()
+    if name == FLAGSHIP:
+        return arcade_method()
     if name == "gp":
         return gp_method()
     if name == "mlp":
@@ -265,5 +295,5 @@ def make_method(name: str) -> Method:
         return beam_method(name)
     if name == ORACLE:
         return oracle_mass_method()
-    known = (*METHODS, *BEAM_VARIANTS)
+    known = (*METHODS, FLAGSHIP, *BEAM_VARIANTS)
     raise ValueError(f"unknown method {name!r} (one of {', '.join(known)})")

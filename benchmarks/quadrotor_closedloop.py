@@ -142,6 +142,12 @@ TUNING_GRIDS = {
     "l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1),
     "ours_matched_beta": (0.997, 0.9, 0.5, 0.2, 0.05),
     "ours_matched_sigma2": (0.1, 0.01, 0.001, 0.0001),
+    # The flagship: its beam's knobs (sigma^2 one step past the Appendix D value), then
+    # its thrust augmentation's, on L1's grids.
+    "arcade_beta": (0.997, 0.9, 0.5, 0.2, 0.05),
+    "arcade_sigma2": (1.0, 0.1, 0.01, 0.001, 0.0001),
+    "arcade_l1_cutoff": (5.0, 10.0, 20.0, 40.0, 80.0),
+    "arcade_l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1),
 }
 #: Where :func:`tune` starts: the presets (Appendix D ``sigma^2 = 0.1``, the GP's
 #: marginal-likelihood noise, L1 on the thrust channel only) and a middle value of the
@@ -156,6 +162,10 @@ TUNING_START = {
     "l1_a_s": -2.0,
     "ours_matched_beta": 0.05,
     "ours_matched_sigma2": 0.1,
+    "arcade_beta": 0.05,
+    "arcade_sigma2": 0.1,
+    "arcade_l1_cutoff": 40.0,
+    "arcade_l1_a_s": -2.0,
 }
 MAX_TUNING_PASSES = 4
 

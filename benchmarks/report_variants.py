@@ -39,7 +39,15 @@ def variants_section(path: Path) -> list[str]:
         "`ours_matched` is not the paper's method: ours with an intercept feature, whose MPC "
         "plans only with the thrust-axis part of the learned residual "
         "(`arcade_control.methods.beam_method`; read in "
-        "`docs/quadrotor-closed-loop.md`). Scenario, seeds and metrics of `arcade eval "
+        "`docs/quadrotor-closed-loop.md`)."
+        + (
+            " `arcade`, the stack's own controller in the making, is not the paper's method "
+            "either: `ours_matched`'s model in the MPC plus an L1 thrust augmentation whose "
+            "predictor includes that model (`arcade_control.methods.arcade_method`)."
+            if "arcade" in order
+            else ""
+        )
+        + " Scenario, seeds and metrics of `arcade eval "
         f"quadrotor`; mean over {r['trials']} trials per cell; every method tuned in the same "
         "run (" + ", ".join(f"{k} = {v:g}" for k, v in tuned.items()) + "); best in bold.",
         "",

@@ -80,7 +80,7 @@ import numpy as np
 
 from arcade_control.hover import hold_setpoint
 from arcade_control.scenario import trial
-from arcade_io import flightlog
+from arcade_io import flightlog, hostcpu
 from arcade_io.traced import load_or_trace
 from services import options, runtime
 from services.csvlog import StreamedCsv
@@ -139,6 +139,7 @@ class SimNode(runtime.Service):
         self._tick_wall: dict[float, float] = {}
         self._answered: set[float] = set()
         self._s2a = runtime.LatencySamples()  # of the answers to the mission's instants
+        self._steal0: float | None = None  # host steal time when the realtime loop began
         self._flight_stamp = -math.inf  # stamp of the first mission tick
         self._release_at = math.inf  # stamp of a release_payload command
         self._gyro = np.zeros(3)
@@ -476,6 +477,7 @@ class SimNode(runtime.Service):
         sub = self.args.substep
         epoch = self.now()
         self.stats["epoch"] = epoch
+        self._steal0 = hostcpu.steal_s()
 
         def mono(t_sim: float) -> float:
             return epoch + t_sim
@@ -553,6 +555,10 @@ class SimNode(runtime.Service):
                 self.stats["overruns"] = self.stats.get("overruns", 0) + 1
 
     def teardown(self) -> None:
+        steal0, steal1 = self._steal0, hostcpu.steal_s()
+        if steal0 is not None and steal1 is not None:
+            # CPU time the hypervisor took from this machine while the realtime loop ran.
+            self.stats["host_steal_s"] = round(steal1 - steal0, 3)
         self.stats["sense_to_actuate"] = self._s2a.summary()
         self.stats["s2a_samples_ms"] = self._s2a.samples_ms()
         # Shares of sense-to-actuate at the vehicle: sample instant -> imu put, and the

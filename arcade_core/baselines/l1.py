@@ -106,7 +106,13 @@ def _adaptation_gain(a_s: Array, dt: Array) -> Array:
     return e / phi
 
 
-def update(state: L1State, x: Array, u_applied: Array, dt: float | Array) -> L1State:
+def update(
+    state: L1State,
+    x: Array,
+    u_applied: Array,
+    dt: float | Array,
+    known_accel: Array | None = None,
+) -> L1State:
     """One L1 step at a new measured state (state predictor + adaptation + filter).
 
     Hovakimyan & Cao (2010), Ch. 2.4 (piecewise-constant adaptation) as used for
@@ -114,6 +120,11 @@ def update(state: L1State, x: Array, u_applied: Array, dt: float | Array) -> L1S
     low-pass filter). ``u_applied`` is the input that was applied over the interval
     ending at ``x`` (baseline command plus the previous correction); it is ignored on
     the very first call, which only synchronises the predictor with ``x``.
+
+    ``known_accel`` (world frame, m/s^2, (3,)): an acceleration the controller's model
+    already predicts over the interval beyond the nominal model (a learned residual), added
+    to the predictor as in L1-GP (Gahlawat et al., 2020), so the estimate is what that model
+    misses; ``None``: zero (the plain augmentation).
     """
     p = state.params
     dt = jnp.asarray(dt, x.dtype)
@@ -130,6 +141,8 @@ def update(state: L1State, x: Array, u_applied: Array, dt: float | Array) -> L1S
         + rp @ state.sigma_force / p.mass
         + p.a_s * (state.v_hat - vp)
     )
+    if known_accel is not None:
+        v_dot = v_dot + known_accel
     w_dot = (u_applied[1:4] + state.sigma_rates - wp) / p.rate_tau + p.a_s_rot * (state.w_hat - wp)
     v_hat = jnp.where(state.started, state.v_hat + dt * v_dot, v)
     w_hat = jnp.where(state.started, state.w_hat + dt * w_dot, w)

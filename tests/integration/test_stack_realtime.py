@@ -25,7 +25,14 @@ def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
     ticks = sim["steps"]
     assert ticks == 181  # 6 s at 30 Hz, both ends included
     # Fewer than 1 % of the control instants without their setpoint before the next one.
-    assert sim["missed_deadlines"] < 0.01 * ticks, sim["missed_deadlines"]
+    # (The CPU time the hypervisor took from this machine meanwhile says whether a miss
+    # was the stack's or the host's.)
+    assert sim["missed_deadlines"] < 0.01 * ticks, (
+        sim["missed_deadlines"],
+        sim.get("host_steal_s"),
+        sim["sense_to_actuate"],
+    )
+    assert sim["host_steal_s"] >= 0.0
     assert sim["sense_to_actuate"]["n"] >= 0.99 * ticks
     assert sim["wall_s"] - sim["preroll_s"] == pytest.approx(6.0, abs=0.5)  # wall clock
     for name in ("estimator", "adapter", "controller", "recorder"):

@@ -98,3 +98,28 @@ def test_rotational_channel_cancels_rate_disturbance():
     np.testing.assert_allclose(x_off[10:13], dist, rtol=1e-6)  # not corrected
     np.testing.assert_allclose(st_off.sigma_rates, dist, rtol=0.03)  # but estimated
     assert float(jnp.max(jnp.abs(x_on[10:13]))) < 0.05 * float(jnp.max(jnp.abs(dist)))
+
+
+@pytest.mark.parametrize("known_share", [0.0, 0.75, 1.0])
+def test_known_acceleration_leaves_only_what_the_model_misses(known_share):
+    # L1-GP: the predictor includes what a learned model predicts; the estimate (and the
+    # correction) is the rest of the disturbance, and the thrust still cancels all of it.
+    params = l1.L1Params(mass=MASS, gravity=G, rate_tau=TAU)
+    force = jnp.array([0.0, 0.0, -0.8])
+    known = known_share * force / MASS  # the model's share, as an acceleration
+    x0 = _hover()
+    u_model = jnp.array([MASS * G - known_share * float(force[2]), 0.0, 0.0, 0.0])
+
+    def step(carry, _):
+        x, st = carry
+        u = u_model + l1.correction(st, x)
+        x = _plant_step(x, u, force, jnp.zeros(3))
+        return (x, l1.update(st, x, u, DT, known_accel=known)), None
+
+    st0 = l1.update(l1.init(params), x0, u_model, DT, known_accel=known)
+    (x, state), _ = jax.jit(lambda c: jax.lax.scan(step, c, None, length=STEPS))((x0, st0))
+    missed = (1.0 - known_share) * float(force[2])
+    assert abs(float(state.sigma_force[2]) - missed) < 0.03 * abs(float(force[2]))
+    assert abs(float(l1.correction(state, x)[0]) + missed) < 0.03 * abs(float(force[2]))
+    thrust = float(u_model[0] + l1.correction(state, x)[0])
+    assert abs(thrust - MASS * G + float(force[2])) < 0.03 * abs(float(force[2]))  # all of it

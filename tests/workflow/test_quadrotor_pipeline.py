@@ -200,6 +200,41 @@ def test_beam_variants_start_from_the_offline_decoder():
         assert float(a.config.beta) == want, name
 
 
+def test_the_flagship_plans_with_the_learned_model_and_cancels_only_what_it_misses():
+    """``arcade``: ours_matched's beam (intercept column at zero, its own knobs) plus an L1
+    thrust augmentation whose predictor includes the learned model: a model that predicts
+    the disturbance exactly leaves the augmentation nothing to cancel."""
+    from arcade_control.methods import make_method
+    from arcade_control.nominal import f_nom
+
+    vld, _, extra = load_model(QUADROTOR_WEIGHTS)
+    models = SimpleNamespace(
+        vld=vld,
+        guard=guard_from_metadata(extra),
+        closedloop={"arcade_beta": 0.5, "arcade_l1_cutoff": 20.0, "arcade_l1_a_s": -1.0},
+    )
+    a = initial_learner("arcade", models, jnp.float64)
+    d, l = vld.theta0.shape
+    assert np.asarray(a.beam.means[0]).shape == (d, l + 1)
+    assert float(a.config.beta) == 0.5
+    assert float(a.l1.params.cutoff_thrust) == 20.0 and float(a.l1.params.a_s) == -1.0
+    assert not bool(a.l1.params.rotational)  # thrust channel only
+    method = make_method("arcade")
+    x0 = jnp.asarray(np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0], jnp.float64)
+    u = jnp.asarray([2.0, 0.0, 0.0, 0.0], jnp.float64)
+    a = a._replace(l1=a.l1._replace(x_prev=x0, v_hat=x0[3:6], started=jnp.ones((), bool)))
+    # The next state exactly as the (updated) learned model predicts it.
+    learned = method.learn(a, x0, u, method.step_fn(x0, u, method.model(a)))
+    x1 = method.step_fn(x0, u, method.model(learned))
+    assert float(jnp.abs(x1 - f_nom(x0, u))[3:6].max()) > 1e-4  # the model predicts a force
+    a = method.learn(a, x0, u, x1)
+    np.testing.assert_allclose(a.l1.sigma_force, 0.0, atol=1e-9)
+    np.testing.assert_allclose(method.correction(a, x1), 0.0, atol=1e-9)
+    # A state the model does not explain: the augmentation pushes against the remainder.
+    a2 = method.learn(a, x1, u, f_nom(x1, u).at[5].add(-0.05))
+    assert float(method.correction(a2, x1)[0]) > 0.0
+
+
 def test_tuning_flies_only_the_methods_asked_for():
     """The variants' knobs are tuned in their own run; the others keep their defaults."""
     models = SimpleNamespace()
@@ -212,8 +247,15 @@ def test_tuning_flies_only_the_methods_asked_for():
             return SimpleNamespace(metrics={"rmse_m": abs(np.log(s2 / 1e-2))})
 
     out = cl.tune(models, runner=FakeRunner(), methods=VARIANTS)
-    assert flown == {"ours_matched"}
-    assert set(out["chosen"]) == {"ours_matched_beta", "ours_matched_sigma2"}
+    assert flown == set(VARIANTS) == {"ours_matched", "arcade"}
+    assert set(out["chosen"]) == {
+        "ours_matched_beta",
+        "ours_matched_sigma2",
+        "arcade_beta",
+        "arcade_sigma2",
+        "arcade_l1_cutoff",
+        "arcade_l1_a_s",
+    }
     assert out["chosen"]["ours_matched_sigma2"] == 1e-2
     assert models.closedloop["ours_beta"] == TUNED_DEFAULTS["ours_beta"]
 
