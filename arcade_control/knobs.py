@@ -16,6 +16,10 @@ METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
 #: The product's own controller (:func:`arcade_control.methods.arcade_method`): what the
 #: stack flies by default; not the paper's method.
 FLAGSHIP = "arcade"
+#: The flagship without one of its parts (with its knobs): without the learned model (its
+#: L1 augmentation on the nominal MPC), without the augmentation (its beam alone), without
+#: changepoints (one hypothesis that never tempers).
+FLAGSHIP_ABLATIONS = ("arcade_no_model", "arcade_no_l1", "arcade_no_cp")
 #: Variants of ours that are not the paper's method, flown beside it by
 #: :mod:`benchmarks.quadrotor_variants` (:func:`beam_method`).
 VARIANTS = ("ours_matched", "arcade")
@@ -81,6 +85,8 @@ def knob_owner(name: str) -> str:
     name = base_name(name)
     if name.startswith("ours") and name != "ours_matched":
         return "ours"
+    if name in FLAGSHIP_ABLATIONS:
+        return FLAGSHIP
     return name
 
 

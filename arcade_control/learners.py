@@ -13,6 +13,7 @@ from arcade_control.knobs import (
     BEAM_VARIANTS,
     FIFO,
     FLAGSHIP,
+    FLAGSHIP_ABLATIONS,
     MLP_INPUT_STD,
     ORACLE,
     TUNED_DEFAULTS,
@@ -52,6 +53,8 @@ def initial_learner(name: str, models, dtype) -> Any:
     tuned = {**TUNED_DEFAULTS, **getattr(models, "closedloop", {})}
     if name == "l1":
         return _l1_state(tuned["l1_cutoff"], tuned["l1_cutoff_rates"], tuned["l1_a_s"], dtype)
+    if name == "arcade_no_model":
+        return _l1_state(tuned["arcade_l1_cutoff"], 0.0, tuned["arcade_l1_a_s"], dtype)
     guard = make_guard(models, dtype)
     if name == "gp":
         return cast(gp.init(scale_gp_noise(models.gp, tuned["gp_noise_scale"]), FIFO)), guard
@@ -66,13 +69,14 @@ def initial_learner(name: str, models, dtype) -> Any:
     cfg = adaptation.quadrotor_config()._replace(
         beta=tuned[f"{knobs}_beta"], sigma2=tuned[f"{knobs}_sigma2"]
     )
-    if name == "ours_no_cp":
+    if name in ("ours_no_cp", "arcade_no_cp"):
         cfg = no_cp_config(cfg)
     elif name.startswith("ours_K"):
         cfg = cfg._replace(K=int(name[len("ours_K") :]))
     vld = cast(models.vld)
     theta0 = vld.theta0
-    if name == FLAGSHIP or BEAM_VARIANTS.get(name, (False, False))[0]:  # intercept: zero column
+    flagship = name == FLAGSHIP or name in FLAGSHIP_ABLATIONS
+    if flagship or BEAM_VARIANTS.get(name, (False, False))[0]:  # intercept: zero column
         theta0 = jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
     beam = adaptation.init(theta0, cfg)
     traced_cfg = adaptation.AdaptationConfig(
@@ -86,7 +90,7 @@ def initial_learner(name: str, models, dtype) -> Any:
     )
     zero = jnp.zeros((), dtype)
     learner = BeamLearner(vld, beam, traced_cfg, guard, zero, zero)
-    if name == FLAGSHIP:  # thrust channel only
+    if name in (FLAGSHIP, "arcade_no_cp"):  # thrust channel only
         l1_state = _l1_state(tuned["arcade_l1_cutoff"], 0.0, tuned["arcade_l1_a_s"], dtype)
         learner = learner._replace(l1=l1_state)
     return learner

@@ -25,7 +25,14 @@ import jax.numpy as jnp
 from jax import Array
 
 from arcade_control.guard import Guard, clip_residual
-from arcade_control.knobs import BEAM_VARIANTS, FLAGSHIP, METHODS, ORACLE, base_name
+from arcade_control.knobs import (
+    BEAM_VARIANTS,
+    FLAGSHIP,
+    FLAGSHIP_ABLATIONS,
+    METHODS,
+    ORACLE,
+    base_name,
+)
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import f_nom, nominal_params
 from arcade_core import adaptation, encoder
@@ -251,7 +258,7 @@ def beam_method(name: str = "ours", intercept: bool = False, matched: bool = Fal
     return Method(name, step_fn, learn, model, sigma, _no_correction, info, learned=True)
 
 
-def arcade_method() -> Method:
+def arcade_method(name: str = FLAGSHIP) -> Method:
     """The product's controller ``arcade``: the ARCADE model in the MPC, the remainder
     cancelled every period (not the paper's method; ``docs/quadrotor-closed-loop.md``).
 
@@ -261,8 +268,16 @@ def arcade_method() -> Method:
       learned model (L1-GP): its piecewise-constant law estimates, and its low-pass filter
       cancels, only the force the learned model misses over the last period; the thrust
       correction acts between the MPC's plans like integral action.
+
+    ``name`` one of :data:`FLAGSHIP_ABLATIONS`: the flagship without its learned model (the
+    augmentation on the nominal MPC), without the augmentation, or without changepoints
+    (its learner, :func:`arcade_control.learners.initial_learner`, has one hypothesis).
     """
-    base = beam_method("arcade", intercept=True, matched=True)
+    if name == "arcade_no_model":
+        return l1_method()._replace(name=name)
+    base = beam_method(name, intercept=True, matched=True)
+    if name == "arcade_no_l1":
+        return base
 
     def learn(a: BeamLearner, xp, up, x):
         a = base.learn(a, xp, up, x)
@@ -282,8 +297,8 @@ def make_method(name: str) -> Method:
         return nominal_method()
     if name == "l1":
         return l1_method()
-    if name == FLAGSHIP:
-        return arcade_method()
+    if name == FLAGSHIP or name in FLAGSHIP_ABLATIONS:
+        return arcade_method(name)
     if name == "gp":
         return gp_method()
     if name == "mlp":
@@ -295,5 +310,5 @@ def make_method(name: str) -> Method:
         return beam_method(name)
     if name == ORACLE:
         return oracle_mass_method()
-    known = (*METHODS, FLAGSHIP, *BEAM_VARIANTS)
+    known = (*METHODS, FLAGSHIP, *FLAGSHIP_ABLATIONS, *BEAM_VARIANTS)
     raise ValueError(f"unknown method {name!r} (one of {', '.join(known)})")

@@ -39,11 +39,10 @@ from arcade_control.nominal import f_nom
 from arcade_control.scenario import Scenario
 from arcade_control.stack import detection_config, stack_knobs
 from arcade_core import adaptation
+from benchmarks.quadrotor_protocol import LINK_DELAY_S
 
 #: A declaration at most this long after the release is a hit [s].
 HIT_S = 0.25
-#: The setpoint delay of the simulated PX4 link [s] (``arcade up --link-delay``).
-LINK_DELAY_S = 0.02
 PAYLOADS_G = (75.0, 125.0, 175.0)
 SPEEDS_MPS = (0.5, 1.5, 2.5)
 #: Seeds of the tuning flights (the evaluation flies 0, 1, ...).

@@ -44,7 +44,9 @@ Methods:
   (:func:`arcade_core.adaptation.quadrotor_config`);
 - ``ours_matched`` (:data:`VARIANTS`, not the paper's method, not in :data:`METHODS`):
   ours with an intercept feature, planning with :func:`matched_residual` only; flown by
-  ``arcade bench variants`` (:mod:`benchmarks.quadrotor_variants`).
+  ``arcade bench variants`` (:mod:`benchmarks.quadrotor_variants`);
+- ``arcade``: the product's controller (not the paper's method,
+  :func:`arcade_control.methods.arcade_method`), in :data:`EVAL_METHODS`.
 
 Units of the variance that modulates ``Q`` (Sec. IV, ``alpha1 = 10``, ``alpha2 = 1e3``):
 Sec. IV builds ``sigma_tot^2`` from the posterior of the regression itself (``mu_{k,h}``,
@@ -113,7 +115,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from arcade_control.guard import cast as _cast
-from arcade_control.knobs import HELD, METHODS, TUNED_DEFAULTS, TUNING_METHOD, knobs_of
+from arcade_control.knobs import (
+    FLAGSHIP,
+    FLAGSHIP_ABLATIONS,
+    HELD,
+    METHODS,
+    TUNED_DEFAULTS,
+    TUNING_METHOD,
+    knobs_of,
+)
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import f_nom
 from arcade_control.scenario import Scenario
@@ -121,7 +131,11 @@ from arcade_core import adaptation, encoder
 from arcade_io import atomicfile
 from benchmarks.common import machine
 from benchmarks.quadrotor_flights import Flight, Runner
+from benchmarks.quadrotor_protocol import condition, format_paired, paired_differences
 
+#: What ``arcade eval quadrotor`` flies: the paper's table, the product's controller and
+#: its ablations (with its knobs).
+EVAL_METHODS = (*METHODS, FLAGSHIP, *FLAGSHIP_ABLATIONS)
 PAYLOADS_G = (75.0, 125.0, 175.0)
 SPEEDS_MPS = (0.5, 1.5, 2.5)
 BEAM_SIZES = (5, 10, 15, 20, 30)
@@ -194,7 +208,7 @@ def tune(
     models,
     progress: Callable[[str], None] = lambda msg: None,
     runner: Runner | None = None,
-    methods: Sequence[str] = METHODS,
+    methods: Sequence[str] = EVAL_METHODS,
     command_delay_s: float = 0.0,
     compensate_delay: bool = False,
     estimated: bool = False,
@@ -284,8 +298,13 @@ def run_closedloop(
     models=None,
     seed: int = 0,
     tuning: bool | None = None,
+    condition_name: str = "ideal",
 ) -> dict[str, Any]:
     """Table III analogue: every (payload, speed) cell x method, ``trials`` seeded flights.
+
+    ``condition_name``: ``ideal`` or ``stack`` (:mod:`benchmarks.quadrotor_protocol`); the
+    tuning and every flight are in that condition. With L1 among the methods, ``paired``
+    holds every other method's paired RMSE difference to it per cell.
 
     ``quick``: one trial of the 175 g / 2.5 m/s cell (a few minutes on a laptop CPU,
     most of it compiling the six controllers). ``cells`` are ``(payload_g, speed_mps)``
@@ -299,7 +318,8 @@ def run_closedloop(
     from benchmarks.quadrotor_openloop import prepare_models
 
     t_start = time.perf_counter()
-    methods = tuple(methods) if methods is not None else METHODS
+    methods = tuple(methods) if methods is not None else EVAL_METHODS
+    cond = condition(condition_name)
     if quick:
         trials = 1
         cells = cells if cells is not None else [(175.0, 2.5)]
@@ -309,16 +329,36 @@ def run_closedloop(
         models = prepare_models(quick=quick, seed=seed, progress=progress)
     runner = Runner(models)
     tuning = (not quick) if tuning is None else tuning
-    tuning_result = tune(models, progress, runner, methods) if tuning else None
+    tuning_result = (
+        tune(
+            models,
+            progress,
+            runner,
+            methods,
+            cond.command_delay_s,
+            compensate_delay=cond.compensate_delay,
+            estimated=cond.estimated,
+        )
+        if tuning
+        else None
+    )
     rows, per_trial, fig5 = [], [], {}
     for pay, speed in cells:
-        scen = Scenario(payload_g=float(pay), speed_mps=float(speed))
+        scen = Scenario(
+            payload_g=float(pay), speed_mps=float(speed), command_delay_s=cond.command_delay_s
+        )
         for name in methods:
             progress(f"{pay:g} g, {speed:g} m/s: {name} ({trials} trial(s))")
             vals: dict[str, list[float]] = {k: [] for k in (*KEYS, *DIAGNOSTIC_KEYS, "crashed")}
             step_ms = []
             for trial in range(trials):
-                f = runner.fly(name, scen, seed=seed * 1000 + trial)
+                f = runner.fly(
+                    name,
+                    scen,
+                    seed=seed * 1000 + trial,
+                    estimated=cond.estimated,
+                    compensate_delay=cond.compensate_delay,
+                )
                 step_ms.append(float(np.median(f.step_ms[1:])) if f.step_ms.size > 1 else 0.0)
                 for k in vals:
                     vals[k].append(f.metrics[k])
@@ -351,7 +391,9 @@ def run_closedloop(
         "cells": rows,
         "trials": per_trial,
         "improvement_over_nominal": improvement(rows),
+        "paired": paired_differences(per_trial, vs="l1") if "l1" in methods else [],
         "settings": {
+            "condition": condition_name,
             "quick": quick,
             "trials": trials,
             "control_dt": DT,
@@ -548,6 +590,8 @@ def format_table(result: dict[str, Any]) -> str:
                 else ""
             )
         )
+    if result.get("paired"):
+        lines += format_paired(result["paired"])
     for imp in result["improvement_over_nominal"]:
         lines.append(
             f"  improvement over nominal at {imp['payload_g']:g} g, "

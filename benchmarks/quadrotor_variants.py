@@ -23,6 +23,7 @@ from typing import Any, NamedTuple
 
 from arcade_io import jsonout
 from benchmarks.common import machine
+from benchmarks.quadrotor_protocol import LINK_DELAY_S
 
 METHODS = ("l1", "ours")
 
@@ -339,9 +340,8 @@ def estimator_tuning(trials: int = 3) -> dict[str, Any]:
 #: Setpoint transport delays flown on the tuning cell [s] (:func:`command_delay`).
 DELAY_GRID_S = (0.0, 0.01, 0.02, 0.03)
 #: The delay the knobs are re-tuned at and the nine cells are flown with [s]: what the
-#: simulated PX4 chain adds (``actuation_delay`` in ``stats/px4sim.json``: median 15-20 ms
-#: per flight, 99th percentile 25 ms).
-PX4_LIKE_DELAY_S = 0.02
+#: simulated PX4 chain adds (99th percentile 25 ms).
+PX4_LIKE_DELAY_S = LINK_DELAY_S
 #: The methods of :func:`command_delay`: (row name, method, knobs) at the stored knobs.
 DELAY_METHODS = (("l1", "l1", {}), ("ours", "ours", {}), ("ours_stack", "ours", STACK_KNOBS))
 

@@ -233,6 +233,17 @@ def test_the_flagship_plans_with_the_learned_model_and_cancels_only_what_it_miss
     # A state the model does not explain: the augmentation pushes against the remainder.
     a2 = method.learn(a, x1, u, f_nom(x1, u).at[5].add(-0.05))
     assert float(method.correction(a2, x1)[0]) > 0.0
+    # The ablations fly with the flagship's knobs, each without one part.
+    no_model = initial_learner("arcade_no_model", models, jnp.float64)
+    assert float(no_model.params.cutoff_thrust) == 20.0 and float(no_model.params.a_s) == -1.0
+    plain = make_method("arcade_no_model")  # the augmentation on the nominal MPC
+    assert plain.name == "arcade_no_model" and not plain.learned
+    np.testing.assert_array_equal(plain.step_fn(x0, u, None), f_nom(x0, u))
+    no_l1 = initial_learner("arcade_no_l1", models, jnp.float64)
+    assert no_l1.l1 is None and float(no_l1.config.beta) == 0.5
+    np.testing.assert_array_equal(make_method("arcade_no_l1").correction(no_l1, x0), 0.0)
+    no_cp = initial_learner("arcade_no_cp", models, jnp.float64)
+    assert int(no_cp.config.K) == 1 and float(no_cp.config.pi) == 0.0 and no_cp.l1 is not None
 
 
 def test_tuning_flies_only_the_methods_asked_for():
@@ -317,7 +328,10 @@ def test_a_run_records_only_the_knobs_of_the_methods_it_flies():
     """A results file's setting names what its flights used, not another method's knobs;
     the beam methods other than the matched variant fly with ours' knobs."""
     paper = knobs_of({"ours_beta": 0.2}, METHODS)
-    assert set(paper) == {k for k, m in TUNING_METHOD.items() if m != "ours_matched"}
+    owners = {"ours_matched", "arcade"}  # not among the paper's methods
+    assert set(paper) == {k for k, m in TUNING_METHOD.items() if m not in owners}
+    flagship = {k for k, m in TUNING_METHOD.items() if m == "arcade"}
+    assert set(knobs_of({}, ("arcade_no_model", "arcade_no_cp"))) == flagship
     assert paper["ours_beta"] == 0.2 and paper["l1_a_s"] == TUNED_DEFAULTS["l1_a_s"]
     assert set(knobs_of({}, ("ours_K5", "ours_no_cp_held"))) == {"ours_beta", "ours_sigma2"}
     assert set(knobs_of({}, ("nominal",))) == set()
