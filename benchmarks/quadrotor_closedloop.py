@@ -42,7 +42,7 @@ Methods:
   ``tau^2 = 0.1``; ``beta`` and ``sigma^2`` tuned, see below) and the offline prior re-injected
   at changepoints, which Lemma 2's proof assumes
   (:func:`arcade_core.adaptation.quadrotor_config`);
-- ``ours_matched`` (:data:`VARIANTS`, not the paper's method, not in :data:`METHODS`):
+- ``ours_matched`` (:data:`VARIANTS`, not the paper's method, not in :data:`EVAL_METHODS`):
   ours with an intercept feature, planning with :func:`matched_residual` only; flown by
   ``arcade bench variants`` (:mod:`benchmarks.quadrotor_variants`);
 - ``arcade``: the product's controller (not the paper's method,
@@ -116,10 +116,8 @@ import numpy as np
 
 from arcade_control.guard import cast as _cast
 from arcade_control.knobs import (
-    FLAGSHIP,
-    FLAGSHIP_ABLATIONS,
+    EVAL_METHODS,
     HELD,
-    METHODS,
     TUNED_DEFAULTS,
     TUNING_METHOD,
     knobs_of,
@@ -133,9 +131,6 @@ from benchmarks.common import machine
 from benchmarks.quadrotor_flights import Flight, Runner
 from benchmarks.quadrotor_protocol import condition, format_paired, paired_differences
 
-#: What ``arcade eval quadrotor`` flies: the paper's table, the product's controller and
-#: its ablations (with its knobs).
-EVAL_METHODS = (*METHODS, FLAGSHIP, *FLAGSHIP_ABLATIONS)
 PAYLOADS_G = (75.0, 125.0, 175.0)
 SPEEDS_MPS = (0.5, 1.5, 2.5)
 BEAM_SIZES = (5, 10, 15, 20, 30)

@@ -14,13 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from arcade_control.knobs import FLAGSHIP_ABLATIONS
+from arcade_control.knobs import EVAL_METHODS
 from arcade_io import jsonout
 from benchmarks.common import RESULTS
 
 QUADROTOR_DIR = RESULTS / "quadrotor"
 QUADROTOR_COMMAND = f"arcade eval quadrotor --out {QUADROTOR_DIR.as_posix()}"
-METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours", "arcade", *FLAGSHIP_ABLATIONS)
+METHODS = EVAL_METHODS
 
 
 def cell_table(

@@ -54,6 +54,12 @@ def run(args: argparse.Namespace) -> int:
     from arcade_io import jaxsetup
     from arcade_io.runs import check_output_dir, check_runs_root, new_run_dir
 
+    if args.condition != "ideal" and args.system != "quadrotor":
+        print(
+            f"error: --condition {args.condition} applies to the quadrotor evaluation only",
+            file=sys.stderr,
+        )
+        return 2
     # The output folder is checked before the (long) evaluation starts.
     try:
         if args.out is not None:

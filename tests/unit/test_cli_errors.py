@@ -295,6 +295,15 @@ def test_eval_checks_out_before_the_evaluation(quad_log, monkeypatch, capsys):
     assert not (quad_log.parent / "runs").exists()
 
 
+def test_eval_condition_belongs_to_the_quadrotor(quad_log, monkeypatch, capsys):
+    _forbid(monkeypatch, "benchmarks.cartpole_eval.evaluate")
+    _forbid(monkeypatch, "benchmarks.changepoints.run_changepoints")
+    for system in ("cartpole", "changepoints"):
+        assert _exit_code(["eval", system, "--condition", "stack"]) == 2
+        assert "--condition stack applies to the quadrotor evaluation only" in _error_line(capsys)
+    assert not (quad_log.parent / "runs").exists()
+
+
 @pytest.mark.parametrize("mode", ["--sweep", "--limits"])
 def test_bench_discrepancy_rejects_unknown_effects(monkeypatch, capsys, mode):
     _forbid(monkeypatch, "benchmarks.discrepancy.sweep")
