@@ -23,7 +23,10 @@ Clock modes (design §3):
   pose for ``--preroll`` seconds and until setpoints stream (PX4 engages offboard control
   only on a setpoint stream); then a ``start`` command carries the stamp at which the
   mission clock starts. A flight control instant whose setpoint has not arrived before the
-  next instant is a missed deadline (pre-roll instants are ``startup_ticks``). Stamps are
+  next instant is a missed deadline (pre-roll instants are ``startup_ticks``); one whose
+  period the hypervisor took CPU time from this machine (``steal`` in ``/proc/stat``,
+  10 ms resolution) is also counted in ``missed_deadlines_host_steal``, and
+  ``stolen_periods`` counts the flight's periods with steal. Stamps are
   ``time.monotonic()``-based; a control instant is stamped with its sample instant (when
   the physics was there), not with the moment the loop got round to publishing it, so
   consecutive instants are exactly one period apart; sense-to-actuate latency counts from
@@ -165,6 +168,8 @@ class SimNode(runtime.Service):
             steps=0,
             timeouts=0,
             missed_deadlines=0,
+            missed_deadlines_host_steal=0,
+            stolen_periods=0,
             released_at=None,
             crashed=False,
             mode="lockstep" if a.lockstep else "realtime",
@@ -483,6 +488,7 @@ class SimNode(runtime.Service):
             return epoch + t_sim
 
         n, t_next, prev_tick, applied = 0, 0.0, None, None
+        steal_prev = self._steal0  # host steal at the previous control instant
         k = -1  # flight step; negative during the pre-roll
         t_start = 0.0
         u = sim.setpoint
@@ -494,8 +500,15 @@ class SimNode(runtime.Service):
                     engaged = self._latest is not None
                     missed = prev_tick is not None and prev_tick not in self._answered
                     answer = None if missed else self._setpoints.get(prev_tick)
+                # Did the hypervisor take CPU time during the period that just ended?
+                steal = hostcpu.steal_s()
+                stolen = steal is not None and steal_prev is not None and steal > steal_prev
+                steal_prev = steal
+                if k >= 0 and stolen:
+                    self.stats["stolen_periods"] += 1
                 if k >= 0 and missed:
                     self.stats["missed_deadlines"] += 1
+                    self.stats["missed_deadlines_host_steal"] += int(stolen)
                 elif missed:
                     self.stats["startup_ticks"] = self.stats.get("startup_ticks", 0) + 1
                 # The sample instant, not the (later, jittered) moment this loop gets
