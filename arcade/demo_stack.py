@@ -107,10 +107,11 @@ def run_demo(
     truth_state: bool = False,
     hub: str | None = None,
     link_delay_s: float = 0.0,
+    method: str = "ours",
 ) -> dict[str, Any]:
     """Fly the demo through the stack; writes the run folder and returns the summary.
     ``link_delay_s``: the link delay the controller and the adapter compensate
-    (``arcade up --link-delay``)."""
+    (``arcade up --link-delay``); ``method``: ``ours`` or ``arcade`` (``--method``)."""
     from tqdm import tqdm
 
     from arcade_control.scenario import Scenario
@@ -132,6 +133,7 @@ def run_demo(
         extra=dict(extra or {}),
         truth_state=truth_state,
         link_delay_s=link_delay_s,
+        method=method,
     )
     out = cfg.out  # absolute: where the services write, whatever the working directory
 
@@ -173,7 +175,7 @@ def run_demo(
         exit_codes=result["codes"],
         adaptation="nominal"
         if any(e["kind"] == "degraded" and "weights" in e["text"] for e in result["events"])
-        else "ours",
+        else method,
         settings={
             "payload_g": payload_g,
             "speed_mps": speed,
@@ -181,6 +183,7 @@ def run_demo(
             "rate_hz": rate,
             "lockstep": lockstep,
             "x64": x64,
+            "method": method,
         },
     )
     rejects, failures = {}, {}

@@ -15,12 +15,14 @@ import numpy as np
 METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
 #: The product's own controller (:func:`arcade_control.methods.arcade_method`), not the
 #: paper's method: the stack is to fly it by default once it beats L1 in every cell (it
-#: flies ours until then).
+#: flies ours by default until then; ``--method arcade`` flies it).
 FLAGSHIP = "arcade"
 #: The flagship without one of its parts (with its knobs): without the learned model (its
 #: L1 augmentation on the nominal MPC), without the augmentation (its beam alone), without
 #: changepoints (one hypothesis that never tempers).
 FLAGSHIP_ABLATIONS = ("arcade_no_model", "arcade_no_l1", "arcade_no_cp")
+#: The methods the service stack flies (``--method``): the paper's and the flagship.
+STACK_METHODS = ("ours", FLAGSHIP)
 #: What ``arcade eval quadrotor`` flies: the paper's table, the product's controller and
 #: its ablations (with its knobs).
 EVAL_METHODS = (*METHODS, FLAGSHIP, *FLAGSHIP_ABLATIONS)

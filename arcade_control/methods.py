@@ -61,6 +61,10 @@ class Method(NamedTuple):
     #: ``reference(model, x_ref, u_ref) -> u_ref`` replacing :func:`thrust_reference`
     #: (learned methods only; the mass oracle's is exact).
     reference: Callable | None = None
+    #: Beam methods: ``features(a, x, u) -> z`` and ``latent_variance(a, x, u)``, what the
+    #: regression sees (the adapter service computes them as ``learn`` does).
+    features: Callable | None = None
+    latent_variance: Callable | None = None
 
 
 def _zero_info(a):
@@ -255,7 +259,27 @@ def beam_method(name: str = "ours", intercept: bool = False, matched: bool = Fal
     def info(a: BeamLearner):
         return jnp.stack([a.changepoint, a.cp_prob])
 
-    return Method(name, step_fn, learn, model, sigma, _no_correction, info, learned=True)
+    return Method(
+        name,
+        step_fn,
+        learn,
+        model,
+        sigma,
+        _no_correction,
+        info,
+        learned=True,
+        features=lambda a, x, u: features(a.vld, a.guard, x, u),
+        latent_variance=lambda a, x, u: latent_variance(a.vld, x, u),
+    )
+
+
+def augmentation_step(base: Method, a: BeamLearner, xp, up, x) -> BeamLearner:
+    """The flagship's L1 step over the transition ``xp -> x`` under the input ``up`` the
+    vehicle was sent: its state predictor adds what the learned model ``base.model(a)``
+    (the one the next plan uses, updated on this transition) predicts beyond the nominal
+    model, so the augmentation estimates only what that model misses (L1-GP)."""
+    known = (base.step_fn(xp, up, base.model(a)) - f_nom(xp, up))[3:6] / DT
+    return a._replace(l1=l1.update(a.l1, x, up, DT, known_accel=known))
 
 
 def arcade_method(name: str = FLAGSHIP) -> Method:
@@ -280,10 +304,7 @@ def arcade_method(name: str = FLAGSHIP) -> Method:
         return base
 
     def learn(a: BeamLearner, xp, up, x):
-        a = base.learn(a, xp, up, x)
-        # What the updated model (the one the next plan uses) predicts over the interval.
-        known = (base.step_fn(xp, up, base.model(a)) - f_nom(xp, up))[3:6] / DT
-        return a._replace(l1=l1.update(a.l1, x, up, DT, known_accel=known))
+        return augmentation_step(base, base.learn(a, xp, up, x), xp, up, x)
 
     def correction(a: BeamLearner, x):
         return l1.correction(a.l1, x)

@@ -20,8 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from arcade_control.guard import guard_from_metadata
+from arcade_control.knobs import FLAGSHIP, STACK_METHODS
 from arcade_control.learners import initial_learner, per_output_noise
-from arcade_control.methods import clipped_features, make_method
+from arcade_control.methods import augmentation_step, clipped_features, make_method
 from arcade_core import adaptation
 from arcade_core.dynamics import quadrotor_step
 from arcade_io.weights import load_model
@@ -29,8 +30,19 @@ from arcade_io.weights import load_model
 #: Tempering of the adapter's beam at the calibrated noise (see :func:`stack_knobs`).
 STACK_BETA = 0.05
 
+#: The flagship's knobs in the stack: what ``arcade eval quadrotor --condition stack`` tunes
+#: (the estimator's state, the 20 ms link delay compensated; 4 paired seeds, in-process):
+#: ``beta``, ``sigma^2`` and the L1 cutoff land on their grids' edges (issue of the flagship:
+#: the grids extend). The adapter adds the estimator's noise to ``sigma^2`` as for ours.
+STACK_ARCADE_KNOBS = {
+    "arcade_beta": 0.9,
+    "arcade_sigma2": 1e-4,
+    "arcade_l1_cutoff": 5.0,
+    "arcade_l1_a_s": -0.1,
+}
 
-def stack_knobs() -> dict[str, Any]:
+
+def stack_knobs(method: str = "ours") -> dict[str, Any]:
     """Closed-loop knobs of the adapter that differ from the evaluation's tuned ones.
 
     The closed-loop evaluation tunes ``sigma^2`` on in-process flights; the adapter keeps
@@ -44,29 +56,54 @@ def stack_knobs() -> dict[str, Any]:
     knobs (``python -m benchmarks.quadrotor_variants delay``): the evaluation's 1e-4
     does not tolerate such a delay. Tuned in the stack's own condition (the state
     estimate, 20 ms, compensated with ``--link-delay``) it keeps them
-    (``python -m benchmarks.quadrotor_variants link``)."""
+    (``python -m benchmarks.quadrotor_variants link``).
+
+    ``method`` ``arcade``: :data:`STACK_ARCADE_KNOBS`."""
+    if method == FLAGSHIP:
+        return dict(STACK_ARCADE_KNOBS)
+    if method != "ours":
+        raise ValueError(f"the stack flies {' or '.join(STACK_METHODS)}, not {method!r}")
     return {"ours_sigma2": float(adaptation.quadrotor_config().sigma2), "ours_beta": STACK_BETA}
 
 
-def load_learner(weights: str | Path, dtype: Any) -> tuple[Any, Any]:
-    """ARCADE's adaptive state at take-off and its method, as the in-process evaluation
-    builds them (:func:`arcade_control.learners.initial_learner`) with :func:`stack_knobs`
-    (the calibrated ``sigma^2`` and the ``beta`` tuned at it), the feature/residual guard
-    of the training data, the beam at the prior. A file that is not a quadrotor VLD
-    raises ``WeightFileError``."""
+def load_learner(weights: str | Path, dtype: Any, method: str = "ours") -> tuple[Any, Any]:
+    """The adaptive state at take-off of ``method`` (one of :data:`STACK_METHODS`) and the
+    method, as the in-process evaluation builds them
+    (:func:`arcade_control.learners.initial_learner`) with :func:`stack_knobs` (ours: the
+    calibrated ``sigma^2`` and the ``beta`` tuned at it), the feature/residual guard of the
+    training data, the beam at the prior. A file that is not a quadrotor VLD raises
+    ``WeightFileError``."""
     vld, _, extra = load_model(weights, system="quadrotor")
-    models = SimpleNamespace(vld=vld, guard=guard_from_metadata(extra), closedloop=stack_knobs())
-    learner = initial_learner("ours", models, dtype)
-    return learner, make_method("ours")
+    models = SimpleNamespace(
+        vld=vld, guard=guard_from_metadata(extra), closedloop=stack_knobs(method)
+    )
+    learner = initial_learner(method, models, dtype)
+    return learner, make_method(method)
 
 
-def adapter_learner(weights: str | Path, dtype: Any) -> tuple[Any, Any]:
+def adapter_learner(weights: str | Path, dtype: Any, method: str = "ours") -> tuple[Any, Any]:
     """:func:`load_learner` with one noise variance per output (the state estimate's
     variance differs per component, see :class:`Adapter`): one covariance per output row,
     at the prior (Algorithm 1 line 1). Mathematically the same beam while all variances
-    are equal."""
-    learner, method = load_learner(weights, dtype)
-    return per_output_noise(learner), method
+    are equal. The flagship's adapter learns its model only (``arcade_no_l1``'s update,
+    the learner without its L1 state): the controller runs the augmentation."""
+    learner, method_ = load_learner(weights, dtype, method)
+    if method == FLAGSHIP:
+        learner, method_ = learner._replace(l1=None), make_method("arcade_no_l1")
+    return per_output_noise(learner), method_
+
+
+def controller_method(name: str) -> Any:
+    """What the controller service runs of ``name`` (one of :data:`STACK_METHODS`) per
+    state: the method with the adapter's learning left out (the beam arrives in the
+    ``model`` message). The flagship's ``learn`` keeps its L1 augmentation: the state
+    predictor with the model the message carries (the adapter's posterior after the
+    transition, as in the in-process loop), on the input the vehicle was sent."""
+    method = make_method(name)
+    if name != FLAGSHIP:
+        return method._replace(learn=lambda learner, x_prev, u_prev, x: learner)
+    base = make_method("arcade_no_l1")
+    return method._replace(learn=lambda a, xp, up, x: augmentation_step(base, a, xp, up, x))
 
 
 def learner_features(learner: Any, x: Any, u: Any) -> Any:
@@ -78,7 +115,9 @@ def learner_features(learner: Any, x: Any, u: Any) -> Any:
     return learner.vld.features(x, u)
 
 
-def make_adapter_update(method: Any, params: Any, base_sigma2: Any, exact: bool):
+def make_adapter_update(
+    method: Any, params: Any, base_sigma2: Any, exact: bool, detect_sigma2: Any = None
+):
     """The adapter's per-transition update and its posterior read-out, both pure JAX.
 
     ``adapt(learner, xp, up, x, h, learn, var_p, var_x)`` learns from the transition
@@ -93,30 +132,39 @@ def make_adapter_update(method: Any, params: Any, base_sigma2: Any, exact: bool)
     (:func:`arcade_core.adaptation.state_noise_sigma2`). ``exact``: the transition spans
     the model's own step, and the method's own ``learn`` runs (bit-identical to the
     in-process loop); otherwise the same update with the nominal step over ``h``.
-    ``marginal(learner, x, u) -> (theta, cov, sigma_tot2)``.
+    ``marginal(learner, x, u) -> (theta, cov, sigma_tot2)``. ``detect(...)``: the
+    detector's step, its observation noise on top of ``detect_sigma2`` (default
+    ``base_sigma2``).
     """
+
+    features = getattr(method, "features", None) or learner_features
+    noise_detect = base_sigma2 if detect_sigma2 is None else detect_sigma2
+
+    def latent_variance(learner, x, u):
+        if getattr(method, "latent_variance", None) is not None:
+            return method.latent_variance(learner, x, u)
+        return learner.vld.latent_variance(x, u)
 
     def marginal(learner, x, u):
         theta, cov = adaptation.marginal_decoder(learner.beam)
         return theta, cov, method.sigma(learner, x, u)
 
-    def transition(learner, xp, up, x, h, var_p, var_x):
+    def transition(learner, xp, up, x, h, var_p, var_x, features=features, base=base_sigma2):
         """``(z, dn, sigma2)``: the features, the normalised residual of the nominal step
         and the observation noise of the transition ``xp -> x``."""
         vld = learner.vld
-        z = learner_features(learner, xp, up)
+        z = features(learner, xp, up)
         dn = vld.normalise_residual(x - quadrotor_step(xp, up, params, h))
         # Estimation noise of the two states enters the residual (errors in variables,
         # first order): its normalised variance adds to the observation noise sigma_j^2.
         J = jax.jacfwd(lambda xx: quadrotor_step(xx, up, params, h))(xp)
-        sigma2 = adaptation.state_noise_sigma2(base_sigma2, J, var_p, var_x, vld.delta_scale)
+        sigma2 = adaptation.state_noise_sigma2(base, J, var_p, var_x, vld.delta_scale)
         return z, dn, sigma2
 
     def adapt(learner, xp, up, x, h, learn, var_p, var_x):
-        vld = learner.vld
         z, dn, sigma2 = transition(learner, xp, up, x, h, var_p, var_x)
         learner = learner._replace(config=learner.config._replace(sigma2=sigma2))
-        pred = adaptation.predict(learner.beam, z, vld.latent_variance(xp, up))
+        pred = adaptation.predict(learner.beam, z, latent_variance(learner, xp, up))
         if exact:
             new = method.learn(learner, xp, up, x)
         else:
@@ -131,8 +179,13 @@ def make_adapter_update(method: Any, params: Any, base_sigma2: Any, exact: bool)
         return new, dn, pred, new.cp_prob, cp, theta, cov, sig, dated
 
     def detect(state, config, learner, xp, up, x, h, learn, var_p, var_x):
-        """The detector's step on the same transition (:func:`detection_step`)."""
-        z, dn, sigma2 = transition(learner, xp, up, x, h, var_p, var_x)
+        """The detector's step on the same transition (:func:`detection_step`), on the
+        VLD's features and the calibrated noise whatever the method (the flagship's
+        intercept and its tuned ``sigma^2`` are the learner's: the detector's knobs are
+        chosen on the paper's features and noise, ``arcade eval changepoints``)."""
+        z, dn, sigma2 = transition(
+            learner, xp, up, x, h, var_p, var_x, learner_features, noise_detect
+        )
         return adaptation.detection_step(state, z, dn, sigma2, learn, config)
 
     return adapt, marginal, detect
@@ -192,6 +245,21 @@ def with_finite_flag(step):
         return new, jnp.append(u, ok.astype(u.dtype)), diag
 
     return flagged
+
+
+def detector_prior(learner: Any) -> Any:
+    """The decoder prior mean over the VLD's features, where the adapter's detector starts
+    (the learner's prior without the flagship's intercept column)."""
+    return learner.beam.prior_mean[:, : learner.vld.theta0.shape[1]]
+
+
+def detector_noise(sigma2: Any) -> Any:
+    """The detector's observation noise beside a learner's per-output ``sigma2``: the
+    calibrated one (Appendix D), whatever the learner's tuned one (the flagship's is
+    smaller)."""
+    return jnp.full(
+        jnp.shape(sigma2), adaptation.quadrotor_config().sigma2, jnp.result_type(sigma2)
+    )
 
 
 def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, score: str = "joint"):

@@ -65,6 +65,9 @@ class StackConfig:
     #: and a CPU wake-up latency request (``CPU_WAKEUP_LATENCY_US``).
     realtime_priority: bool = True
     weights: Path | None = None
+    #: The controller the stack flies (``--method`` of the adapter and the controller):
+    #: ``ours`` (the paper's) or ``arcade`` (the product's flagship).
+    method: str = "ours"
     checkpoint: Path | None = None
     ready_timeout: float = 600.0
     log_level: str = "INFO"
@@ -185,7 +188,7 @@ class StackConfig:
         if service == "adapter":
             own += ["--checkpoint", str(self.checkpoint_path())]
         if service in ("adapter", "controller"):  # one value on both, never one alone
-            own += ["--link-delay", f"{self.link_delay_s:g}"]
+            own += ["--link-delay", f"{self.link_delay_s:g}", "--method", self.method]
         if service == "sim":
             own += ["--ready-timeout", f"{self.ready_timeout:g}"]
             consumers = [s for s in self.services() if s != "sim"]  # incl. the recorder

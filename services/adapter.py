@@ -18,7 +18,10 @@ below) gives the residual
 ``delta = x_k - f_nom(x_{k-1}, u_{k-1})``. At the default 20 Hz this is exactly the
 in-process evaluation's learning step (``benchmarks.quadrotor_closedloop``, method
 ``ours``: paper quadrotor preset, the VLD of the weights file, features clipped to their
-training range); at other rates the same update uses the nominal RK4 step over the
+training range; ``--method arcade``: the flagship's model, those features plus an
+intercept at its stack knobs ``arcade_control.stack.STACK_ARCADE_KNOBS``, the controller
+running its L1 augmentation; the changepoint detector keeps the VLD's features and the
+calibrated noise); at other rates the same update uses the nominal RK4 step over the
 elapsed time (the VLD was trained at the 0.05 s control period, so other rates adapt an
 approximate residual). The beam-marginal prediction of ``delta`` before the update
 (Eq. 10) is published as ``residual`` (normalised units, the variance split of Sec. IV,
@@ -149,6 +152,8 @@ class Adapter(runtime.Service):
         from arcade_control.stack import (
             adapter_learner,
             detection_config,
+            detector_noise,
+            detector_prior,
             make_adapter_update,
             same_hemisphere,
         )
@@ -166,7 +171,7 @@ class Adapter(runtime.Service):
         self.learner = None
         self.meta: dict[str, Any] = {}
         if weights.is_file():
-            self.learner, self.method = adapter_learner(weights, self.dtype)
+            self.learner, self.method = adapter_learner(weights, self.dtype, a.method)
             self.meta = {"weights_sha256": hashlib.sha256(weights.read_bytes()).hexdigest()}
         params = quadrotor_params(load_vehicle())
         self.model_dt = 0.05
@@ -175,8 +180,9 @@ class Adapter(runtime.Service):
         # runs; at other rates the same update with the nominal step over the elapsed time.
         exact = abs(1.0 / a.rate - self.model_dt) < 1e-9
         base_sigma2 = None if self.learner is None else self.learner.config.sigma2
+        detect_sigma2 = None if base_sigma2 is None else detector_noise(base_sigma2)
         adapt, marginal, detect = make_adapter_update(
-            getattr(self, "method", None), params, base_sigma2, exact
+            getattr(self, "method", None), params, base_sigma2, exact, detect_sigma2
         )
 
         # Traced for these arguments, loaded from disk when traced before
@@ -184,7 +190,10 @@ class Adapter(runtime.Service):
         # delay only. The update returns the learner without its (unchanged) network.
         x0, u0, var0 = np.zeros(13), np.array([5.6, 0.0, 0.0, 0.0]), np.zeros(13)
         sigma2 = None if base_sigma2 is None else np.asarray(base_sigma2).tolist()
-        key = f"link_delay={a.link_delay!r} exact={exact} sigma2={sigma2!r}"
+        key = (
+            f"link_delay={a.link_delay!r} exact={exact} sigma2={sigma2!r} method={a.method} "
+            f"detect_sigma2={adaptation.quadrotor_config().sigma2!r}"
+        )
         self._predict = load_or_trace(
             "adapter_predict",
             lambda x, var, u: predict_over_delay(x, var, u, params, a.link_delay),
@@ -206,7 +215,7 @@ class Adapter(runtime.Service):
             self._adapt = _adapt
             self._detect_config = detection_config(dtype=self.dtype)
             self._detection0 = adaptation.init_detection(
-                self.learner.beam.prior_mean, self._detect_config
+                detector_prior(self.learner), self._detect_config
             )
             self._detection = self._detection0
             self._detect = load_or_trace(
@@ -574,6 +583,7 @@ class Adapter(runtime.Service):
 
 def _extra(p) -> None:
     options.add_weights_argument(p)
+    options.add_method_argument(p)
     options.add_link_delay_argument(p)
     p.add_argument(
         "--checkpoint",

@@ -17,6 +17,14 @@ between-hypothesis parts of the beam mixture exactly (``z^T Sigma_j z`` of the
 moment-matched covariance) and the encoder part from the marginal mean (the mixture's
 encoder part also counts the spread of the hypotheses' means: slightly less caution).
 
+``--method arcade`` (the product's flagship, ``arcade_control.methods.arcade_method``; the
+adapter started with the same option): the model message holds the flagship's posterior
+(features with an intercept) and the step also runs its L1 thrust augmentation
+(``arcade_control.stack.controller_method``), whose state the controller carries from
+step to step: its predictor integrates the setpoint last sent plus what the model message
+predicts, and its filtered estimate is added to the MPC's thrust. After a step that is not
+tracking (hover, nominal MPC) its predictor synchronises again with the next state.
+
 With ``--link-delay D`` (the link delays every setpoint by ``D``, less than one period)
 the step plans from the state predicted ``D`` ahead with the setpoint in flight (the last
 MPC input; after a hover setpoint still the MPC's last one) against the reference ``D``
@@ -89,7 +97,8 @@ def _without_learner(step):
 
     def plain(*args):
         new, u, _ = step(*args)
-        return new._replace(learner=None), u
+        # What a method keeps across steps in the service: the flagship's L1 state.
+        return new._replace(learner=getattr(new.learner, "l1", None)), u
 
     return plain
 
@@ -108,6 +117,7 @@ class Controller(runtime.Service):
         from arcade_control.nominal import CONTROL_DT, nominal_params
         from arcade_control.scenario import flat_reference, reference_arguments
         from arcade_control.stack import (
+            controller_method,
             load_learner,
             one_hypothesis_beam,
             with_finite_flag,
@@ -146,21 +156,24 @@ class Controller(runtime.Service):
         )
         self._learner_nominal = jnp.zeros((), dtype)
         if weights.is_file():
-            self.learner0, method = load_learner(weights, dtype)
-            step = make_controller_step(method._replace(**no_learn), cfg, delay_s=delay)
+            self.learner0, _ = load_learner(weights, dtype, a.method)
+            step = make_controller_step(controller_method(a.method), cfg, delay_s=delay)
 
-            def learned(carry, x, k, theta, cov, x_ref_all, u_ref_all):
+            def learned(carry, x, u_sent, k, theta, cov, x_ref_all, u_ref_all):
                 learner = carry[0]
                 beam = one_hypothesis_beam(learner.beam, theta, cov)
                 carry = carry._replace(learner=learner._replace(beam=beam))
-                return step(carry, x, carry.u_mpc, k, x_ref_all, u_ref_all)
+                return step(carry, x, u_sent, k, x_ref_all, u_ref_all)
 
-            d, l = self.learner0.vld.theta0.shape
             self._theta0 = np.asarray(adaptation.marginal_decoder(self.learner0.beam)[0])
+            d, l = self._theta0.shape  # the flagship's features carry an intercept
             self._cov0 = np.broadcast_to(
                 np.asarray(self.learner0.beam.covariances[0]), (d, l, l)
             ).copy()
         u0 = jnp.asarray(self.u_hover, dtype)
+        # The flagship's L1 augmentation state, carried from step to step (None: ours).
+        self._l1 = getattr(self.learner0, "l1", None)
+        self._u_sent = self.u_hover.copy()  # the last setpoint published
         self.carry = Carry(
             self.learner0 if self.learner0 is not None else self._learner_nominal,
             jnp.broadcast_to(u0, (N, 4)),
@@ -173,7 +186,7 @@ class Controller(runtime.Service):
         # return the carry without its learner, which the next solve sets anyway.
         x0 = np.zeros(13, np.dtype(dtype))
         refs = (self.x_ref_all, self.u_ref_all)
-        key = f"link_delay={delay!r}"
+        key = f"link_delay={delay!r} method={a.method}"
         self._step_nominal = load_or_trace(
             "controller_nominal",
             _without_learner(with_finite_flag(step_nominal)),
@@ -187,6 +200,7 @@ class Controller(runtime.Service):
                 (
                     self.carry,
                     x0,
+                    u0,
                     0,
                     self._theta0.astype(x0.dtype),
                     self._cov0.astype(x0.dtype),
@@ -245,12 +259,29 @@ class Controller(runtime.Service):
         if posterior is None:
             carry = carry._replace(learner=self._learner_nominal)
             new, u = self._step_nominal(carry, x, carry.u_mpc, k, self.x_ref_all, self.u_ref_all)
+            self._new_l1 = self._resync(self._l1)
         else:
-            carry = carry._replace(learner=self.learner0)
+            learner = self.learner0
+            if self._l1 is not None:
+                learner = learner._replace(l1=self._l1)
+            carry = carry._replace(learner=learner)
             theta, cov = (np.asarray(v, dt) for v in posterior)
-            new, u = self._step_learned(carry, x, k, theta, cov, self.x_ref_all, self.u_ref_all)
+            u_sent = np.asarray(self._u_sent, dt)
+            new, u = self._step_learned(
+                carry, x, u_sent, k, theta, cov, self.x_ref_all, self.u_ref_all
+            )
+            self._new_l1 = new.learner
         self._new_carry = new._replace(learner=carry.learner)
         return np.asarray(u, dtype=float)  # (5,): the input and the finite-solution flag
+
+    @staticmethod
+    def _resync(l1_state):
+        """The flagship's L1 state after a step it did not run (hover, nominal MPC): its
+        predictor synchronises with the next state it sees instead of integrating over a
+        gap with inputs it did not see."""
+        if l1_state is None:
+            return None
+        return l1_state._replace(started=np.zeros((), bool))
 
     # -- inputs
     def on_command(self, cmd) -> None:
@@ -438,6 +469,7 @@ class Controller(runtime.Service):
             return
         self.publish(s, u, mode, solve_s)  # first: the bookkeeping below can wait
         self.carry = self._new_carry
+        self._l1 = self._new_l1
         # Hover thrust for the hover mode: what tracking on measured states needed,
         # level-equivalent (a slow mean: a few seconds).
         if not s.predicted_through_dropout:
@@ -474,6 +506,9 @@ class Controller(runtime.Service):
             self._last_stamp = s.stamp
         stamp = max(s.stamp, self._last_stamp)
         self._last_stamp = stamp
+        if mode != "track":  # the flagship's augmentation did not run on this one
+            self._l1 = self._resync(self._l1)
+        self._u_sent = u
         self.pub.put(
             Setpoint(u=u, state_seq=s.seq, stamp=stamp, mode=mode, solve_ms=min(solve_s * 1e3, 1e6))
         )
@@ -493,6 +528,7 @@ class Controller(runtime.Service):
 def _extra(p) -> None:
     options.add_plan_arguments(p)
     options.add_weights_argument(p)
+    options.add_method_argument(p)
     options.add_link_delay_argument(p)
     p.add_argument(
         "--model-timeout",

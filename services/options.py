@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from arcade_control.knobs import STACK_METHODS
 from arcade_control.scenario import Scenario
 from services.bus import DEFAULT_HUB
 
@@ -115,6 +116,21 @@ def add_weights_argument(p: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         help="VLD weights (default deploy/weights/quadrotor_vld.eqx)",
+    )
+
+
+def add_method_argument(p: argparse.ArgumentParser) -> None:
+    """The controller the stack flies, shared by the adapter and the controller (same
+    value on both: the model message's shape follows the method's features)."""
+    p.add_argument(
+        "--method",
+        choices=STACK_METHODS,
+        default="ours",
+        help="ours: the paper's method (the adapter's changepoint-aware posterior in the "
+        "uncertainty-modulated MPC); arcade: the product's flagship, the same with an "
+        "intercept feature, the model through the thrust axis, and an L1 thrust "
+        "augmentation in the controller that cancels what the model misses "
+        "(default: ours)",
     )
 
 

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from arcade_control.knobs import STACK_METHODS
+
 HELP = (
     "fly the figure-eight payload-drop demo through the full service stack (simulator, "
     "estimator, adapter, controller as processes over Zenoh); writes plot, metrics, logs"
@@ -50,6 +52,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--x64", action="store_true", help="compute in float64 (stack demo)")
     p.add_argument(
+        "--method",
+        choices=STACK_METHODS,
+        default=None,
+        help="the controller the stack flies: ours (the paper's method) or arcade (the "
+        "product's flagship: the learned model plus an L1 thrust augmentation; "
+        "docs/quadrotor-closed-loop.md) (default: ours)",
+    )
+    p.add_argument(
         "--cartpole",
         action="store_true",
         help="run the in-process cartpole adaptation demo instead",
@@ -68,6 +78,7 @@ def run_cartpole(args: argparse.Namespace) -> int:
             ("--payload-g", args.payload_g is not None),
             ("--speed", args.speed is not None),
             ("--x64", args.x64),
+            ("--method", args.method is not None),
         )
         if given
     ]
@@ -153,6 +164,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             x64=args.x64,
             weights=args.weights,
+            method=args.method or "ours",
         )
     except (StackError, ValueError, OSError) as err:
         return _error(f"{err} (run folder: {out})", 1)

@@ -7,6 +7,8 @@ import math
 import sys
 from pathlib import Path
 
+from arcade_control.knobs import STACK_METHODS
+
 HELP = "launch the service stack as processes over Zenoh (profile sim or px4)"
 
 
@@ -120,6 +122,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="quadrotor VLD weights file (default deploy/weights/quadrotor_vld.eqx); "
         "checked before anything starts",
+    )
+    p.add_argument(
+        "--method",
+        choices=STACK_METHODS,
+        default="ours",
+        help="the controller the stack flies: ours (the paper's method) or arcade (the "
+        "product's flagship: the learned model plus an L1 thrust augmentation) "
+        "(default: %(default)s)",
     )
     p.add_argument(
         "--checkpoint",
@@ -422,6 +432,7 @@ def stack_config(args: argparse.Namespace, out: Path, configs: dict[str, Path], 
         x64=args.x64,
         link_delay_s=args.link_delay,
         weights=args.weights,
+        method=args.method,
         checkpoint=args.checkpoint,
         realtime_priority=args.realtime_priority,
         bus_configs=configs,

@@ -75,11 +75,12 @@ def check_clean_run(out: Path, summary: dict) -> None:
     assert json.loads((out / "metrics.json").read_text())["rmse_m"] == summary["rmse_m"]
 
 
-def in_process_rmse(monkeypatch, delay_s: float = 0.0) -> float:
+def in_process_rmse(monkeypatch, delay_s: float = 0.0, method: str = "ours") -> float:
     """The in-process closed loop on the information the ``model`` message carries: its
     ``Q`` modulation from the moment-matched beam marginal (``moment_matched``) instead
     of the full beam, as a deployed controller receives it. ``delay_s``: a link delay,
-    compensated (``Runner.fly``'s ``compensate_delay``)."""
+    compensated (``Runner.fly``'s ``compensate_delay``); ``method``: the one flown, at
+    the stack's knobs."""
     from arcade_control import methods
     from arcade_control.guard import guard_from_metadata
     from arcade_control.scenario import Scenario
@@ -89,16 +90,18 @@ def in_process_rmse(monkeypatch, delay_s: float = 0.0) -> float:
 
     beam_method = methods.beam_method
     monkeypatch.setattr(
-        methods, "beam_method", lambda name="ours": moment_matched(beam_method(name))
+        methods,
+        "beam_method",
+        lambda name="ours", **kw: moment_matched(beam_method(name, **kw)),
     )
     vld, _, extra = load_model(DEFAULT_WEIGHTS)
     # The same trust region as the services: the one the weights file carries.
     models = types.SimpleNamespace(
-        vld=vld, guard=guard_from_metadata(extra), closedloop=stack_knobs()
+        vld=vld, guard=guard_from_metadata(extra), closedloop=stack_knobs(method)
     )
     assert models.guard is not None
     scen = Scenario(command_delay_s=delay_s)
-    flight = Runner(models).fly("ours", scen, seed=SEED, compensate_delay=delay_s > 0)
+    flight = Runner(models).fly(method, scen, seed=SEED, compensate_delay=delay_s > 0)
     assert not flight.crashed
     return flight.metrics["rmse_m"]
 
@@ -108,6 +111,19 @@ def test_lockstep_flight_matches_in_process_loop(tmp_path, monkeypatch):
     check_clean_run(tmp_path, summary)
     assert summary["adaptation"] == "ours"
     reference = in_process_rmse(monkeypatch)
+    assert abs(summary["rmse_m"] - reference) <= 0.1 * reference, (summary["rmse_m"], reference)
+
+
+def test_lockstep_flight_of_the_flagship_matches_in_process_loop(tmp_path, monkeypatch):
+    """``--method arcade``: the adapter learns the flagship's model (features with an
+    intercept), the controller runs its L1 augmentation on the model messages: the flight
+    is the in-process flagship's (within 10 %), whose thrust correction the L1 adds."""
+    summary = run_demo(
+        tmp_path, seed=SEED, x64=True, truth_state=True, progress=False, method="arcade"
+    )
+    check_clean_run(tmp_path, summary)
+    assert summary["adaptation"] == "arcade"
+    reference = in_process_rmse(monkeypatch, method="arcade")
     assert abs(summary["rmse_m"] - reference) <= 0.1 * reference, (summary["rmse_m"], reference)
 
 

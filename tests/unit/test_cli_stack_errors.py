@@ -194,6 +194,7 @@ def test_bad_numbers_are_argument_errors(elsewhere, capsys, argv, message):
         (["up", "--profile", "px4", "--on-ground"], "--on-ground is for the simulated PX4"),
         (["up", "--profile", "px4", "--takeoff-m", "-1"], "--takeoff-m must be a positive"),
         (["demo", "--cartpole", "--speed", "3", "--x64"], "--speed, --x64: not with --cartpole"),
+        (["demo", "--cartpole", "--method", "arcade"], "--method: not with --cartpole"),
         (
             ["up", "--lockstep", "--hub", "not-an-endpoint"],
             "--hub not-an-endpoint: Endpoints must be of the form <protocol>/<address>",
