@@ -146,17 +146,17 @@ TUNING_GRIDS = {
     "ours_sigma2": (0.1, 0.01, 0.001, 0.0001),
     "gp_noise_scale": (1.0, 0.1, 0.01, 0.001),
     "mlp_lr": (1e-4, 1e-3, 1e-2, 1e-1, 1.0),
-    "l1_cutoff": (5.0, 10.0, 20.0, 40.0, 80.0),
+    "l1_cutoff": (2.5, 5.0, 10.0, 20.0, 40.0, 80.0),
     "l1_cutoff_rates": (0.0, 5.0, 10.0, 20.0, 40.0, 80.0),  # 0: rate channel not applied
-    "l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1),
+    "l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1, -0.05),
     "ours_matched_beta": (0.997, 0.9, 0.5, 0.2, 0.05),
     "ours_matched_sigma2": (0.1, 0.01, 0.001, 0.0001),
     # The flagship: its beam's knobs (sigma^2 one step past the Appendix D value), then
     # its thrust augmentation's, on L1's grids.
     "arcade_beta": (0.997, 0.9, 0.5, 0.2, 0.05),
-    "arcade_sigma2": (1.0, 0.1, 0.01, 0.001, 0.0001),
-    "arcade_l1_cutoff": (5.0, 10.0, 20.0, 40.0, 80.0),
-    "arcade_l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1),
+    "arcade_sigma2": (1.0, 0.1, 0.01, 0.001, 0.0001, 0.00001),
+    "arcade_l1_cutoff": (2.5, 5.0, 10.0, 20.0, 40.0, 80.0),
+    "arcade_l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1, -0.05),
 }
 #: Where :func:`tune` starts: the presets (Appendix D ``sigma^2 = 0.1``, the GP's
 #: marginal-likelihood noise, L1 on the thrust channel only) and a middle value of the
