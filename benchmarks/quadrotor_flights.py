@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from arcade_control.knobs import HELD, base_name
+from arcade_control.knobs import FLAGSHIP, HELD, base_name
 from arcade_control.learners import initial_learner, per_output_noise
 from arcade_control.methods import BeamLearner, MassOracle, make_method
 from arcade_control.nominal import CONTROL_DT as DT
@@ -314,7 +314,9 @@ def flight_metrics(f: Flight) -> dict[str, float]:
     (``nan`` for the others).
     """
     inf = float("inf")
-    beam = base_name(f.method).startswith("ours")
+    name = base_name(f.method)
+    # The methods with a beam: ours and its variants, the flagship but without its model.
+    beam = name.startswith("ours") or (name.startswith(FLAGSHIP) and name != "arcade_no_model")
     if f.crashed:
         return {
             "rmse_m": inf,

@@ -407,8 +407,10 @@ def test_flight_diagnostics_measure_command_jumps_and_changepoints():
     assert m["thrust_increment_rms_n"] == pytest.approx(1.0)
     assert m["rate_increment_rms_rad_s"] == pytest.approx(np.sqrt(0.2**2 / 3))
     assert m["changepoint_rate"] == pytest.approx(0.3)
-    # Methods without a changepoint detector report none, not zero.
-    assert np.isnan(flight_metrics(_logged_flight("l1", u, cp))["changepoint_rate"])
+    # The flagship's beam too; methods without a changepoint detector report none, not zero.
+    assert flight_metrics(_logged_flight("arcade", u, cp))["changepoint_rate"] == pytest.approx(0.3)
+    for method in ("l1", "arcade_no_model"):
+        assert np.isnan(flight_metrics(_logged_flight(method, u, cp))["changepoint_rate"])
 
 
 def test_state_noise_adds_the_estimates_variance_through_the_model():
