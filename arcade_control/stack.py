@@ -31,9 +31,10 @@ from arcade_io.weights import load_model
 STACK_BETA = 0.05
 
 #: The flagship's knobs in the stack: what ``arcade eval quadrotor --condition stack`` tunes
-#: (the estimator's state, the 20 ms link delay compensated; 4 paired seeds, in-process):
-#: ``beta``, ``sigma^2`` and the L1 cutoff land on their grids' edges (issue of the flagship:
-#: the grids extend). The adapter adds the estimator's noise to ``sigma^2`` as for ours.
+#: (the estimator's state, the 20 ms link delay compensated; 4 paired seeds, in-process),
+#: before the L1 predictor's fix (:func:`arcade_control.methods.augmentation_step`) and with
+#: ``sigma^2``, the L1 cutoff and its pole on the edges of the grids of then (they extend
+#: past them now). The adapter adds the estimator's noise to ``sigma^2`` as for ours.
 STACK_ARCADE_KNOBS = {
     "arcade_beta": 0.9,
     "arcade_sigma2": 1e-4,
@@ -138,12 +139,10 @@ def make_adapter_update(
     """
 
     features = getattr(method, "features", None) or learner_features
+    latent_variance = getattr(method, "latent_variance", None) or (
+        lambda learner, x, u: learner.vld.latent_variance(x, u)
+    )
     noise_detect = base_sigma2 if detect_sigma2 is None else detect_sigma2
-
-    def latent_variance(learner, x, u):
-        if getattr(method, "latent_variance", None) is not None:
-            return method.latent_variance(learner, x, u)
-        return learner.vld.latent_variance(x, u)
 
     def marginal(learner, x, u):
         theta, cov = adaptation.marginal_decoder(learner.beam)
