@@ -26,7 +26,10 @@ Clock modes (design §3):
   next instant is a missed deadline (pre-roll instants are ``startup_ticks``); one whose
   period the hypervisor took CPU time from this machine (``steal`` in ``/proc/stat``,
   10 ms resolution) is also counted in ``missed_deadlines_host_steal``, and
-  ``stolen_periods`` counts the flight's periods with steal. Stamps are
+  ``stolen_periods`` counts the flight's periods with steal; ``missed_periods`` lists each
+  missed period (its start and end on the monotonic clock, and whether steal was seen), to
+  be set beside :class:`arcade_io.hostcpu.SlowdownProbe`'s record of when the machine
+  itself ran slowly. Stamps are
   ``time.monotonic()``-based; a control instant is stamped with its sample instant (when
   the physics was there), not with the moment the loop got round to publishing it, so
   consecutive instants are exactly one period apart; sense-to-actuate latency counts from
@@ -169,6 +172,7 @@ class SimNode(runtime.Service):
             timeouts=0,
             missed_deadlines=0,
             missed_deadlines_host_steal=0,
+            missed_periods=[],
             stolen_periods=0,
             released_at=None,
             crashed=False,
@@ -509,6 +513,9 @@ class SimNode(runtime.Service):
                 if k >= 0 and missed:
                     self.stats["missed_deadlines"] += 1
                     self.stats["missed_deadlines_host_steal"] += int(stolen)
+                    # The missed period on the monotonic clock, for what else watched
+                    # the machine then (arcade_io.hostcpu.SlowdownProbe).
+                    self.stats["missed_periods"].append([prev_tick, mono(t_sim), stolen])
                 elif missed:
                     self.stats["startup_ticks"] = self.stats.get("startup_ticks", 0) + 1
                 # The sample instant, not the (later, jittered) moment this loop gets

@@ -9,6 +9,7 @@ import pytest
 from mcap.reader import make_reader
 
 from arcade.demo_stack import free_hub
+from arcade_io.hostcpu import SlowdownProbe, overlaps
 from deploy.launcher import StackConfig, run_flight
 from deploy.stack_config import CPU_WAKEUP_LATENCY_US, REALTIME_PRIORITY
 
@@ -18,28 +19,41 @@ pytestmark = pytest.mark.realtime
 
 def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
     cfg = StackConfig(out=tmp_path, lockstep=False, hub=free_hub(), rate=30.0, duration=6.0)
-    result = run_flight(cfg)
+    with SlowdownProbe(tmp_path / "host") as host:
+        result = run_flight(cfg)
     assert all(code == 0 for code in result["codes"].values()), result["codes"]
     sim = json.loads((tmp_path / "stats" / "sim.json").read_text())
     assert sim["mode"] == "realtime" and not sim["crashed"]
     ticks = sim["steps"]
     assert ticks == 181  # 6 s at 30 Hz, both ends included
     # Fewer than 1 % of the control instants without their setpoint before the next one,
-    # among the periods the hypervisor left this machine's CPUs alone: no scheduling
-    # policy in the guest protects a deadline from the host taking a vCPU away (CI
-    # failed once on 2 misses while the host stole 0.38 s). The stolen periods are
-    # few, or the flight measured the host rather than the stack.
-    stack_misses = sim["missed_deadlines"] - sim["missed_deadlines_host_steal"]
+    # among the periods in which the machine itself ran at its usual speed: no scheduling
+    # policy in the guest protects a deadline from the host taking a vCPU away (steal:
+    # CI failed once on 2 misses while the host stole 0.38 s) or slowing it down (without
+    # steal, every second or two a fixed unit of work runs 3-20 times slower for 10-80 ms,
+    # which the probe records; CI failed on 6 misses, each in such an interval). Those
+    # periods are few, or the flight measured the host rather than the stack.
+    assert len(sim["missed_periods"]) == sim["missed_deadlines"]
+    host_misses = [
+        (round(b - a, 4), stolen, overlaps(host.episodes, a, b))
+        for a, b, stolen in sim["missed_periods"]
+    ]
+    stack_misses = sum(1 for _, stolen, slowed in host_misses if not (stolen or slowed))
     assert stack_misses < 0.01 * ticks, (
-        sim["missed_deadlines"],
-        sim["missed_deadlines_host_steal"],
+        host_misses,
+        host.summary,
         sim["stolen_periods"],
         sim.get("host_steal_s"),
         sim["sense_to_actuate"],
     )
+    assert sim["missed_deadlines_host_steal"] == sum(1 for _, stolen, _ in host_misses if stolen)
+    assert host.summary["cpus"] >= 1 and host.summary["fifo"], host.summary
     assert sim["stolen_periods"] <= 0.5 * ticks, (sim["stolen_periods"], sim["host_steal_s"])
     assert sim["host_steal_s"] >= 0.0
-    assert sim["sense_to_actuate"]["n"] >= 0.99 * ticks
+    # Every instant answered, but for fewer than 1 % of them outside those slow periods
+    # (an unanswered instant is a missed deadline).
+    excused = len(host_misses) - stack_misses
+    assert sim["sense_to_actuate"]["n"] >= 0.99 * (ticks - excused), (excused, host.summary)
     assert sim["wall_s"] - sim["preroll_s"] == pytest.approx(6.0, abs=0.5)  # wall clock
     for name in ("estimator", "adapter", "controller", "recorder"):
         stats = json.loads((tmp_path / "stats" / f"{name}.json").read_text())
@@ -74,6 +88,10 @@ def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
     assert np.all(np.abs(steps - 1.0 / 30.0) < substep), steps
     assert np.mean(steps) == pytest.approx(1.0 / 30.0, abs=1e-3)
     assert states[0]["x"][6] > 0.99
+    # The periods the machine ran slowly in are few (see the deadlines above).
+    stamps = [s["stamp"] for s in states]
+    slowed = sum(overlaps(host.episodes, t, t + 1.0 / 30.0) for t in stamps)
+    assert slowed <= 0.5 * len(stamps), (slowed, len(stamps), host.summary)
     # The bus measured the simulator -> estimator hop of every control instant.
     est = json.loads((tmp_path / "stats" / "estimator.json").read_text())
     assert est["hop_imu"]["n"] >= ticks and 0.0 < est["hop_imu"]["p50_ms"] < 50.0
