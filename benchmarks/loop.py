@@ -13,6 +13,10 @@ private loopback Zenoh hub) on the wall clock at 50 Hz and reports:
   3 ms;
 - ``rate_hz``: achieved control rate over the mission; ``missed_deadlines``: mission
   instants whose setpoint had not arrived by the next instant (target: 0 over 120 s);
+  ``host``: what the machine itself did meanwhile (:class:`arcade_io.hostcpu.SlowdownProbe`
+  and the steal counter): the intervals it ran slowly in, and how many of the missed
+  deadlines fell in a period it stole from or slowed
+  (``missed_deadlines_outside_host_slowdowns`` are the stack's own);
 - ``mpc_p99_ms``: the controller's solve time in the same run;
 - ``stages_ms``: sense-to-actuate stage by stage (p50, p99): the simulator's sample instant
   to its imu put, the hop to the estimator, the estimator's work, the hop to the
@@ -56,32 +60,59 @@ def _every(period: float, show: Callable[[float], None]) -> Callable[[float], No
     return on_time
 
 
+def _since_first_state(on_time: Callable[[float], None]) -> Callable[[float], None]:
+    """``on_time`` fed the time since the first state's stamp (the stack reports stamps on
+    the monotonic clock in real time, 0 before the first state)."""
+    first: list[float] = []
+
+    def hook(stamp: float) -> None:
+        if stamp > 0.0 and not first:
+            first.append(stamp)
+        if first:
+            on_time(stamp - first[0])
+
+    return hook
+
+
 def run(
     quick: bool = False,
     out: Path | None = None,
     rate: float = RATE_HZ,
     duration: float | None = None,
     progress: Callable[[str], None] | None = None,
+    method: str = "ours",
 ) -> dict[str, Any]:
-    """Fly the stack in real time and measure (see the module docstring); ``progress``
-    gets the stack's start-up lines and the simulated time every 10 s."""
+    """Fly the stack in real time with ``method`` (``ours`` or ``arcade``) and measure (see
+    the module docstring); ``progress`` gets the stack's start-up lines and the simulated
+    time every 10 s."""
     from arcade.demo_stack import free_hub
+    from arcade_io.hostcpu import SlowdownProbe, overlaps
     from benchmarks.common import machine
     from deploy.launcher import StackConfig, run_flight
 
     duration = duration if duration is not None else (20.0 if quick else 120.0)
     with tempfile.TemporaryDirectory(prefix="arcade-loop-") as tmp:
         folder = Path(out) if out is not None else Path(tmp)
-        cfg = StackConfig(out=folder, lockstep=False, hub=free_hub(), rate=rate, duration=duration)
-        if progress is None:
-            result = run_flight(cfg)
-        else:
-            progress(f"[loop] {duration:g} s real-time flight at {rate:g} Hz")
-            result = run_flight(
-                cfg,
-                progress=lambda m: progress(f"[loop] {m}"),
-                on_time=_every(10.0, lambda t: progress(f"[loop] t = {t:.0f} s")),
-            )
+        cfg = StackConfig(
+            out=folder,
+            lockstep=False,
+            hub=free_hub(),
+            rate=rate,
+            duration=duration,
+            method=method,
+        )
+        with SlowdownProbe(folder / "host") as host:
+            if progress is None:
+                result = run_flight(cfg)
+            else:
+                progress(f"[loop] {duration:g} s real-time flight at {rate:g} Hz ({method})")
+                result = run_flight(
+                    cfg,
+                    progress=lambda m: progress(f"[loop] {m}"),
+                    on_time=_since_first_state(
+                        _every(10.0, lambda t: progress(f"[loop] t = {t:.0f} s"))
+                    ),
+                )
         stats = {
             name: json.loads((folder / "stats" / f"{name}.json").read_text())
             for name in ("sim", "estimator", "controller", "adapter")
@@ -91,6 +122,9 @@ def run(
     steps = sim["steps"]
     mpc_p99 = ctl["solve"]["p99_ms"]
     s2a_p99 = sim["sense_to_actuate"]["p99_ms"]
+    by_host = [
+        bool(stolen or overlaps(host.episodes, a, b)) for a, b, stolen in sim["missed_periods"]
+    ]
     return {
         "machine": machine(),
         "hop_p50_ms": est["hop_imu"]["p50_ms"],
@@ -129,6 +163,16 @@ def run(
         "rate_hz": (steps - 1) / wall if wall > 0 else 0.0,
         "target_rate_hz": rate,
         "missed_deadlines": sim["missed_deadlines"],
+        "missed_deadlines_outside_host_slowdowns": by_host.count(False),
+        "host": {
+            "slow_intervals": host.summary["episodes"],
+            "slow_s": host.summary["slow_s"],
+            "steal_s": sim.get("host_steal_s"),
+            "stolen_periods": sim["stolen_periods"],
+            "missed_deadlines_in_host_slowdowns": by_host.count(True),
+            "probe_unit_ms": host.summary["unit_ms"],
+        },
+        "method": method,
         "control_steps": steps,
         "duration_s": duration,
         "crashed": bool(sim["crashed"]),

@@ -6,6 +6,7 @@ import argparse
 import importlib
 import sys
 
+from arcade_control.knobs import STACK_METHODS
 from arcade_io import atomicfile, jsonout
 
 HELP = (
@@ -82,6 +83,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--seed", type=count(0), default=None, help="flight seed of --sweep / --limits (default: 0)"
     )
+    lp = p.add_argument_group("loop")
+    lp.add_argument(
+        "--method",
+        choices=STACK_METHODS,
+        default=None,
+        help="the controller the stack flies (default: ours, as `arcade demo`)",
+    )
     m = p.add_argument_group("mpc")
     m.add_argument(
         "--residual",
@@ -142,6 +150,10 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    if args.method is not None and args.which != "loop":
+        print("error: --method belongs to `arcade bench loop`", file=sys.stderr)
+        return 2
+    extra_loop = {"method": args.method} if args.method is not None else {}
     if args.which == "report":
         if args.json:
             print("error: --json: `arcade bench report` writes a markdown file", file=sys.stderr)
@@ -171,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"error: --solver must be one of {', '.join(SOLVERS)}", file=sys.stderr)
             return 2
     module = importlib.import_module(BENCHES[args.which])
-    extra = {}
+    extra: dict = dict(extra_loop)
     if args.which in WITH_PROGRESS:  # long runs: a line now and then, stdout stays the result
         extra["progress"] = lambda m: print(m, file=sys.stderr, flush=True)
     try:

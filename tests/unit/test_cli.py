@@ -100,6 +100,7 @@ def test_bench_adapt_json_contract():
         (["--solver", "dogleg"], "belong to `arcade bench mpc`"),
         (["--residual", "held", "--max-steps", "0"], "belong to `arcade bench mpc`"),
         (["--json"], "--json: `arcade bench report` writes a markdown file"),
+        (["--method", "arcade"], "--method belongs to `arcade bench loop`"),
     ],
 )
 def test_bench_report_refuses_options_of_other_benchmarks(
@@ -178,3 +179,13 @@ def test_loop_shows_the_flight_time_every_period():
     for t in (0.0, 4.0, 9.9, 10.0, 15.0, 20.5, 29.0, 31.0):
         on_time(t)
     assert shown == [0.0, 10.0, 20.5, 31.0]
+
+
+def test_loop_counts_the_flight_time_from_the_first_state():
+    from benchmarks.loop import _since_first_state
+
+    seen: list[float] = []
+    hook = _since_first_state(seen.append)
+    for stamp in (0.0, 0.0, 2170.5, 2180.5, 2191.0):  # monotonic stamps once states flow
+        hook(stamp)
+    assert seen == [0.0, 10.0, 20.5]
