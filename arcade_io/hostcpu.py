@@ -53,6 +53,10 @@ class SlowdownProbe:
     ``factor`` times its usual duration (the 20th percentile over the run): the times at
     which the machine itself ran slowly. Costs about 5 % of each CPU.
 
+    Without the privilege for real-time priority (``summary["fifo"]`` false) the probe
+    runs under the normal policy and also measures the load of the guest itself: its
+    intervals then say nothing about the host.
+
     Use as a context manager around what it should watch; :attr:`episodes` (monotonic
     ``[start, end]`` seconds, merged over the CPUs) and :attr:`summary` are set on exit.
     """

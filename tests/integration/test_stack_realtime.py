@@ -34,9 +34,11 @@ def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
     # which the probe records; CI failed on 6 misses, each in such an interval). Those
     # periods are few, or the flight measured the host rather than the stack.
     assert len(sim["missed_periods"]) == sim["missed_deadlines"]
+    # A probe that could not take real-time priority waits behind the stack: it excuses
+    # nothing then.
+    slow = host.episodes if host.summary["fifo"] else []
     host_misses = [
-        (round(b - a, 4), stolen, overlaps(host.episodes, a, b))
-        for a, b, stolen in sim["missed_periods"]
+        (round(b - a, 4), stolen, overlaps(slow, a, b)) for a, b, stolen in sim["missed_periods"]
     ]
     stack_misses = sum(1 for _, stolen, slowed in host_misses if not (stolen or slowed))
     assert stack_misses < 0.01 * ticks, (
@@ -47,7 +49,7 @@ def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
         sim["sense_to_actuate"],
     )
     assert sim["missed_deadlines_host_steal"] == sum(1 for _, stolen, _ in host_misses if stolen)
-    assert host.summary["cpus"] >= 1 and host.summary["fifo"], host.summary
+    assert host.summary["cpus"] >= 1, host.summary
     assert sim["stolen_periods"] <= 0.5 * ticks, (sim["stolen_periods"], sim["host_steal_s"])
     assert sim["host_steal_s"] >= 0.0
     # Every instant answered, but for fewer than 1 % of them outside those slow periods
@@ -90,7 +92,7 @@ def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
     assert states[0]["x"][6] > 0.99
     # The periods the machine ran slowly in are few (see the deadlines above).
     stamps = [s["stamp"] for s in states]
-    slowed = sum(overlaps(host.episodes, t, t + 1.0 / 30.0) for t in stamps)
+    slowed = sum(overlaps(slow, t, t + 1.0 / 30.0) for t in stamps)
     assert slowed <= 0.5 * len(stamps), (slowed, len(stamps), host.summary)
     # The bus measured the simulator -> estimator hop of every control instant.
     est = json.loads((tmp_path / "stats" / "estimator.json").read_text())
