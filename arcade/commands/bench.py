@@ -153,7 +153,6 @@ def run(args: argparse.Namespace) -> int:
     if args.method is not None and args.which != "loop":
         print("error: --method belongs to `arcade bench loop`", file=sys.stderr)
         return 2
-    extra_loop = {"method": args.method} if args.method is not None else {}
     if args.which == "report":
         if args.json:
             print("error: --json: `arcade bench report` writes a markdown file", file=sys.stderr)
@@ -183,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"error: --solver must be one of {', '.join(SOLVERS)}", file=sys.stderr)
             return 2
     module = importlib.import_module(BENCHES[args.which])
-    extra: dict = dict(extra_loop)
+    extra: dict = {"method": args.method} if args.method is not None else {}
     if args.which in WITH_PROGRESS:  # long runs: a line now and then, stdout stays the result
         extra["progress"] = lambda m: print(m, file=sys.stderr, flush=True)
     try:

@@ -31,8 +31,9 @@ def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
     # policy in the guest protects a deadline from the host taking a vCPU away (steal:
     # CI failed once on 2 misses while the host stole 0.38 s) or slowing it down (without
     # steal, every second or two a fixed unit of work runs 3-20 times slower for 10-80 ms,
-    # which the probe records; CI failed on 6 misses, each in such an interval). Those
-    # periods are few, or the flight measured the host rather than the stack.
+    # which the probe records; CI failed on 6 misses without steal while the controller's
+    # solves took 5 times their usual time, 2 s apart). Those periods are few, or the
+    # flight measured the host rather than the stack.
     assert len(sim["missed_periods"]) == sim["missed_deadlines"]
     # A probe that could not take real-time priority waits behind the stack: it excuses
     # nothing then.

@@ -46,3 +46,10 @@ def test_the_probe_runs_on_every_cpu_and_reports_what_it_saw(tmp_path):
     assert all(ms > 0.0 for ms in probe.summary["unit_ms"])
     assert probe.episodes == sorted(probe.episodes)
     assert all(a <= b for a, b in probe.episodes)
+
+
+def test_what_the_watched_block_raises_goes_on(tmp_path):
+    with pytest.raises(KeyError, match="flight"), hostcpu.SlowdownProbe(tmp_path):
+        raise KeyError("flight")
+    assert hostcpu.usual_duration([]) == 0.0
+    assert hostcpu.usual_duration([5.0, 1.0, 2.0, 3.0, 4.0]) == 2.0
