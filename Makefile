@@ -18,12 +18,13 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/arcade demo
 
-# Unit and property tests share the cores (one worker per test file, so per-file fixtures
-# are built once); the integration tests run real-time loops and run alone so that their
-# timing assertions are not measured on a starved CPU.
+# Every test that does not fly on the wall clock shares the cores (one worker per test
+# file, so per-file fixtures are built once; lockstep flights wait for each answer); the
+# tests marked realtime run alone afterwards, so that their timing assertions are not
+# measured on a starved CPU (tests/conftest.py).
 test: lint
-	$(PY) -m pytest -q -m "not integration" -n 2 --dist loadfile --durations=15
-	$(PY) -m pytest -q -m integration --durations=15
+	$(PY) -m pytest -q -m "not realtime" -n 2 --dist loadfile --durations=15
+	$(PY) -m pytest -q -m realtime --durations=15
 
 # ruff, then the import contract of design §2 (pyproject.toml's [tool.importlinter]).
 lint: $(STAMP)

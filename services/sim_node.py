@@ -398,15 +398,32 @@ class SimNode(runtime.Service):
             self._tick_wall = {s: v for s, v in self._tick_wall.items() if s >= before}
             self._answered = {s for s in self._answered if s >= before}
 
-    def _wait_consumers(self) -> None:
+    def _wait_consumers(self) -> bool:
+        """Wait for the ``--wait-for`` services; False if a stop request came first (a
+        signal or a shutdown command is answered within 0.1 s, not after the timeout)."""
         wanted = [s for s in self.args.wait_for.split(",") if s]
-        if wanted:
-            self.log.info("waiting for %s", wanted)
-            self.bus.wait_alive(wanted, timeout=self.args.ready_timeout)
+        if not wanted:
+            return True
+        self.log.info("waiting for %s", wanted)
+        deadline = time.monotonic() + self.args.ready_timeout
+        while not self.stop.is_set():
+            left = deadline - time.monotonic()
+            try:
+                self.bus.wait_alive(wanted, timeout=max(0.0, min(0.1, left)))
+                return True
+            except TimeoutError:
+                if left <= 0.1:
+                    missing = sorted(set(wanted) - self.bus.alive)
+                    raise TimeoutError(
+                        f"not alive after {self.args.ready_timeout:g} s: {missing}"
+                    ) from None
+        self.log.info("stop requested while waiting for %s: not flying", wanted)
+        return False
 
     # -- loops
     def main(self) -> None:
-        self._wait_consumers()
+        if not self._wait_consumers():
+            return
         t0 = time.perf_counter()
         try:
             if self.args.lockstep:

@@ -9,6 +9,8 @@ the failsafe event per instant), and the physics is a vehicle at rest.
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
@@ -298,3 +300,22 @@ def test_the_simulator_service_emulates_the_links_command_delay():
     for bad in ("-0.01", "2", "nan", "soon"):
         with pytest.raises(SystemExit):
             parser.parse_args(["--command-delay", bad])
+
+
+def test_a_stop_while_waiting_for_the_consumers_is_answered_at_once():
+    # Nobody's token comes: the wait (10 minutes by default) ends with the stop request,
+    # and the simulator does not fly (no step, no "flight finished").
+    node, session = make_node("--wait-for", "controller")
+    threading.Timer(0.2, node.stop.set).start()
+    t0 = time.monotonic()
+    node.main()
+    assert time.monotonic() - t0 < 1.0
+    assert node.stats["steps"] == 0
+    events = [decode("event", p).text for p in session.published.get("arcade/test/event", [])]
+    assert "flight finished" not in events
+
+
+def test_consumers_that_never_come_time_out_naming_them():
+    node, _ = make_node("--wait-for", "estimator,controller", "--ready-timeout", "0.3")
+    with pytest.raises(TimeoutError, match=r"not alive after 0.3 s: \['controller', 'estimator'\]"):
+        node.main()
