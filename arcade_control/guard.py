@@ -47,7 +47,13 @@ def guard_from_metadata(extra: dict[str, Any] | None) -> Guard | None:
     meta = (extra or {}).get("guard")
     if meta is None:
         return None
-    return Guard(*(jnp.asarray(meta[k]) for k in Guard._fields))
+    # Through NumPy (cast on the host): a list into jnp.asarray compiles a conversion.
+    return Guard(
+        *(
+            jnp.asarray(np.asarray(meta[k], dtype=jax.dtypes.canonicalize_dtype(np.float64)))
+            for k in Guard._fields
+        )
+    )
 
 
 def make_guard(models, dtype) -> Guard:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -24,6 +26,18 @@ from arcade_control.methods import BeamLearner, MassOracle
 from arcade_control.nominal import nominal_params
 from arcade_core import adaptation
 from arcade_core.baselines import gp, l1, mlp
+
+
+@partial(jax.jit, static_argnames=("K",))
+def _init_jit(theta0, tau2, sigma2, K: int) -> adaptation.BeamState:
+    return adaptation.init(theta0, adaptation.AdaptationConfig(K, 0.0, 0.0, tau2, sigma2))
+
+
+def beam_at_prior(theta0: Any, cfg: adaptation.AdaptationConfig) -> adaptation.BeamState:
+    """``adaptation.init(theta0, cfg)`` (Algorithm 1 lines 1-2; it reads ``K``, ``tau2``
+    and ``sigma2`` only) as one compiled call: eager, its twenty-odd small operations are
+    each lowered and compiled in every process that starts a learner."""
+    return _init_jit(theta0, cfg.tau2, cfg.sigma2, K=int(cfg.K))
 
 
 def no_cp_config(cfg: adaptation.AdaptationConfig) -> adaptation.AdaptationConfig:
@@ -78,7 +92,7 @@ def initial_learner(name: str, models, dtype) -> Any:
     flagship = name == FLAGSHIP or name in FLAGSHIP_ABLATIONS
     if flagship or BEAM_VARIANTS.get(name, (False, False))[0]:  # intercept: zero column
         theta0 = jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
-    beam = adaptation.init(theta0, cfg)
+    beam = beam_at_prior(theta0, cfg)
     traced_cfg = adaptation.AdaptationConfig(
         K=jnp.asarray(cfg.K),
         pi=jnp.asarray(cfg.pi, dtype),
@@ -123,5 +137,5 @@ def per_output_noise(learner: BeamLearner) -> BeamLearner:
     dtype = learner.beam.means.dtype
     vec = cfg._replace(sigma2=jnp.broadcast_to(jnp.asarray(cfg.sigma2, dtype), (d,)))
     theta0 = learner.beam.prior_mean
-    beam = adaptation.init(theta0, vec._replace(K=int(learner.beam.means.shape[0])))
+    beam = beam_at_prior(theta0, vec._replace(K=int(learner.beam.means.shape[0])))
     return learner._replace(config=vec, beam=beam)

@@ -32,6 +32,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from arcade_core.encoder import VLD, EncoderConfig
 from arcade_io import __version__, atomicfile
@@ -128,12 +129,23 @@ def load_model(
     skeleton = eqx.filter_eval_shape(VLD, jax.random.PRNGKey(0), config, dtype=dtype)
     stream = io.BytesIO(payload)
     try:
-        model = eqx.tree_deserialise_leaves(stream, skeleton)
+        model = eqx.tree_deserialise_leaves(stream, skeleton, filter_spec=_host_cast_leaf)
     except Exception as err:  # numpy/equinox raise several types for malformed data
         raise WeightFileError(f"{path}: payload does not match the stored config: {err}") from err
     if stream.tell() != len(payload):
         raise WeightFileError(f"{path}: payload has {len(payload) - stream.tell()} extra bytes")
     return model, config, header["extra"]
+
+
+def _host_cast_leaf(f: Any, x: Any) -> Any:
+    """equinox's default leaf reader, except that an array is cast to JAX's precision
+    (float64 to float32 with x64 off) on the host: ``jnp.load`` casts on the device, which
+    lowers and compiles one conversion per leaf shape in every process that loads a model.
+    The same rounding (IEEE round to nearest) either way."""
+    if isinstance(x, (jax.Array, jax.ShapeDtypeStruct)):
+        a = np.load(f)
+        return jnp.asarray(a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False))
+    return eqx.default_deserialise_filter_spec(f, x)
 
 
 def weight_file_problem(path: str | os.PathLike[str], system: str | None = None) -> str | None:

@@ -111,6 +111,7 @@ class Controller(runtime.Service):
     def setup(self, bus) -> None:
         # Imported here, like every JAX module of the services: after runtime.setup_jax
         # has set the precision, and not for `--help`.
+        import jax
         import jax.numpy as jnp
 
         from arcade_control.methods import make_method
@@ -165,11 +166,13 @@ class Controller(runtime.Service):
                 carry = carry._replace(learner=learner._replace(beam=beam))
                 return step(carry, x, u_sent, k, x_ref_all, u_ref_all)
 
-            self._theta0 = np.asarray(adaptation.marginal_decoder(self.learner0.beam)[0])
+            # The prior's mean and covariance, in one compiled call (not op by op).
+            theta0, cov0 = jax.jit(
+                lambda beam: (adaptation.marginal_decoder(beam)[0], beam.covariances[0])
+            )(self.learner0.beam)
+            self._theta0 = np.asarray(theta0)
             d, l = self._theta0.shape  # the flagship's features carry an intercept
-            self._cov0 = np.broadcast_to(
-                np.asarray(self.learner0.beam.covariances[0]), (d, l, l)
-            ).copy()
+            self._cov0 = np.broadcast_to(np.asarray(cov0), (d, l, l)).copy()
         u0 = jnp.asarray(self.u_hover, dtype)
         # The flagship's L1 augmentation state, carried from step to step (None: ours).
         self._l1 = getattr(self.learner0, "l1", None)

@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 from arcade_control.knobs import STACK_METHODS
-from arcade_control.scenario import Scenario
 from services.bus import DEFAULT_HUB
 
 
@@ -222,6 +221,10 @@ def _xy(text: str) -> tuple[float, float]:
 
 def scenario(args: argparse.Namespace) -> Any:
     """The closed-loop scenario (take-off, hover, figure-eight) of the plan options."""
+    # Imported here: it loads JAX, which the services without a model (the recorder)
+    # then do not import at start-up.
+    from arcade_control.scenario import Scenario
+
     ox, oy = getattr(args, "origin", (0.0, 0.0))
     base = Scenario()
     return Scenario(

@@ -78,6 +78,7 @@ class Recorder(runtime.Service):
     """Recorder: MCAP log of the bus and the CSV flight log."""
 
     name = "recorder"
+    uses_jax = False
 
     def setup(self, bus) -> None:
         from mcap.writer import Writer
