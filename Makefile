@@ -21,10 +21,11 @@ demo: $(STAMP)
 # Every test that does not fly on the wall clock shares the cores (one worker per test
 # file, so per-file fixtures are built once; lockstep flights wait for each answer); the
 # tests marked realtime run alone afterwards, so that their timing assertions are not
-# measured on a starved CPU (tests/conftest.py).
+# measured on a starved CPU (tests/conftest.py); they are all integration tests, so that
+# run collects that folder only.
 test: lint
 	$(PY) -m pytest -q -m "not realtime" -n 2 --dist loadfile --durations=15
-	$(PY) -m pytest -q -m realtime --durations=15
+	$(PY) -m pytest -q -m realtime --durations=15 tests/integration
 
 # ruff, then the import contract of design §2 (pyproject.toml's [tool.importlinter]).
 lint: $(STAMP)

@@ -583,7 +583,7 @@ def main_for(
             os.nice(args.nice)
         except OSError as err:
             log.warning("could not change the priority by %d: %s", args.nice, err)
-    if cls.uses_jax:
+    if getattr(cls, "uses_jax", True):  # Service says (True unless it computes nothing)
         setup_jax(args.x64 or x64)
     code = cls(args).run()
     # Shut down: a stop request arriving now is moot. Ignored, not left to the interpreter,

@@ -12,7 +12,7 @@ A test's kind is the folder it sits in, and its marker (``-m unit``, ``-m integr
 
 Tests that fly on the wall clock and assert on its timing are also marked ``realtime``:
 ``make test`` runs them alone, after the others, so that what they measure is not the load
-of other tests.
+of other tests; they belong in ``integration/`` (that run collects only that folder).
 
 Modules shared by every folder (``loopback``) sit beside this file, which pytest puts on
 ``sys.path``. Expensive fixtures that tests only read are built once per session here.
@@ -69,6 +69,10 @@ def pytest_collection_modifyitems(config, items) -> None:
         if kind not in KINDS:
             raise pytest.UsageError(f"{item.nodeid}: a test belongs in one of tests/{KINDS}")
         item.add_marker(kind)
+        # make test runs the realtime tests from tests/integration only: elsewhere, one
+        # would run in neither of its two runs.
+        if kind != "integration" and item.get_closest_marker("realtime") is not None:
+            raise pytest.UsageError(f"{item.nodeid}: a realtime test belongs in tests/integration")
 
 
 class _Queue:
