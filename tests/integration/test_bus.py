@@ -70,6 +70,9 @@ def test_qos_table():
         assert zbus.QOS[topic].congestion_control == zenoh.CongestionControl.DROP
     for topic in ("event", "command"):
         assert zbus.QOS[topic].congestion_control == zenoh.CongestionControl.BLOCK
+    # An event and the setpoint put after it arrive in that order (the controller's
+    # failsafe acts at the instant it was raised, however loaded the machine).
+    assert zbus.QOS["event"].priority == zbus.QOS["setpoint"].priority
 
 
 def test_shipped_configs_parse_and_default_matches_builder():
