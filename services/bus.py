@@ -139,7 +139,8 @@ _DROP, _BLOCK = zenoh.CongestionControl.DROP, zenoh.CongestionControl.BLOCK
 #: were put, so the controller's failsafe event reaches the simulator before the setpoint
 #: it sends after it. At a lower priority a loaded machine delivered it a few lockstep
 #: instants late, and the hold engaged later than the controller raised it. Events are few
-#: and small: they take nothing measurable from the setpoints.
+#: and small: they take nothing measurable from the setpoints. A lockstep service opens
+#: its bus ``lossless``: every topic then blocks instead of dropping.
 QOS: Mapping[str, QoS] = MappingProxyType(
     {
         "mocap": QoS(zenoh.Priority.INTERACTIVE_HIGH, _DROP, False),
@@ -313,7 +314,7 @@ class Publisher(Generic[M]):
                 f"{self.type.SCHEMA}/{self.type.VERSION}"
             ),
             priority=qos.priority,
-            congestion_control=qos.congestion_control,
+            congestion_control=_BLOCK if bus.lossless else qos.congestion_control,
             express=qos.express,
         )
         self._seq = 0
@@ -398,8 +399,13 @@ class Bus:
         config: zenoh.Config | None = None,
         *,
         rejects: RejectCounter | None = None,
+        lossless: bool = False,
     ):
         self.vehicle = check_name("vehicle", vehicle)
+        #: Every topic blocks on congestion instead of dropping (lockstep: the simulator
+        #: waits for each answer, and a lost sample would stall the loop for the step
+        #: timeout; Zenoh drops a sample it cannot queue within 1 ms).
+        self.lossless = lossless
         self.name = check_name("service", name)
         self.config = config
         self.rejects = rejects or RejectCounter(

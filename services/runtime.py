@@ -372,7 +372,8 @@ class Service:
             config = bus_config(self.args)
         except ValueError as err:
             raise BusOpenError(str(err)) from None
-        bus = Bus(self.args.vehicle, self.name, config)
+        lockstep = bool(getattr(self.args, "lockstep", False))
+        bus = Bus(self.args.vehicle, self.name, config, lossless=lockstep)
         try:
             return bus.open()
         except zenoh.ZError as err:

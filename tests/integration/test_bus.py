@@ -75,6 +75,17 @@ def test_qos_table():
     assert zbus.QOS["event"].priority == zbus.QOS["setpoint"].priority
 
 
+def test_a_lossless_bus_blocks_on_congestion_on_every_topic():
+    # Lockstep services open their bus lossless: no sample of the loop may be dropped.
+    h = hub()
+    with Bus("quad1", "lockstep", peer_config(h), lossless=True) as bus:
+        for topic in zbus.TOPICS:
+            cc = bus.publisher(topic)._pub.congestion_control
+            assert cc == zenoh.CongestionControl.BLOCK, topic
+    with Bus("quad1", "realtime", peer_config(h)) as bus:
+        assert bus.publisher("setpoint")._pub.congestion_control == zenoh.CongestionControl.DROP
+
+
 def test_shipped_configs_parse_and_default_matches_builder():
     names = sorted(p.name for p in zbus.config_path().parent.glob("*.json5"))
     assert names == [
