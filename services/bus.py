@@ -135,12 +135,9 @@ _DROP, _BLOCK = zenoh.CongestionControl.DROP, zenoh.CongestionControl.BLOCK
 #: few percent of fresh state/setpoint exchanges on a loaded machine, none without
 #: express), and batches leave as soon as the link is idle, so express bought nothing
 #: measurable on loopback (state -> setpoint round trip ~0.3-0.4 ms either way). Events
-#: share the setpoints' priority: samples of one priority leave a link in the order they
-#: were put, so the controller's failsafe event reaches the simulator before the setpoint
-#: it sends after it. At a lower priority a loaded machine delivered it a few lockstep
-#: instants late, and the hold engaged later than the controller raised it. Events are few
-#: and small: they take nothing measurable from the setpoints. A lockstep service opens
-#: its bus ``lossless``: every topic then blocks instead of dropping.
+#: stay below every stream: the access-control tests' sentinel event arrives after what
+#: was put before it. A lockstep service opens its bus ``lossless``: every topic then
+#: blocks instead of dropping.
 QOS: Mapping[str, QoS] = MappingProxyType(
     {
         "mocap": QoS(zenoh.Priority.INTERACTIVE_HIGH, _DROP, False),
@@ -149,7 +146,7 @@ QOS: Mapping[str, QoS] = MappingProxyType(
         "setpoint": QoS(zenoh.Priority.REAL_TIME, _DROP, False),
         "model": QoS(zenoh.Priority.DATA_HIGH, _DROP, False),
         "residual": QoS(zenoh.Priority.DATA, _DROP, False),
-        "event": QoS(zenoh.Priority.REAL_TIME, _BLOCK, False),
+        "event": QoS(zenoh.Priority.DATA, _BLOCK, False),
         "command": QoS(zenoh.Priority.INTERACTIVE_HIGH, _BLOCK, False),
     }
 )

@@ -480,8 +480,8 @@ class SimNode(runtime.Service):
                         step=k,
                         ok=bool(ok),
                     )
-            # Stamped before this instant. The controller puts it before the answer to its
-            # instant, at the same priority (services.bus.QOS), so it is here by now.
+            # Stamped before this instant: whether it arrived before or after the answer
+            # to its own instant (another priority on the bus) changes nothing.
             e = self._take_controller_failsafe(before=t)
             if e is not None and not self.stop.is_set():
                 self._on_controller_failsafe(e, t, t - self._t_last_sp, flying=True)

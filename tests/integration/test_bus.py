@@ -70,9 +70,6 @@ def test_qos_table():
         assert zbus.QOS[topic].congestion_control == zenoh.CongestionControl.DROP
     for topic in ("event", "command"):
         assert zbus.QOS[topic].congestion_control == zenoh.CongestionControl.BLOCK
-    # An event and the setpoint put after it arrive in that order (the controller's
-    # failsafe acts at the instant it was raised, however loaded the machine).
-    assert zbus.QOS["event"].priority == zbus.QOS["setpoint"].priority
 
 
 def test_a_lossless_bus_blocks_on_congestion_on_every_topic():
