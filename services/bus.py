@@ -401,7 +401,7 @@ class Bus:
         self.vehicle = check_name("vehicle", vehicle)
         #: Every topic blocks on congestion instead of dropping (lockstep: the simulator
         #: waits for each answer, and a lost sample would stall the loop for the step
-        #: timeout; Zenoh drops a sample it cannot queue within 1 ms).
+        #: timeout; with ``DROP`` Zenoh discards a sample it cannot queue in time).
         self.lossless = lossless
         self.name = check_name("service", name)
         self.config = config

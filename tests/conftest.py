@@ -69,8 +69,8 @@ def pytest_collection_modifyitems(config, items) -> None:
         if kind not in KINDS:
             raise pytest.UsageError(f"{item.nodeid}: a test belongs in one of tests/{KINDS}")
         item.add_marker(kind)
-        # make test runs the realtime tests from tests/integration only: elsewhere, one
-        # would run in neither of its two runs.
+        # make test runs tests/integration alone, one test at a time: a realtime test
+        # elsewhere would be measured under the load of the parallel run.
         if kind != "integration" and item.get_closest_marker("realtime") is not None:
             raise pytest.UsageError(f"{item.nodeid}: a realtime test belongs in tests/integration")
 
