@@ -47,6 +47,21 @@ def no_cp_config(cfg: adaptation.AdaptationConfig) -> adaptation.AdaptationConfi
     )
 
 
+def forgetting_config(cfg: adaptation.AdaptationConfig, lam: float) -> adaptation.AdaptationConfig:
+    """Bayesian linear regression with exponential forgetting, as a beam: one hypothesis
+    that takes the changepoint branch at every step (``pi = 1``), so every step tempers the
+    posterior precision by ``lambda = beta^2`` (Eq. 5) before the Eq. 6 update. With
+    ``cfg.prior_floor > 0`` the offline prior is re-injected as in the beam (stabilised
+    forgetting: the precision never falls below the offline prior's), so the recursion is
+    ``P_k = lambda P_{k-1} + rho (1 - lambda) / tau^2 I + z z^T / sigma^2``. The ablation
+    that shows what the changepoint beam adds over forgetting (``arcade eval
+    changepoints``). The score is the joint one: with a single path it changes nothing,
+    and Algorithm 1's Eq. 9 posterior would be ``inf - inf`` at ``pi = 1``."""
+    if not 0.0 < lam <= 1.0:
+        raise ValueError(f"a forgetting factor lies in (0, 1], not {lam!r}")
+    return cfg._replace(K=1, pi=1.0, beta=float(np.sqrt(lam)), score="joint")
+
+
 def scale_gp_noise(model: gp.GPModel, scale: float) -> gp.GPModel:
     """``model`` with its noise variances (marginal likelihood, offline) times ``scale``."""
     h = model.hyper

@@ -30,6 +30,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from arcade_control.knobs import DETECTION_DEFAULTS
@@ -49,14 +50,20 @@ SPEEDS_MPS = (0.5, 1.5, 2.5)
 TUNING_SEEDS = (100, 101, 102)
 #: Length of a steady flight [s].
 STEADY_S = 60.0
-#: The detector's grid: beam knobs (one replay each), then the declaration knobs.
+#: The detector's grid: beam knobs and the window (replayed together, one batch per
+#: ``outputs``), then the declaration knobs.
+#: ``tracking = 0`` (no tracking) is the bottom of its range, not an edge to extend.
 GRID = {
     "outputs": ("all", "translational", "vertical"),
-    "pi": (0.01, 0.05, 0.2),
+    "pi": (0.01, 0.05, 0.2, 0.5),
     "tracking": (0.0, 0.1, 0.3),
-    "threshold": (0.5, 0.8, 0.95),
-    "refractory_steps": (5, 20),
+    "beta": (0.05, 0.3, 0.9),
+    "window": (2, 5, 10),
+    "threshold": (0.5, 0.8, 0.95, 0.99),
+    "refractory_steps": (5, 20, 50),
 }
+#: Knobs whose first value is the bottom of their range.
+RANGE_BOTTOM = {"tracking": 0.0}
 
 
 def steady_scenario(rigid: bool) -> Scenario:
@@ -176,25 +183,46 @@ def score(flights: list[dict[str, Any]], declared: list[np.ndarray]) -> dict[str
     }
 
 
-def tune(vld, guard, flights, progress) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """The grid point with the best F1 on ``flights`` (ties: fewer declarations)."""
-    inputs = [_inputs(vld, guard, f) for f in flights]
+@jax.jit
+def _probabilities(theta0, configs, z, dn, s2, learned):
+    """:func:`_replay`'s probabilities for a batch of detectors (every leaf of ``configs``
+    with a leading batch axis): one compiled program per flight length for the whole grid."""
+    return jax.vmap(lambda c: _replay(theta0, c, z, dn, s2, learned)[0])(configs)
+
+
+def tune(vld, flights, inputs, progress) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The grid point with the best F1 on ``flights`` (their replay ``inputs``; ties: fewer
+    declarations)."""
     rows = []
-    beam_keys = ("outputs", "pi", "tracking")
-    for values in itertools.product(*(GRID[k] for k in beam_keys)):
-        knobs = {**DETECTION_DEFAULTS, **dict(zip(beam_keys, values, strict=True))}
-        cfg = detection_config(knobs)
-        probs = [replay(vld.theta0, cfg, i)[0] for i in inputs]
-        for thr, refr in itertools.product(GRID["threshold"], GRID["refractory_steps"]):
-            k = {**knobs, "threshold": thr, "refractory_steps": refr}
-            s = score(flights, [declare(p, thr, refr) for p in probs])
-            rows.append({"knobs": k, **s})
-        progress(f"tuning: {values} done")
+    beam_keys = ("pi", "tracking", "beta", "window")
+    for outputs in GRID["outputs"]:
+        combos = list(itertools.product(*(GRID[k] for k in beam_keys)))
+        knobs = [
+            {**DETECTION_DEFAULTS, "outputs": outputs, **dict(zip(beam_keys, v, strict=True))}
+            for v in combos
+        ]
+        batch = jax.tree.map(
+            lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]),
+            *[detection_config(k) for k in knobs],
+        )
+        probs = [np.asarray(_probabilities(vld.theta0, batch, *i)) for i in inputs]
+        for b, k in enumerate(knobs):
+            for thr, refr in itertools.product(GRID["threshold"], GRID["refractory_steps"]):
+                declared = [declare(p[b], thr, refr) for p in probs]
+                rows.append(
+                    {"knobs": {**k, "threshold": thr, "refractory_steps": refr}}
+                    | score(flights, declared)
+                )
+        progress(f"tuning: the detectors watching the {outputs} outputs replayed")
     best = max(rows, key=lambda r: (np.nan_to_num(r["f1"]), -r["false_alarms_per_flight"]))
     knobs = dict(best["knobs"])
     # Numeric knobs whose best value is the grid's first or last (reported, not hidden).
     knobs["on_grid_edge"] = [
-        k for k, values in GRID.items() if k != "outputs" and knobs[k] in (values[0], values[-1])
+        k
+        for k, values in GRID.items()
+        if k != "outputs"
+        and knobs[k] in (values[0], values[-1])
+        and RANGE_BOTTOM.get(k) != knobs[k]
     ]
     return knobs, rows
 
@@ -204,10 +232,14 @@ def run_changepoints(
     trials: int = 10,
     tuning: bool | None = None,
     progress: Callable[[str], None] = lambda msg: None,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], dict[str, Any]]:
     """The quadrotor part of ``arcade eval changepoints``: tune (unless ``tuning`` is
     False; default: not ``quick``), then score the detector and the learner's flags on
-    ``trials`` seeds (``quick``: one seed, no tuning, the stored knobs)."""
+    ``trials`` seeds (``quick``: one seed, no tuning, the stored knobs).
+
+    Returns the result and what was flown, for the forgetting ablation
+    (:func:`benchmarks.changepoints_ablation.run_ablation`): ``theta0``, ``flights``,
+    ``inputs`` and the tuning ``tune_flights`` and ``tune_inputs`` (``None`` untuned)."""
     from benchmarks.quadrotor_flights import Runner
     from benchmarks.quadrotor_variants import models
 
@@ -217,9 +249,11 @@ def run_changepoints(
     m.closedloop = stack_knobs()
     runner = Runner(m)
     knobs, grid = dict(DETECTION_DEFAULTS), []
+    tune_flights = tune_inputs = None
     if tuning:
         tune_flights = fly(runner, TUNING_SEEDS, progress)
-        knobs, grid = tune(m.vld, m.guard, tune_flights, progress)
+        tune_inputs = [_inputs(m.vld, m.guard, f) for f in tune_flights]
+        knobs, grid = tune(m.vld, tune_flights, tune_inputs, progress)
     seeds = range(1 if quick else trials)
     flights = fly(runner, seeds, progress)
     chosen = {k: v for k, v in knobs.items() if k != "on_grid_edge"}
@@ -229,7 +263,7 @@ def run_changepoints(
     # twice): its weights are no posterior, and the same threshold means something else.
     literal = detection_config(chosen, score="algorithm1")
     declared_literal = [replay(m.vld.theta0, literal, i)[1] for i in inputs]
-    return {
+    result = {
         "detector": score(flights, declared),
         "detector_algorithm1_score": score(flights, declared_literal),
         "learner_flags": score(flights, [f["learner_flags"] for f in flights]),
@@ -242,6 +276,14 @@ def run_changepoints(
         "tuning_seeds": list(TUNING_SEEDS) if tuning else [],
         "wall_s": time.perf_counter() - t_start,
     }
+    flown = {
+        "theta0": m.vld.theta0,
+        "flights": flights,
+        "inputs": inputs,
+        "tune_flights": tune_flights,
+        "tune_inputs": tune_inputs,
+    }
+    return result, flown
 
 
 def format_table(result: dict[str, Any]) -> str:
@@ -264,6 +306,7 @@ def format_table(result: dict[str, Any]) -> str:
             f"{r['precision']:10.2f}"
         )
     lines.append(f"detector knobs: {q['knobs']}" + (" (tuned)" if q["tuned"] else " (stored)"))
+
     c = result["cartpole"]
     lines.append("Cartpole: interventions (hit: a declaration within 3 steps)")
     lines.append(f"{'':26s} {'hit rate':>9s} {'FA/100 steps':>13s} {'precision':>10s}")

@@ -135,12 +135,15 @@ def _quadrotor(args, out, progress):
 
 def _changepoints(args, progress):
     from benchmarks import changepoints as qcp
+    from benchmarks import changepoints_ablation as cab
     from benchmarks import changepoints_cartpole as ccp
 
     trials = args.trials if args.trials is not None else (1 if args.quick else 10)
     progress("quadrotor: flights as the stack flies them, the detector replayed on each")
-    quad = qcp.run_changepoints(quick=args.quick, trials=trials, progress=progress)
+    quad, flown = qcp.run_changepoints(quick=args.quick, trials=trials, progress=progress)
+    progress("forgetting ablation: the learners replayed on the same flights")
+    ablation = cab.run_ablation(detector=quad["detector"], progress=progress, **flown)
     progress("cartpole: the declaration rule on the evaluation's online trajectories")
     cart = ccp.cartpole_detection(quick=args.quick, progress=progress)
-    result = {"quadrotor": quad, "cartpole": cart}
-    return result, qcp.format_table(result)
+    result = {"quadrotor": quad, "cartpole": cart, "forgetting_ablation": ablation}
+    return result, "\n".join([qcp.format_table(result), *cab.format_table(ablation)])
