@@ -11,6 +11,7 @@ encode.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -266,7 +267,9 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
     from :data:`arcade_control.knobs.DETECTION_DEFAULTS` updated with ``knobs``: a beam of
     ``K = 15`` scored as the exact joint, at the quadrotor preset's ``tau^2`` and offline
     prior floor, watching the outputs the knob names with the learner's noise. ``score``:
-    the hypothesis score (``"algorithm1"`` only to compare, see ``docs/changepoints.md``)."""
+    the hypothesis score (``"algorithm1"`` only to compare, see ``docs/changepoints.md``).
+    A knob ``nu`` gives the scores Student-t tails (``AdaptationConfig.nu``; default
+    ``inf``, the Gaussian of Eq. 8)."""
     from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_OUTPUTS
 
     k = {**DETECTION_DEFAULTS, **(knobs or {})}
@@ -286,6 +289,7 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
             sigma2=f(1.0),
             prior_floor=f(beam.prior_floor),
             score=score,
+            nu=f(k.get("nu", math.inf)),
         ),
         noise_scale=f(scale),
         tracking=f(k["tracking"]),

@@ -8,6 +8,7 @@ structure, like a ``static_argnames`` argument of ``jit``): a config can be pass
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -49,6 +50,14 @@ class AdaptationConfig(NamedTuple):
       the prior ``p(c_k = 1) = pi`` (Eq. 7 with its own conditioning ``c_{1:k-1}, x_{1:k},
       u_{1:k}``, which excludes ``delta_k``; App. "Changepoint Scoring"). The beam weights
       are then the exact posterior of the changepoint paths that the beam keeps.
+
+    ``nu`` (default ``inf``: Eq. 8 as written) gives the hypothesis scores heavy tails: the
+    Eq. 8 likelihood of each output becomes a Student-t with ``nu`` degrees of freedom
+    and squared scale the Gaussian's predictive variance, so that a single outlier (a
+    payload's jolt, a glitch of the state estimate) costs a no-change path ``log(1 + r^2 /
+    (nu s))`` instead of ``r^2 / (2 s)`` and is not taken for a change of regime, while a
+    lasting shift still accumulates evidence step after step. Only the scores (Eqs. 7-9)
+    and the evidence change; the posterior update stays the conjugate Eq. 6.
     """
 
     K: int
@@ -58,23 +67,24 @@ class AdaptationConfig(NamedTuple):
     sigma2: ArrayLike
     prior_floor: ArrayLike = 0.0
     score: str = "algorithm1"
+    nu: ArrayLike = math.inf
 
 
-_LEAVES = AdaptationConfig._fields[:-1]  # every field but ``score``
-_N = len(_LEAVES)
+#: Every field but ``score`` is a leaf.
+_LEAVES = tuple(f for f in AdaptationConfig._fields if f != "score")
 _KEYS = tuple(jax.tree_util.GetAttrKey(name) for name in _LEAVES)
 
 
 def _flatten(cfg: AdaptationConfig):
-    return cfg[:_N], cfg[_N]
+    return (*cfg[:6], cfg[7]), cfg[6]
 
 
 def _flatten_with_keys(cfg: AdaptationConfig):
-    return tuple(zip(_KEYS, cfg[:_N])), cfg[_N]
+    return tuple(zip(_KEYS, (*cfg[:6], cfg[7]))), cfg[6]
 
 
 def _unflatten(score: str, leaves) -> AdaptationConfig:
-    return AdaptationConfig(*leaves, score)
+    return AdaptationConfig(*leaves[:6], score, leaves[6])
 
 
 # ``score`` is auxiliary data, never a leaf: a string cannot be traced. The flatten below

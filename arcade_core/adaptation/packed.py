@@ -20,13 +20,13 @@ from arcade_core.adaptation.state import BeamState, Prediction, UpdateInfo
 
 
 class PackedBeam(NamedTuple):
-    """A :class:`BeamState` plus ``pi, beta, tau2, prior_floor`` in five arrays, for the
-    real-time loop.
+    """A :class:`BeamState` plus ``pi, beta, tau2, prior_floor, nu`` in five arrays, for
+    the real-time loop.
 
     At this problem size a jitted call costs about as much per argument and result leaf
     as the arithmetic of a whole step, so the loop passes the two large arrays and the
     constant prior mean as they are and everything small in one float and one int buffer:
-    ``floats = [log_scores (K), log_offset, sigma2 (d), pi, beta, tau2, prior_floor]``
+    ``floats = [log_scores (K), log_offset, sigma2 (d), pi, beta, tau2, prior_floor, nu]``
     (state dtype),
     ``ints = [num_changepoints (K), last_changepoint (K), is_changepoint (K), step]``.
     (Flattening the arrays into the float buffer too would save leaves but makes XLA fuse
@@ -65,7 +65,10 @@ def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
     """
     dtype = state.means.dtype
     hyper = jnp.stack(
-        [jnp.asarray(v, dtype) for v in (config.pi, config.beta, config.tau2, config.prior_floor)]
+        [
+            jnp.asarray(v, dtype)
+            for v in (config.pi, config.beta, config.tau2, config.prior_floor, config.nu)
+        ]
     )
     floats = jnp.concatenate([state.log_scores, state.log_offset[None], state.sigma2, hyper])
     ints = jnp.concatenate(
@@ -92,7 +95,7 @@ def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
     K, d, _ = packed.means.shape
     f, n = packed.floats, packed.ints
     sigma2 = f[K + 1 : K + 1 + d]
-    pi, beta, tau2, floor = f[K + 1 + d], f[K + 2 + d], f[K + 3 + d], f[K + 4 + d]
+    pi, beta, tau2, floor, nu = (f[K + 1 + d + i] for i in range(5))
     state = BeamState(
         means=packed.means,
         sqrt_covariances=packed.sqrt_covariances,
@@ -108,7 +111,14 @@ def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
     shared = packed.sqrt_covariances.shape[1] == 1
     noise = sigma2[0] if shared else sigma2  # keeps the shared-covariance contract
     return state, AdaptationConfig(
-        K=K, pi=pi, beta=beta, tau2=tau2, sigma2=noise, prior_floor=floor, score=packed.score
+        K=K,
+        pi=pi,
+        beta=beta,
+        tau2=tau2,
+        sigma2=noise,
+        prior_floor=floor,
+        score=packed.score,
+        nu=nu,
     )
 
 
