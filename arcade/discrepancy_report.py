@@ -102,6 +102,19 @@ def format_params(params: dict[str, Any], units: dict[str, str] | None = None) -
     return "; ".join(f"{k} = {_fmt(v)}{unit(k)}" for k, v in params.items())
 
 
+def added_text(effect: dict[str, Any]) -> str:
+    """Whether an effect was added, and why not when the held-out data contradict it."""
+    if effect["added"]:
+        return "yes"
+    gate = effect.get("heldout")
+    if gate and not gate["confirmed"]:
+        return (
+            f"no: not confirmed on held-out data ({'+'.join(gate['components'])} "
+            f"{gate['before']:.4g} -> {gate['after']:.4g})"
+        )
+    return "no"
+
+
 def render_report(result: dict[str, Any], plots: list[Path]) -> str:
     """Markdown report: verdict, effects, gap before/after, where the gap was."""
     lines = [
@@ -126,7 +139,7 @@ def render_report(result: dict[str, Any], plots: list[Path]) -> str:
             interval = "; ".join(f"{k} in {_fmt(v)}" for k, v in e["interval"].items()) or "-"
             lines.append(
                 f"| {e['name']} | {params} | {interval} | {e['confidence']:.2f} | "
-                f"{e['explained']:.2f} | {'yes' if e['added'] else 'no'} |"
+                f"{e['explained']:.2f} | {added_text(e)} |"
             )
         lines.append("")
     else:

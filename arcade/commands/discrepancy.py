@@ -123,13 +123,14 @@ def _log_system(path: Path) -> str | None:
 def effect_line(effect: dict[str, Any]) -> str:
     """One identified effect of the result as text: name, parameters with units (as in
     report.md), confidence, and whether it was added to the model file."""
-    from arcade.discrepancy_report import format_params
+    from arcade.discrepancy_report import added_text, format_params
     from arcade_core.discrepancy.catalog import EFFECTS
 
     units = {k: p.unit for k, p in EFFECTS[effect["name"]].params.items()}
+    why = "" if effect["added"] else " (" + added_text(effect).replace("no", "not added", 1) + ")"
     return (
         f"{effect['name']}: {format_params(effect['params'], units)}, confidence "
-        f"{effect['confidence']:.2f}{'' if effect['added'] else ' (not added)'}"
+        f"{effect['confidence']:.2f}{why}"
     )
 
 

@@ -59,6 +59,7 @@ from arcade_core.discrepancy.linearise import (
     scaled_secants,
     whitening,
 )
+from arcade_core.discrepancy.settings import MIN_FIT_WINDOWS
 from arcade_core.discrepancy.subsets import (
     Bounds,
     bootstrap_selection,
@@ -158,6 +159,12 @@ def identify(
 
     # Whitening from what is left after all candidates (step 2).
     keep = np.isfinite(r_base).all(axis=1)
+    if keep.sum() < MIN_FIT_WINDOWS:
+        raise ValueError(
+            f"the current model's one-step prediction is finite on only {int(keep.sum())} of "
+            f"{n_win} fitting windows (at least {MIN_FIT_WINDOWS} are needed): check that "
+            "the vehicle file describes the logged vehicle (mass, hover thrust, limits)"
+        )
     W0, _ = whitening(np.nan_to_num(r_base), keep)
     lin0, _, _ = linearise(
         np.nan_to_num(r_base), np.nan_to_num(jac), W0, keep, blocks, n_blocks, span

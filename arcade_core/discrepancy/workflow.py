@@ -20,8 +20,13 @@ DiscrepancyModel`: nominal model, motors, rate loop and the effects it already h
    effect whose signature in this log stays within the noise (it could not halve the
    one-step gap, :func:`effect_visibility`) is reported as "below detectability" and not
    added (quadrotor; the library states each effect's limit on the standard trajectory).
-4. **Add**: the effect tables of the updated model (``Outcome.model_effects``): the
-   current model's and the confident effects, within their plausible ranges.
+4. **Gate and add**: a confident effect is added only if the held-out one-step gap
+   shrinks with it, on the components it acts on and over all velocity and rate
+   components (:func:`heldout_gate`); otherwise it is listed as "not confirmed on
+   held-out data" with both numbers, so the updated model is never worse on held-out
+   data than the current one. The effect tables of the updated model
+   (``Outcome.model_effects``): the current model's and the added effects, within their
+   plausible ranges.
 5. **Show**: the log is split in time into blocks; a held-out fraction of them is only
    evaluated, never fitted (:mod:`arcade_core.discrepancy.settings`). Before/after one-step
    RMSE and multi-step CRMSE per component.
@@ -134,15 +139,49 @@ def find_discrepancy(
         if below:
             ident = _without(ident, below, model.theta_base, [g for _, g in model.groups])
 
+    # ---- held-out gate: an effect is added only if it shrinks the held-out gap.
+    verdicts: dict[int, dict[str, Any]] = {}
+    if ident.confident and len(ho):
+        ident, verdicts = heldout_gate(model, X, U, dt, ho, H, ident)
+
+    # ---- held-out before/after. Each added effect passed the gate on its own
+    # components and overall; the pooled number over their union (what the report
+    # headlines) is checked too, dropping the effect that explains least until it holds.
+    theta_b = model.theta_base
+    comps = list(model.components)
+    err_b = model.errors(X, model.predict(theta_b, X, U, ho, H, dt), ho, H)[:, -1]
+    while True:
+        held = _heldout_numbers(model, X, U, dt, ho, H, ident, err_b)
+        if not ident.confident or held["rmse_after"] <= held["rmse_before"]:
+            break
+        j = min(ident.confident, key=lambda j: ident.contribution[j])
+        verdicts[j] = {
+            **verdicts.get(j, {}),
+            "components": held["components"],
+            "before": held["rmse_before"],
+            "after": held["rmse_after"],
+            "confirmed": False,
+            "theta": ident.theta,
+        }
+        ident = _without(ident, [j], model.theta_base, [g for _, g in model.groups])
+    theta_a, err_a, act = ident.theta, held["err_after"], held["components"]
+    rmse_b, rmse_a = held["rmse_before"], held["rmse_after"]
+    gap_before = {c: float(v) for c, v in zip(comps, rms(err_b))}
+    gap_after = {c: float(v) for c, v in zip(comps, rms(err_a))}
+
     # ---- effects, parameters, intervals
     effects_out = []
     listed = sorted(
-        set(ident.selected) | {j for j, c in enumerate(ident.confidence) if c >= 0.5},
+        set(ident.selected)
+        | set(verdicts)
+        | {j for j, c in enumerate(ident.confidence) if c >= 0.5},
         key=lambda j: (-(j in ident.confident), -ident.contribution[j], -ident.confidence[j]),
     )
     for j in listed:
         name = model.groups[j][0]
         theta_j = ident.theta if j in ident.confident else ident.theta_selected
+        if j in verdicts and not verdicts[j]["confirmed"]:
+            theta_j = verdicts[j]["theta"]
         params = model.effect_params(theta_j, name)
         lo = model.effect_params(np.percentile(ident.samples, 5, axis=0), name)
         hi = model.effect_params(np.percentile(ident.samples, 95, axis=0), name)
@@ -157,34 +196,11 @@ def find_discrepancy(
             "confidence": float(ident.confidence[j]),
             "explained": float(ident.contribution[j]),
             "added": j in ident.confident,
+            "heldout": _public(verdicts.get(j)),
             "acts_on": list(specs[name].acts_on),
         })  # fmt: skip
     confident_names = [model.groups[j][0] for j in ident.confident]
 
-    # ---- held-out before/after
-    theta_b, theta_a = model.theta_base, ident.theta
-    err_b = model.errors(X, model.predict(theta_b, X, U, ho, H, dt), ho, H)[:, -1]
-    err_a = model.errors(X, model.predict(theta_a, X, U, ho, H, dt), ho, H)[:, -1]
-    comps = list(model.components)
-    gap_before = {c: float(v) for c, v in zip(comps, rms(err_b))}
-    gap_after = {c: float(v) for c, v in zip(comps, rms(err_a))}
-    if confident_names:
-        # The components the added effects act on (library) and, of those, the ones where
-        # their contribution to the held-out prediction stands out of what is left (at
-        # least half of it): where the effect is visible in this log.
-        act = sorted({c for nme in confident_names for c in specs[nme].acts_on}, key=comps.index)
-        change = rms(err_b - err_a)
-        moved = [c for c in act if change[comps.index(c)] >= 0.5 * gap_after[c]]
-        act = moved or act
-    else:
-        act = (
-            [comps[i] for i in (3, 4, 5, 9, 10, 11)]
-            if system == "quadrotor"
-            else ["xdot", "thetadot"]
-        )
-    sel = [comps.index(c) for c in act]
-    rmse_b = float(rms(err_b[:, sel].reshape(-1)))
-    rmse_a = float(rms(err_a[:, sel].reshape(-1)))
     M = max(2, round(settings.horizon_s / dt))
     stride = max(1, round(0.5 / dt))
     cr_starts = block_windows(blocks, True, burn, M, stride)
@@ -211,6 +227,13 @@ def find_discrepancy(
     below_names = [e["name"] for e in effects_out if e["below_detectability"]]
     if below_names:
         summary += "; below detectability: " + ", ".join(below_names)
+    unconfirmed = [model.groups[j][0] for j, v in verdicts.items() if not v["confirmed"]]
+    if unconfirmed:
+        summary += "; not confirmed on held-out data: " + ", ".join(
+            f"{model.groups[j][0]} ({_gap_text(v)})"
+            for j, v in verdicts.items()
+            if not v["confirmed"]
+        )
     result: dict[str, Any] = {
         "system": system,
         "summary": summary,
@@ -219,6 +242,7 @@ def find_discrepancy(
         "gap_before": gap_before,
         "gap_after": gap_after,
         "below_detectability": below_names,
+        "not_confirmed_on_heldout": unconfirmed,
         "heldout_rmse_before": rmse_b,
         "heldout_rmse_after": rmse_a,
         "heldout_components": act,
@@ -237,6 +261,113 @@ def find_discrepancy(
         "theta_after": theta_a, "identification": ident,
     }  # fmt: skip
     return Outcome(result, details, updated_effects(model, ident))
+
+
+def _velocity_and_rates(model: DiscrepancyModel) -> list[int]:
+    """Indices of the components the held-out gap is judged on when nothing is added."""
+    comps = list(model.components)
+    names = (
+        [comps[i] for i in (3, 4, 5, 9, 10, 11)]
+        if model.name == "quadrotor"
+        else ["xdot", "thetadot"]
+    )
+    return [comps.index(c) for c in names]
+
+
+def heldout_gate(
+    model: DiscrepancyModel, X, U, dt, ho, H, ident
+) -> tuple[Any, dict[int, dict[str, Any]]]:
+    """The held-out gate: ``ident`` with only the confident effects that shrink the
+    held-out one-step gap, and every confident effect's verdict.
+
+    The confident effects are tried in the order of the share they explain, each on top of
+    those already accepted (at its estimate of the joint fit): it is accepted when the
+    pooled held-out RMSE over the components it acts on (the library's ``acts_on``)
+    decreases *and* the gap over all velocity and rate components does not grow, each
+    component weighed by the current model's held-out RMSE (so that units do not decide).
+    A verdict gives both RMSEs of its components (``before``: without it, ``after``: with
+    it) and of the overall measure. The held-out windows ``ho`` are only evaluated here,
+    never fitted: the decision uses the same data as the reported before/after numbers,
+    which is what makes ``heldout_rmse_after <= heldout_rmse_before`` hold.
+    """
+    groups = [g for _, g in model.groups]
+    comps = list(model.components)
+    specs = effects_for(model.name)
+    base = np.asarray(model.theta_base, float)
+    overall = _velocity_and_rates(model)
+
+    def errors(theta: np.ndarray) -> np.ndarray:
+        return model.errors(X, model.predict(theta, X, U, ho, H, dt), ho, H)[:, -1]
+
+    err0 = errors(base)
+    scale = np.maximum(rms(err0[:, overall]), 1e-300)
+
+    def measure(err: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((rms(err[:, overall]) / scale) ** 2)))
+
+    theta, err = base.copy(), err0
+    accepted, verdicts = [], {}
+    for j in sorted(ident.confident, key=lambda j: -ident.contribution[j]):
+        name, idx = model.groups[j][0], list(groups[j])
+        cand = theta.copy()
+        cand[idx] = np.asarray(ident.theta, float)[idx]
+        err_new = errors(cand)
+        own = [comps.index(c) for c in specs[name].acts_on if c in comps]
+        before = float(rms(err[:, own].reshape(-1)))
+        after = float(rms(err_new[:, own].reshape(-1)))
+        all_before, all_after = measure(err), measure(err_new)
+        confirmed = bool(after < before and all_after <= all_before)
+        verdicts[j] = {
+            "components": [comps[i] for i in own],
+            "before": before,
+            "after": after,
+            "overall_before": all_before,
+            "overall_after": all_after,
+            "confirmed": confirmed,
+            "theta": cand,
+        }
+        if confirmed:
+            theta, err = cand, err_new
+            accepted.append(j)
+    drop = [j for j in ident.confident if j not in accepted]
+    return _without(ident, drop, base, groups), verdicts
+
+
+def _heldout_numbers(model: DiscrepancyModel, X, U, dt, ho, H, ident, err_b) -> dict[str, Any]:
+    """One-step held-out errors of the model with ``ident``'s added effects, and the pooled
+    RMSE before (``err_b``: the current model) and after over the components the added
+    effects act on (library) where their contribution to the held-out prediction is at
+    least half of what is left (where the effect is visible in this log); over all
+    velocity and rate components when nothing is added."""
+    comps = list(model.components)
+    specs = effects_for(model.name)
+    err_a = model.errors(X, model.predict(ident.theta, X, U, ho, H, dt), ho, H)[:, -1]
+    names = [model.groups[j][0] for j in ident.confident]
+    if names:
+        act = sorted({c for nme in names for c in specs[nme].acts_on}, key=comps.index)
+        change, left = rms(err_b - err_a), rms(err_a)
+        act = [c for c in act if change[comps.index(c)] >= 0.5 * left[comps.index(c)]] or act
+    else:
+        act = [comps[i] for i in _velocity_and_rates(model)]
+    sel = [comps.index(c) for c in act]
+    return {
+        "err_after": err_a,
+        "components": act,
+        "rmse_before": float(rms(err_b[:, sel].reshape(-1))),
+        "rmse_after": float(rms(err_a[:, sel].reshape(-1))),
+    }
+
+
+def _public(verdict: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A gate verdict for the JSON (without the parameter vector)."""
+    if verdict is None:
+        return None
+    return {k: v for k, v in verdict.items() if k != "theta"}
+
+
+def _gap_text(verdict: dict[str, Any]) -> str:
+    comps = "+".join(verdict["components"])
+    return f"{comps} {verdict['before']:.3g} -> {verdict['after']:.3g}"
 
 
 def updated_effects(model: DiscrepancyModel, ident) -> dict[str, dict[str, Any]]:

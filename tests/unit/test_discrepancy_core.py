@@ -222,6 +222,20 @@ def test_identify_names_the_true_effects_with_confidence_and_intervals():
     assert np.all(hi[[0, 1, 4]] - lo[[0, 1, 4]] < 0.2)
 
 
+def test_identify_refuses_a_model_whose_prediction_is_not_finite():
+    # A vehicle file far from the logged vehicle can make the current model's prediction
+    # non-finite on every window: one clear error, not an IndexError deep in the whitening.
+    fn = _linear_problem(np.zeros(5))
+
+    def broken(theta):
+        r = fn(theta)
+        r[40:] = np.nan
+        return r
+
+    with pytest.raises(ValueError, match="finite on only 40 of 1500 fitting windows"):
+        identify(broken, np.zeros(5), GROUPS, LOW, HIGH, SelectionConfig(n_boot=10, block=50))
+
+
 def test_identify_says_nothing_when_there_is_nothing():
     res = identify(
         _linear_problem(np.zeros(5), seed=3),

@@ -21,6 +21,7 @@ import pytest
 from arcade import cli
 from arcade_core.discrepancy import quadrotor as qm
 from arcade_core.discrepancy.catalog import DETECTABLE, QUADROTOR_EFFECTS, magnitude
+from arcade_core.discrepancy.settings import Settings, log_blocks
 from arcade_io.discrepancy import quad_model_from_vehicle, run_workflow, write_model_file
 from arcade_io.flightlog import from_arrays
 from arcade_io.vehicle import load_vehicle
@@ -218,6 +219,28 @@ def test_an_effect_below_detectability_is_reported_not_added():
     assert drag["below_detectability"] and drag["visibility"] < 3**0.5
     assert drag["confidence"] >= 0.9  # selected: it is real, but within the noise
     assert DETECTABLE["rotor_drag"] > 0.1  # consistent with the documented limit
+    assert result["heldout_rmse_after"] == result["heldout_rmse_before"]
+
+
+def test_an_effect_the_heldout_data_contradict_is_not_added():
+    # The thrust is 20 % weaker than logged in the fitted blocks, but the log's held-out
+    # blocks record the thrust delivered (as if the logging had changed between them):
+    # thrust_scale is named on the fit, and adding it would make the held-out prediction
+    # worse. It is listed as not confirmed, with both numbers, and not added.
+    log = fly_quadrotor({"thrust_scale": {"scale": 0.8}}, DURATION_S, seed=3)
+    U = log.U.copy()
+    for a, b, held in log_blocks(Settings(), len(log.t), log.dt):
+        if held:
+            U[a:b, 0] *= 0.8
+    result = run_workflow(from_arrays("quadrotor", log.t, log.X, U), "quadrotor").result
+    assert result["not_confirmed_on_heldout"] == ["thrust_scale"], result["summary"]
+    scale = next(e for e in result["effects"] if e["name"] == "thrust_scale")
+    assert scale["confidence"] >= 0.9 and not scale["added"]
+    gate = scale["heldout"]
+    assert not gate["confirmed"] and gate["after"] > gate["before"]
+    assert "vz" in gate["components"]
+    assert "not confirmed on held-out data: thrust_scale (" in result["summary"]
+    assert result["no_confident_effect"]
     assert result["heldout_rmse_after"] == result["heldout_rmse_before"]
 
 
