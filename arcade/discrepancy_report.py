@@ -127,6 +127,14 @@ def render_report(result: dict[str, Any], plots: list[Path]) -> str:
         f"{result['outlier_windows']} outlier windows left out.",
         "",
     ]
+    if result.get("cannot_tell"):
+        reach = result["reach"]
+        told = ", ".join(f"{n} ({reach[n]:.2f})" for n in result["cannot_tell"])
+        lines += [
+            "Not enough excitation to tell (how far each effect, at the edge of its "
+            f"plausible range, would stand out of the noise; {3**0.5:.2f} is needed): {told}.",
+            "",
+        ]
     if result["effects"]:
         lines += [
             "## Effects",

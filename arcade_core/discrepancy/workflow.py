@@ -20,6 +20,9 @@ DiscrepancyModel`: nominal model, motors, rate loop and the effects it already h
    effect whose signature in this log stays within the noise (it could not halve the
    one-step gap, :func:`effect_visibility`) is reported as "below detectability" and not
    added (quadrotor; the library states each effect's limit on the standard trajectory).
+   An effect that this log could not show even at the edge of its plausible range is
+   listed as "not enough excitation to tell" (``cannot_tell``, ``reach``); when that holds
+   for every effect the answer is "not enough excitation to tell", not a guess.
 4. **Gate and add**: a confident effect is added only if the held-out one-step gap
    shrinks with it, on the components it acts on and over all velocity and rate
    components (:func:`heldout_gate`); otherwise it is listed as "not confirmed on
@@ -132,9 +135,9 @@ def find_discrepancy(
     # not added (:func:`effect_visibility`).
     specs = effects_for(system)
     ho = block_windows(blocks, True, burn, H, 1)
-    visible = {}
+    visible, reach = {}, {}
     if system == "quadrotor":
-        visible = _visibility(model, X, U, dt, fit_starts, H, ident)
+        visible, reach = _visibility(model, X, U, dt, fit_starts, H, ident)
         below = [j for j in ident.confident if visible[j] < HALVING_RATIO]
         if below:
             ident = _without(ident, below, model.theta_base, [g for _, g in model.groups])
@@ -227,6 +230,12 @@ def find_discrepancy(
     below_names = [e["name"] for e in effects_out if e["below_detectability"]]
     if below_names:
         summary += "; below detectability: " + ", ".join(below_names)
+    no_influence, cannot_tell, no_excitation = excitation(reach, bool(confident_names))
+    if no_excitation:
+        summary = "not enough excitation to tell: no library effect, even at the edge of its "
+        summary += "plausible range, would stand out of the noise in this log"
+    elif cannot_tell:
+        summary += "; not enough excitation to tell " + ", ".join(cannot_tell)
     unconfirmed = [model.groups[j][0] for j, v in verdicts.items() if not v["confirmed"]]
     if unconfirmed:
         summary += "; not confirmed on held-out data: " + ", ".join(
@@ -243,6 +252,10 @@ def find_discrepancy(
         "gap_after": gap_after,
         "below_detectability": below_names,
         "not_confirmed_on_heldout": unconfirmed,
+        "not_enough_excitation": no_excitation,
+        "cannot_tell": cannot_tell,
+        "no_influence": no_influence,
+        "reach": {k: float(v) for k, v in reach.items()},
         "heldout_rmse_before": rmse_b,
         "heldout_rmse_after": rmse_a,
         "heldout_components": act,
@@ -427,9 +440,27 @@ def effect_visibility(
     return float(np.sqrt(np.sum(g**2) / max(float(np.sum(sig**2)), 1e-300)))
 
 
-def _visibility(model: DiscrepancyModel, X, U, dt, starts, H, ident) -> dict[int, float]:
+def excitation(reach: dict[str, float], named: bool) -> tuple[list[str], list[str], bool]:
+    """From each effect's reach (:func:`_visibility`): the effects that do not move the
+    prediction at all (they act through one the model lacks, as wind acts through drag: no
+    log can tell them until that one is in the model), the effects this log cannot tell
+    (reach below :data:`HALVING_RATIO`), and whether the log cannot tell any effect that
+    could move the prediction and nothing was ``named``: "not enough excitation to tell"."""
+    no_influence = [name for name, v in reach.items() if v <= 1e-9]
+    cannot_tell = [n for n, v in reach.items() if v < HALVING_RATIO and n not in no_influence]
+    influence = len(reach) - len(no_influence)
+    return no_influence, cannot_tell, influence > 0 and len(cannot_tell) == influence and not named
+
+
+def _visibility(
+    model: DiscrepancyModel, X, U, dt, starts, H, ident
+) -> tuple[dict[int, float], dict[str, float]]:
     """:func:`effect_visibility` of every selected effect at its estimate, alone, against
-    what the fit with all selected effects leaves (fitting windows)."""
+    what the fit with all selected effects leaves (fitting windows); and every library
+    effect's *reach*: its visibility at the edge of its plausible range (each parameter at
+    the bound farther from the current model's value), what the log could show of it at
+    most. An effect whose reach is below :data:`HALVING_RATIO` cannot be told in this log,
+    whatever its size: the log does not excite it enough."""
     # Windows the identification left out as gross outliers (floor contacts) stay out.
     starts = np.asarray(starts)[~np.asarray(ident.outliers)]
     sigma = noise_levels(model, X, U, dt, starts, H, ident.theta_selected)
@@ -442,7 +473,14 @@ def _visibility(model: DiscrepancyModel, X, U, dt, starts, H, ident) -> dict[int
         src = ident.theta if j in ident.confident else ident.theta_selected
         th[list(idx)] = np.asarray(src)[list(idx)]
         out[j] = effect_visibility(model, X, U, dt, starts, H, th, name, sigma, pred0)
-    return out
+    reach = {}
+    low, high = np.asarray(model.low, float), np.asarray(model.high, float)
+    for name, idx in model.groups:
+        th = base.copy()
+        for i in idx:
+            th[i] = low[i] if abs(low[i] - base[i]) > abs(high[i] - base[i]) else high[i]
+        reach[name] = effect_visibility(model, X, U, dt, starts, H, th, name, sigma, pred0)
+    return out, reach
 
 
 def _without(ident, drop: list[int], theta_base: np.ndarray, groups) -> Any:

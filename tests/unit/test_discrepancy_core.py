@@ -306,3 +306,14 @@ def test_changepoints_and_regimes_localise_a_gap():
     var = np.r_[np.zeros(300), np.ones(150), np.zeros(150)] + 1e-3 * np.arange(600)
     b = binned_rms(resid, var, bins=4)
     assert np.argmax(b.rms[:, 1]) == 3 and b.count.sum() == 600
+
+
+def test_excitation_says_what_a_log_cannot_tell():
+    from arcade_core.discrepancy.workflow import HALVING_RATIO, excitation
+
+    reach = {"rotor_drag": 0.5, "thrust_scale": 20.0, "wind": 0.0}
+    assert excitation(reach, named=False) == (["wind"], ["rotor_drag"], False)
+    low = {"rotor_drag": 0.5, "thrust_scale": 0.9 * HALVING_RATIO, "wind": 0.0}
+    assert excitation(low, named=False) == (["wind"], ["rotor_drag", "thrust_scale"], True)
+    assert excitation(low, named=True)[2] is False  # something was named after all
+    assert excitation({"wind": 0.0}, named=False) == (["wind"], [], False)

@@ -201,6 +201,11 @@ def test_no_hidden_effect_gives_no_confident_effect(tmp_path):
     assert not any(e["added"] for e in result["effects"])
     assert all(e["confidence"] < 0.9 for e in result["effects"])
     assert result["heldout_rmse_after"] == result["heldout_rmse_before"]
+    # The standard trajectory could show every effect the model can express; wind acts
+    # through drag, which this vehicle's model does not have.
+    assert result["cannot_tell"] == [] and not result["not_enough_excitation"]
+    assert result["no_influence"] == ["wind"]
+    assert all(v >= 3**0.5 for k, v in result["reach"].items() if k != "wind")
     # The model file is the vehicle file unchanged: nothing added.
     model_file = write_model_file(tmp_path, "quadrotor", None, outcome.model_effects)
     assert "effects" not in load_vehicle(model_file)
