@@ -200,12 +200,21 @@ def run_demo(
     return summary
 
 
+#: What the summary's ``adaptation`` names (the method flown, or ``nominal`` when the
+#: weights could not be used).
+CONTROLLERS = {
+    "ours": "ours (ARCADE adaptive MPC, the paper's method)",
+    "arcade": "arcade (the flagship: learned model and L1 thrust augmentation)",
+    "nominal": "nominal MPC (the weights could not be used)",
+}
+
+
 def format_summary(s: dict[str, Any]) -> str:
     def f(v: Any, unit: str = "") -> str:
         return "-" if v is None else f"{v:.3f}{unit}"
 
     lines = [
-        f"controller: {'ARCADE (adaptive MPC)' if s['adaptation'] == 'ours' else 'nominal MPC'}",
+        f"controller: {CONTROLLERS.get(s['adaptation'], s['adaptation'])}",
         f"{'tracking RMSE':22s} {f(s['rmse_m'], ' m')}",
         f"{'z RMSE':22s} {f(s['rmse_z_m'], ' m')}",
         f"{'shift at release':22s} {f(s.get('shift_m'), ' m')}",

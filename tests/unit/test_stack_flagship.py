@@ -99,3 +99,16 @@ def test_adapter_then_controller_is_the_in_process_flagship_step():
     base, _ = load_learner(DEFAULT_WEIGHTS, np.float64, "ours")
     assert ours.learn(base, xp, up, x) is base
     assert make_method("ours").name == ours.name
+
+
+@pytest.mark.parametrize(
+    ("adaptation", "text"),
+    [("ours", "controller: ours (ARCADE"), ("arcade", "controller: arcade (the flagship"),
+     ("nominal", "controller: nominal MPC")],
+)  # fmt: skip
+def test_the_demo_summary_names_the_controller_flown(adaptation, text):
+    from arcade.demo_stack import format_summary
+
+    s = {"adaptation": adaptation, "rmse_m": 0.04, "rmse_z_m": 0.02, "flight_wall_s": 30.0,
+         "startup_s": 4.0, "crashed": False, "rejects": {}}  # fmt: skip
+    assert format_summary(s).splitlines()[0].startswith(text)
