@@ -278,8 +278,17 @@ def run_changepoints(
     # twice): its weights are no posterior, and the same threshold means something else.
     literal = detection_config(chosen, score="algorithm1")
     declared_literal = [replay(m.vld.theta0, literal, i)[1] for i in inputs]
+    # What the stack flies (the stored knobs) when the tuning chose others: the adapter
+    # keeps its knobs until a tuning that generalises better replaces them.
+    stored = dict(DETECTION_DEFAULTS)
+    declared_stored = (
+        declared
+        if stored == chosen
+        else [replay(m.vld.theta0, detection_config(stored), i)[1] for i in inputs]
+    )
     result = {
         "detector": score(flights, declared),
+        "detector_stored_knobs": score(flights, declared_stored),
         "detector_algorithm1_score": score(flights, declared_literal),
         "learner_flags": score(flights, [f["learner_flags"] for f in flights]),
         "knobs": knobs,
@@ -311,7 +320,7 @@ def format_table(result: dict[str, Any]) -> str:
         f"{'':26s} {'hit rate':>9s} {'delay med':>10s} {'FA/flight':>10s} "
         f"{'FA/min steady':>14s} {'precision':>10s}",
     ]
-    for name in ("detector", "detector_algorithm1_score", "learner_flags"):
+    for name in ("detector", "detector_stored_knobs", "detector_algorithm1_score", "learner_flags"):
         if name not in q:
             continue
         r = q[name]

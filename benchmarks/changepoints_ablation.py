@@ -46,16 +46,16 @@ from benchmarks.changepoints import declare, score
 #: Forgetting factors tried (``lambda``; the memory is about ``1 / (1 - lambda)`` steps).
 LAMBDAS = (0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.998, 0.999)
 #: ``lambda`` of a run without tuning (``--quick``): the best of the stored full run.
-STORED_LAMBDA = 0.99
+STORED_LAMBDA = 0.98
 #: The innovation test's grid (the first two need no replay of the learner).
 TEST_GRID = {
     "outputs": ("all", "translational", "vertical"),
     "window": (1, 5, 10),
-    "threshold": (2.0, 3.0, 5.0, 8.0, 12.0, 20.0),
-    "refractory_steps": (5, 20, 50),
+    "threshold": (1.2, 1.5, 2.0, 3.0, 5.0, 8.0, 12.0, 20.0),
+    "refractory_steps": (5, 20, 50, 100),
 }
 #: The innovation test of a run without tuning (``--quick``).
-STORED_TEST = {"outputs": "vertical", "window": 5, "threshold": 5.0, "refractory_steps": 20}
+STORED_TEST = {"outputs": "vertical", "window": 5, "threshold": 2.0, "refractory_steps": 50}
 #: Length after a release over which re-adaptation is measured [s].
 AFTER_RELEASE_S = 1.0
 
