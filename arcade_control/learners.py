@@ -116,7 +116,7 @@ def initial_learner(name: str, models, dtype) -> Any:
         sigma2=jnp.asarray(cfg.sigma2, dtype),
         prior_floor=jnp.asarray(cfg.prior_floor, dtype),
         score=cfg.score,
-        nu=jnp.asarray(cfg.nu, dtype),
+        nu=cfg.nu,
     )
     zero = jnp.zeros((), dtype)
     learner = BeamLearner(vld, beam, traced_cfg, guard, zero, zero)

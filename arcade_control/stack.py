@@ -268,7 +268,7 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
     ``K = 15`` scored as the exact joint, at the quadrotor preset's ``tau^2`` and offline
     prior floor, watching the outputs the knob names with the learner's noise. ``score``:
     the hypothesis score (``"algorithm1"`` only to compare, see ``docs/changepoints.md``).
-    A knob ``nu`` gives the scores Student-t tails (``AdaptationConfig.nu``; default
+    A knob ``nu`` gives the scores Student-t tails (``AdaptationConfig.nu``, static; default
     ``inf``, the Gaussian of Eq. 8)."""
     from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_OUTPUTS
 
@@ -289,7 +289,7 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
             sigma2=f(1.0),
             prior_floor=f(beam.prior_floor),
             score=score,
-            nu=f(k.get("nu", math.inf)),
+            nu=float(k.get("nu", math.inf)),
         ),
         noise_scale=f(scale),
         tracking=f(k["tracking"]),

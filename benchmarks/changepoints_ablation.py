@@ -105,7 +105,7 @@ def replay(theta0, cfg: adaptation.AdaptationConfig, inputs) -> tuple[np.ndarray
         sigma2=jnp.ones(d, dtype),
         prior_floor=jnp.asarray(cfg.prior_floor, dtype),
         score=cfg.score,
-        nu=jnp.asarray(cfg.nu, dtype),
+        nu=cfg.nu,
     )
     err, var = _scan(state, traced, z, dn, s2, learned)
     return np.asarray(err), np.asarray(var)

@@ -156,8 +156,7 @@ def make_chunk(config, chunk: int, dtype):
             jnp.all(jnp.isfinite(out))
             & jnp.all(jnp.isfinite(packed.means))
             & jnp.all(jnp.isfinite(packed.sqrt_covariances))
-            & jnp.all(jnp.isfinite(packed.floats[K:-1]))  # the last is nu: inf by default
-            & ~jnp.isnan(packed.floats[-1])
+            & jnp.all(jnp.isfinite(packed.floats[K:]))
             & jnp.all(jnp.isfinite(packed.floats[:K]) | (packed.floats[:K] == -jnp.inf))
         )
         h = jnp.argmax(ratio)

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from arcade_core.adaptation.config import AdaptationConfig, score_of
+from arcade_core.adaptation.config import AdaptationConfig, nu_of, score_of
 from arcade_core.adaptation.posterior import (
     _log_marginal,
     _potter,
@@ -73,8 +73,9 @@ def _update(
     # re-injected; its mean (and so its innovation) differs from the parent's then.
     mean1, w1, a1, b1, q1, g1 = _tempered(state, z, proj, beta2, config)
     r1 = delta - jnp.sum(mean1 * z, axis=-1)
-    ll0 = _log_marginal(proj.q, r, sigma2, 1.0, config.nu)
-    ll1 = _log_marginal(q1, r1, sigma2, g1, config.nu)
+    nu = nu_of(config)  # static: one trace per likelihood form
+    ll0 = _log_marginal(proj.q, r, sigma2, 1.0, nu)
+    ll1 = _log_marginal(q1, r1, sigma2, g1, nu)
     # Eq. 9 in log-odds form: logit p(c=1|.) = log Lambda + log(pi / (1 - pi)).
     logit = ll1 - ll0 + jnp.log(pi) - jnp.log1p(-pi)
     logp1 = jax.nn.log_sigmoid(logit)

@@ -57,7 +57,9 @@ class AdaptationConfig(NamedTuple):
     payload's jolt, a glitch of the state estimate) costs a no-change path ``log(1 + r^2 /
     (nu s))`` instead of ``r^2 / (2 s)`` and is not taken for a change of regime, while a
     lasting shift still accumulates evidence step after step. Only the scores (Eqs. 7-9)
-    and the evidence change; the posterior update stays the conjugate Eq. 6.
+    and the evidence change; the posterior update stays the conjugate Eq. 6. ``nu`` is
+    static like ``score`` (a Python float; a change retraces), so the default step is the
+    Gaussian one and pays nothing for the option.
     """
 
     K: int
@@ -70,26 +72,27 @@ class AdaptationConfig(NamedTuple):
     nu: ArrayLike = math.inf
 
 
-#: Every field but ``score`` is a leaf.
-_LEAVES = tuple(f for f in AdaptationConfig._fields if f != "score")
+_LEAVES = AdaptationConfig._fields[:-2]  # every field but ``score`` and ``nu``
+_N = len(_LEAVES)
 _KEYS = tuple(jax.tree_util.GetAttrKey(name) for name in _LEAVES)
 
 
 def _flatten(cfg: AdaptationConfig):
-    return (*cfg[:6], cfg[7]), cfg[6]
+    return cfg[:_N], cfg[_N:]
 
 
 def _flatten_with_keys(cfg: AdaptationConfig):
-    return tuple(zip(_KEYS, (*cfg[:6], cfg[7]))), cfg[6]
+    return tuple(zip(_KEYS, cfg[:_N])), cfg[_N:]
 
 
-def _unflatten(score: str, leaves) -> AdaptationConfig:
-    return AdaptationConfig(*leaves[:6], score, leaves[6])
+def _unflatten(static: tuple[str, float], leaves) -> AdaptationConfig:
+    return AdaptationConfig(*leaves, *static)
 
 
-# ``score`` is auxiliary data, never a leaf: a string cannot be traced. The flatten below
-# slices the tuple (the keyed one is used only for key paths), which keeps a jitted call
-# about as cheap as with a plain named tuple.
+# ``score`` and ``nu`` are auxiliary data, never leaves: a string cannot be traced, and
+# ``nu`` chooses the likelihood's form. The flatten below slices the tuple (the keyed one
+# is used only for key paths), which keeps a jitted call about as cheap as with a plain
+# named tuple.
 jax.tree_util.register_pytree_with_keys(AdaptationConfig, _flatten_with_keys, _unflatten, _flatten)
 
 
@@ -113,3 +116,11 @@ def quadrotor_config() -> AdaptationConfig:
 def cartpole_config() -> AdaptationConfig:
     """Cartpole preset (Appendix D, cartpole "Online Inference" table)."""
     return AdaptationConfig(K=5, pi=0.05, beta=0.9, tau2=0.1, sigma2=0.1)
+
+
+def nu_of(config: AdaptationConfig) -> float:
+    """``config.nu`` as the static Python float it must be (``inf``: Gaussian), checked."""
+    nu = float(config.nu)
+    if not nu > 0.0:
+        raise ValueError(f"AdaptationConfig.nu must be positive (inf: Gaussian), not {nu!r}")
+    return nu

@@ -8,6 +8,7 @@ in one buffer.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -15,25 +16,25 @@ import jax.numpy as jnp
 from jax import Array
 
 from arcade_core.adaptation.beam import step
-from arcade_core.adaptation.config import AdaptationConfig, score_of
+from arcade_core.adaptation.config import AdaptationConfig, nu_of, score_of
 from arcade_core.adaptation.state import BeamState, Prediction, UpdateInfo
 
 
 class PackedBeam(NamedTuple):
-    """A :class:`BeamState` plus ``pi, beta, tau2, prior_floor, nu`` in five arrays, for
-    the real-time loop.
+    """A :class:`BeamState` plus ``pi, beta, tau2, prior_floor`` in five arrays, for the
+    real-time loop.
 
     At this problem size a jitted call costs about as much per argument and result leaf
     as the arithmetic of a whole step, so the loop passes the two large arrays and the
     constant prior mean as they are and everything small in one float and one int buffer:
-    ``floats = [log_scores (K), log_offset, sigma2 (d), pi, beta, tau2, prior_floor, nu]``
+    ``floats = [log_scores (K), log_offset, sigma2 (d), pi, beta, tau2, prior_floor]``
     (state dtype),
     ``ints = [num_changepoints (K), last_changepoint (K), is_changepoint (K), step]``.
     (Flattening the arrays into the float buffer too would save leaves but makes XLA fuse
     the update into one slow concatenation kernel: with the ``(d, l)`` prior mean in it a
-    step took three times as long.) ``score`` is ``AdaptationConfig.score``: static
-    (auxiliary data of the pytree, never a leaf), so a jitted step compiles once per
-    scoring rule. See :func:`make_packed_step`.
+    step took three times as long.) ``score`` and ``nu`` are ``AdaptationConfig``'s:
+    static (auxiliary data of the pytree, never leaves), so a jitted step compiles once
+    per scoring rule and likelihood. See :func:`make_packed_step`.
     """
 
     means: Array
@@ -42,19 +43,20 @@ class PackedBeam(NamedTuple):
     ints: Array
     prior_mean: Array
     score: str = "algorithm1"
+    nu: float = math.inf
 
 
-_ARRAYS = PackedBeam._fields[:-1]
+_ARRAYS = PackedBeam._fields[:-2]
 _KEYS = tuple(jax.tree_util.GetAttrKey(name) for name in _ARRAYS)
 _N = len(_ARRAYS)
 
-# The five arrays are the leaves and ``score`` the auxiliary data (a string cannot be
-# traced); the flatten slices the tuple, as cheap per call as a plain named tuple.
+# The five arrays are the leaves and ``score`` and ``nu`` the auxiliary data (static); the
+# flatten slices the tuple, as cheap per call as a plain named tuple.
 jax.tree_util.register_pytree_with_keys(
     PackedBeam,
-    lambda p: (tuple(zip(_KEYS, p[:_N])), p[_N]),
-    lambda score, arrays: PackedBeam(*arrays, score),
-    lambda p: (p[:_N], p[_N]),
+    lambda p: (tuple(zip(_KEYS, p[:_N])), p[_N:]),
+    lambda static, arrays: PackedBeam(*arrays, *static),
+    lambda p: (p[:_N], p[_N:]),
 )
 
 
@@ -65,10 +67,7 @@ def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
     """
     dtype = state.means.dtype
     hyper = jnp.stack(
-        [
-            jnp.asarray(v, dtype)
-            for v in (config.pi, config.beta, config.tau2, config.prior_floor, config.nu)
-        ]
+        [jnp.asarray(v, dtype) for v in (config.pi, config.beta, config.tau2, config.prior_floor)]
     )
     floats = jnp.concatenate([state.log_scores, state.log_offset[None], state.sigma2, hyper])
     ints = jnp.concatenate(
@@ -87,6 +86,7 @@ def pack(state: BeamState, config: AdaptationConfig) -> PackedBeam:
         ints,
         jnp.copy(state.prior_mean),
         score_of(config),
+        nu_of(config),
     )
 
 
@@ -95,7 +95,7 @@ def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
     K, d, _ = packed.means.shape
     f, n = packed.floats, packed.ints
     sigma2 = f[K + 1 : K + 1 + d]
-    pi, beta, tau2, floor, nu = (f[K + 1 + d + i] for i in range(5))
+    pi, beta, tau2, floor = f[K + 1 + d], f[K + 2 + d], f[K + 3 + d], f[K + 4 + d]
     state = BeamState(
         means=packed.means,
         sqrt_covariances=packed.sqrt_covariances,
@@ -118,7 +118,7 @@ def unpack(packed: PackedBeam) -> tuple[BeamState, AdaptationConfig]:
         sigma2=noise,
         prior_floor=floor,
         score=packed.score,
-        nu=nu,
+        nu=packed.nu,
     )
 
 

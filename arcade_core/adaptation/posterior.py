@@ -15,7 +15,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jax.scipy.special import gammaln
 from jax.typing import ArrayLike
 
 from arcade_core.adaptation.config import AdaptationConfig
@@ -111,23 +110,21 @@ def _potter(mean, sqrt_cov, a, b, q, r, sigma2, sigma2_cov, gamma):
 
 
 def _log_marginal(
-    q: Array, r: Array, sigma2: Array, gamma: ArrayLike, nu: ArrayLike = math.inf
+    q: Array, r: Array, sigma2: Array, gamma: ArrayLike, nu: float = math.inf
 ) -> Array:
     """Eq. 8: ``log p(delta | z, c)`` per hypothesis, summed over outputs; ``(K,)``.
 
     ``q = z^T Sigma z`` is ``(K, d_c)`` and broadcasts against ``r`` ``(K, d)``. A finite
-    ``nu`` (``AdaptationConfig.nu``) scores each output with a Student-t of ``nu`` degrees
-    of freedom and squared scale ``s`` instead (the Gaussian is its ``nu -> inf`` limit,
-    taken exactly at ``inf``).
+    ``nu`` (``AdaptationConfig.nu``, a static Python float) scores each output with a
+    Student-t of ``nu`` degrees of freedom and squared scale ``s`` instead (the Gaussian
+    is its ``nu -> inf`` limit, taken exactly at ``inf``).
     """
     s = q / gamma + sigma2
-    gauss = -0.5 * jnp.sum(_LOG_2PI + jnp.log(s) + r * r / s, axis=-1)
-    nu = jnp.asarray(nu, s.dtype)
-    finite = jnp.isfinite(nu)
-    v = jnp.where(finite, nu, 1.0)  # keeps the unused branch finite
-    const = gammaln(0.5 * (v + 1.0)) - gammaln(0.5 * v) - 0.5 * jnp.log(v * jnp.pi)
-    t = jnp.sum(const - 0.5 * jnp.log(s) - 0.5 * (v + 1.0) * jnp.log1p(r * r / (v * s)), axis=-1)
-    return jnp.where(finite, t, gauss)
+    if math.isinf(nu):
+        return -0.5 * jnp.sum(_LOG_2PI + jnp.log(s) + r * r / s, axis=-1)
+    const = math.lgamma(0.5 * (nu + 1.0)) - math.lgamma(0.5 * nu) - 0.5 * math.log(nu * math.pi)
+    t = const - 0.5 * jnp.log(s) - 0.5 * (nu + 1.0) * jnp.log1p(r * r / (nu * s))
+    return jnp.sum(t, axis=-1)
 
 
 def _tempered(

@@ -143,16 +143,16 @@ def find_discrepancy(
             ident = _without(ident, below, model.theta_base, [g for _, g in model.groups])
 
     # ---- held-out gate: an effect is added only if it shrinks the held-out gap.
+    theta_b = model.theta_base
+    comps = list(model.components)
+    err_b = model.errors(X, model.predict(theta_b, X, U, ho, H, dt), ho, H)[:, -1]
     verdicts: dict[int, dict[str, Any]] = {}
     if ident.confident and len(ho):
-        ident, verdicts = heldout_gate(model, X, U, dt, ho, H, ident)
+        ident, verdicts = heldout_gate(model, X, U, dt, ho, H, ident, err_b)
 
     # ---- held-out before/after. Each added effect passed the gate on its own
     # components and overall; the pooled number over their union (what the report
     # headlines) is checked too, dropping the effect that explains least until it holds.
-    theta_b = model.theta_base
-    comps = list(model.components)
-    err_b = model.errors(X, model.predict(theta_b, X, U, ho, H, dt), ho, H)[:, -1]
     while True:
         held = _heldout_numbers(model, X, U, dt, ho, H, ident, err_b)
         if not ident.confident or held["rmse_after"] <= held["rmse_before"]:
@@ -288,10 +288,11 @@ def _velocity_and_rates(model: DiscrepancyModel) -> list[int]:
 
 
 def heldout_gate(
-    model: DiscrepancyModel, X, U, dt, ho, H, ident
+    model: DiscrepancyModel, X, U, dt, ho, H, ident, err0
 ) -> tuple[Any, dict[int, dict[str, Any]]]:
     """The held-out gate: ``ident`` with only the confident effects that shrink the
-    held-out one-step gap, and every confident effect's verdict.
+    held-out one-step gap, and every confident effect's verdict (``err0``: the current
+    model's one-step errors on the held-out windows ``ho``).
 
     The confident effects are tried in the order of the share they explain, each on top of
     those already accepted (at its estimate of the joint fit): it is accepted when the
@@ -312,7 +313,6 @@ def heldout_gate(
     def errors(theta: np.ndarray) -> np.ndarray:
         return model.errors(X, model.predict(theta, X, U, ho, H, dt), ho, H)[:, -1]
 
-    err0 = errors(base)
     scale = np.maximum(rms(err0[:, overall]), 1e-300)
 
     def measure(err: np.ndarray) -> float:

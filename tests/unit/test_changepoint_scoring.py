@@ -268,8 +268,9 @@ def test_score_is_static_through_jit_vmap_and_the_packed_step():
     d, l, K = 2, 3, 4
     theta0, Z, D = problem(5, d, l, 6, switch=3)
     joint = A.AdaptationConfig(K=K, pi=0.1, beta=0.5, tau2=0.1, sigma2=0.1, score="joint")
-    # ``score`` is auxiliary data: seven numeric leaves (K and nu included), no string.
-    assert len(jax.tree.leaves(joint)) == 7
+    # ``score`` (and ``nu``) are auxiliary data: six numeric leaves (K included, as
+    # before), no string.
+    assert len(jax.tree.leaves(joint)) == 6
     assert "joint" not in [str(x) for x in jax.tree.leaves(joint)]
     traces = []
 
