@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from arcade_control.knobs import DEFAULT_STACK_METHOD
 from arcade_io import atomicfile, jsonout
 
 
@@ -39,8 +40,9 @@ def read_truth(path: Path) -> dict[str, np.ndarray]:
 def truth_metrics(
     truth: dict[str, np.ndarray], t_figure: float, t_release: float | None
 ) -> dict[str, float]:
-    """RMSE and z-RMSE from ``t_figure`` on; shift and settling at ``t_release`` (as the
-    in-process evaluation computes them, ``benchmarks.quadrotor_flights.flight_metrics``)."""
+    """RMSE, z-RMSE and the RMS of the thrust command's step-to-step change from
+    ``t_figure`` on; shift and settling at ``t_release`` (as the in-process evaluation
+    computes them, ``benchmarks.quadrotor_flights.flight_metrics``)."""
     import jax.numpy as jnp
 
     from arcade_core import metrics
@@ -49,9 +51,11 @@ def truth_metrics(
     p = np.stack([truth["px"], truth["py"], truth["pz"]], axis=1)
     pr = np.stack([truth["ref_px"], truth["ref_py"], truth["ref_pz"]], axis=1)
     sel = t >= t_figure - 1e-9
+    u = np.stack([truth[f"u{i}"] for i in range(4)], axis=1)
     out = {
         "rmse_m": float(metrics.position_rmse(jnp.asarray(p[sel]), jnp.asarray(pr[sel]))),
         "rmse_z_m": float(metrics.z_rmse(jnp.asarray(p[sel]), jnp.asarray(pr[sel]))),
+        "thrust_increment_rms_n": float(metrics.increment_rms(jnp.asarray(u[sel]))[0]),
     }
     if t_release is not None:
         e_z = jnp.asarray(p[:, 2] - pr[:, 2])
@@ -107,11 +111,11 @@ def run_demo(
     truth_state: bool = False,
     hub: str | None = None,
     link_delay_s: float = 0.0,
-    method: str = "ours",
+    method: str = DEFAULT_STACK_METHOD,
 ) -> dict[str, Any]:
     """Fly the demo through the stack; writes the run folder and returns the summary.
     ``link_delay_s``: the link delay the controller and the adapter compensate
-    (``arcade up --link-delay``); ``method``: ``ours`` or ``arcade`` (``--method``)."""
+    (``arcade up --link-delay``); ``method``: one of ``STACK_METHODS`` (``--method``)."""
     from tqdm import tqdm
 
     from arcade_control.scenario import Scenario
@@ -205,6 +209,7 @@ def run_demo(
 CONTROLLERS = {
     "ours": "ours (ARCADE adaptive MPC, the paper's method)",
     "arcade": "arcade (the flagship: learned model and L1 thrust augmentation)",
+    "l1": "l1 (the L1 augmentation on the nominal MPC, the baseline)",
     "nominal": "nominal MPC (the weights could not be used)",
 }
 
@@ -219,6 +224,7 @@ def format_summary(s: dict[str, Any]) -> str:
         f"{'z RMSE':22s} {f(s['rmse_z_m'], ' m')}",
         f"{'shift at release':22s} {f(s.get('shift_m'), ' m')}",
         f"{'settling (5 cm)':22s} {f(s.get('settling_s'), ' s')}",
+        f"{'thrust increments RMS':22s} {f(s.get('thrust_increment_rms_n'), ' N')}",
         f"{'changepoint delay':22s} {f(s.get('detection_delay_s'), ' s')}",
         f"{'payload released at':22s} {f(s.get('t_release_s'), ' s')}",
         f"{'flight wall time':22s} {f(s['flight_wall_s'], ' s')} (start-up {s['startup_s']:.1f} s)",

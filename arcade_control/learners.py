@@ -12,6 +12,7 @@ import numpy as np
 from arcade_control.guard import cast as _cast
 from arcade_control.guard import make_guard
 from arcade_control.knobs import (
+    ARCADE_BEAM_BETA,
     BEAM_VARIANTS,
     FIFO,
     FLAGSHIP,
@@ -62,6 +63,22 @@ def forgetting_config(cfg: adaptation.AdaptationConfig, lam: float) -> adaptatio
     return cfg._replace(K=1, pi=1.0, beta=float(np.sqrt(lam)), score="joint")
 
 
+def flagship_config(
+    name: str, cfg: adaptation.AdaptationConfig, lam: float
+) -> adaptation.AdaptationConfig:
+    """The learner of the flagship ``arcade`` and of its ablations (``name``) from the
+    quadrotor preset ``cfg`` at the flagship's ``sigma^2``: one hypothesis with exponential
+    forgetting ``lam`` (:func:`forgetting_config`, the offline prior re-injected as in the
+    beam); ``arcade_no_forgetting``: one hypothesis that never tempers
+    (:func:`no_cp_config`); ``arcade_beam``: the changepoint beam of the preset, tempered
+    by :data:`arcade_control.knobs.ARCADE_BEAM_BETA` (its design before)."""
+    if name == "arcade_no_forgetting":
+        return no_cp_config(cfg)
+    if name == "arcade_beam":
+        return cfg._replace(beta=ARCADE_BEAM_BETA)
+    return forgetting_config(cfg, lam)
+
+
 def scale_gp_noise(model: gp.GPModel, scale: float) -> gp.GPModel:
     """``model`` with its noise variances (marginal likelihood, offline) times ``scale``."""
     h = model.hyper
@@ -95,16 +112,18 @@ def initial_learner(name: str, models, dtype) -> Any:
             )
         ), guard
     knobs = knob_owner(name)
-    cfg = adaptation.quadrotor_config()._replace(
-        beta=tuned[f"{knobs}_beta"], sigma2=tuned[f"{knobs}_sigma2"]
-    )
-    if name in ("ours_no_cp", "arcade_no_cp"):
+    flagship = name == FLAGSHIP or name in FLAGSHIP_ABLATIONS
+    cfg = adaptation.quadrotor_config()._replace(sigma2=tuned[f"{knobs}_sigma2"])
+    if flagship:
+        cfg = flagship_config(name, cfg, tuned["arcade_lambda"])
+    else:
+        cfg = cfg._replace(beta=tuned[f"{knobs}_beta"])
+    if name == "ours_no_cp":
         cfg = no_cp_config(cfg)
     elif name.startswith("ours_K"):
         cfg = cfg._replace(K=int(name[len("ours_K") :]))
     vld = cast(models.vld)
     theta0 = vld.theta0
-    flagship = name == FLAGSHIP or name in FLAGSHIP_ABLATIONS
     if flagship or BEAM_VARIANTS.get(name, (False, False))[0]:  # intercept: zero column
         theta0 = jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
     beam = beam_at_prior(theta0, cfg)
@@ -120,7 +139,7 @@ def initial_learner(name: str, models, dtype) -> Any:
     )
     zero = jnp.zeros((), dtype)
     learner = BeamLearner(vld, beam, traced_cfg, guard, zero, zero)
-    if name in (FLAGSHIP, "arcade_no_cp"):  # thrust channel only
+    if flagship and name != "arcade_no_l1":  # thrust channel only
         l1_state = _l1_state(tuned["arcade_l1_cutoff"], 0.0, tuned["arcade_l1_a_s"], dtype)
         learner = learner._replace(l1=l1_state)
     return learner

@@ -65,6 +65,9 @@ class Method(NamedTuple):
     #: regression sees (the adapter service computes them as ``learn`` does).
     features: Callable | None = None
     latent_variance: Callable | None = None
+    #: Whether the learner has a changepoint variable (a learner that forgets at every
+    #: step reports no changepoint and a zero probability).
+    changepoints: bool = True
 
 
 def _zero_info(a):
@@ -217,14 +220,18 @@ def matched_residual(x: Array, delta: Array) -> Array:
     return out.at[3:6].set(jnp.dot(delta[3:6], zb) * zb)
 
 
-def beam_method(name: str = "ours", intercept: bool = False, matched: bool = False) -> Method:
+def beam_method(
+    name: str = "ours", intercept: bool = False, matched: bool = False, forgetting: bool = False
+) -> Method:
     """Ours (Sec. III-IV), or a variant that is not the paper's method (:data:`VARIANTS`).
 
     ``intercept``: the latent features get a constant ``1`` appended (``l + 1`` columns;
     the offline decoder's column is zero), so the online regression can learn an offset
     that does not depend on the state or the input. ``matched``: the MPC's rollout uses
     only :func:`matched_residual` of the learned residual; learning, the changepoints and
-    ``sigma_tot^2`` see every output as in ours.
+    ``sigma_tot^2`` see every output as in ours. ``forgetting``: the learner is a single
+    hypothesis that tempers at every step (:func:`arcade_control.learners.forgetting_config`),
+    so its changepoint flag and probability say nothing and stay zero.
     """
 
     def features(vld, guard, x, u):
@@ -244,6 +251,8 @@ def beam_method(name: str = "ours", intercept: bool = False, matched: bool = Fal
         z = features(a.vld, a.guard, xp, up)
         dn = a.vld.normalise_residual(x - f_nom(xp, up))
         beam, info = adaptation.update(a.beam, z, dn, a.config)
+        if forgetting:
+            return a._replace(beam=beam)
         return a._replace(
             beam=beam, changepoint=info.changepoint.astype(z.dtype), cp_prob=info.cp_prob
         )
@@ -270,6 +279,7 @@ def beam_method(name: str = "ours", intercept: bool = False, matched: bool = Fal
         learned=True,
         features=lambda a, x, u: features(a.vld, a.guard, x, u),
         latent_variance=lambda a, x, u: latent_variance(a.vld, x, u),
+        changepoints=not forgetting,
     )
 
 
@@ -293,20 +303,25 @@ def arcade_method(name: str = FLAGSHIP) -> Method:
     """The product's controller ``arcade``: the ARCADE model in the MPC, the remainder
     cancelled every period (not the paper's method; ``docs/quadrotor-closed-loop.md``).
 
-    - The MPC plans with ``f_nom + theta phi`` through its thrust axis (the beam of
-      ``ours_matched``: changepoint-aware BLR on the VLD features plus an intercept).
+    - The MPC plans with ``f_nom + theta phi`` through its thrust axis (``ours_matched``'s
+      model: BLR on the VLD features plus an intercept), learned by one hypothesis with
+      exponential forgetting (Eq. 5's tempering at every step, the offline prior
+      re-injected; :func:`arcade_control.learners.flagship_config`): the changepoint
+      beam's switching between hypotheses made the planned thrust chatter.
     - An L1 augmentation of the collective thrust whose state predictor includes that
       learned model (L1-GP): its piecewise-constant law estimates, and its low-pass filter
       cancels, only the force the learned model misses over the last period; the thrust
       correction acts between the MPC's plans like integral action.
 
     ``name`` one of :data:`FLAGSHIP_ABLATIONS`: the flagship without its learned model (the
-    augmentation on the nominal MPC), without the augmentation, or without changepoints
-    (its learner, :func:`arcade_control.learners.initial_learner`, has one hypothesis).
+    augmentation on the nominal MPC), without the augmentation, without forgetting (one
+    hypothesis that never tempers), or with the changepoint beam instead of forgetting
+    (the learners: :func:`arcade_control.learners.flagship_config`).
     """
     if name == "arcade_no_model":
         return l1_method()._replace(name=name)
-    base = beam_method(name, intercept=True, matched=True)
+    forgetting = name in (FLAGSHIP, "arcade_no_l1")
+    base = beam_method(name, intercept=True, matched=True, forgetting=forgetting)
     if name == "arcade_no_l1":
         return base
 

@@ -31,17 +31,33 @@ from arcade_io.weights import load_model
 #: Tempering of the adapter's beam at the calibrated noise (see :func:`stack_knobs`).
 STACK_BETA = 0.05
 
-#: The flagship's knobs in the stack: what ``arcade eval quadrotor --condition stack`` tunes
-#: (the estimator's state, the 20 ms link delay compensated; 4 paired seeds, in-process),
-#: before the L1 predictor's fix (:func:`arcade_control.methods.augmentation_step`) and with
-#: ``sigma^2``, the L1 cutoff and its pole on the edges of the grids of then (they extend
-#: past them now). The adapter adds the estimator's noise to ``sigma^2`` as for ours.
+#: The flagship's knobs in the stack: ``sigma^2``, the L1 cutoff and its pole as
+#: ``arcade eval quadrotor --condition stack`` tuned them for the flagship's changepoint
+#: beam (the estimator's state, the 20 ms link delay compensated; 4 paired seeds,
+#: in-process); the forgetting factor that replaced the beam chosen in the same condition
+#: (175 g at 0.5, 1.5 and 2.5 m/s, seeds 0-2; docs/quadrotor-closed-loop.md). The adapter
+#: adds the estimator's noise to ``sigma^2`` as for ours.
 STACK_ARCADE_KNOBS = {
-    "arcade_beta": 0.9,
+    "arcade_lambda": 0.98,
     "arcade_sigma2": 1e-4,
     "arcade_l1_cutoff": 5.0,
     "arcade_l1_a_s": -0.1,
 }
+
+
+#: L1's knobs in the stack: what the evaluation's protocol picks in the stack's condition
+#: (the estimator's state, the 20 ms link delay compensated; BENCHMARKS.md, "Tuned again by
+#: the evaluation's protocol in the stack's condition").
+STACK_L1_KNOBS = {"l1_cutoff": 20.0, "l1_cutoff_rates": 0.0, "l1_a_s": -0.1}
+
+
+def adapter_method(method: str) -> str:
+    """The method whose model the adapter learns when the stack flies ``method``: L1 uses
+    no learned model, and its adapter learns ours' (the changepoint detector and the
+    ``model`` messages stay what they are with ours; the controller ignores the model)."""
+    if method not in STACK_METHODS:
+        raise ValueError(f"the stack flies {' or '.join(STACK_METHODS)}, not {method!r}")
+    return "ours" if method == "l1" else method
 
 
 def stack_knobs(method: str = "ours") -> dict[str, Any]:
@@ -60,12 +76,12 @@ def stack_knobs(method: str = "ours") -> dict[str, Any]:
     estimate, 20 ms, compensated with ``--link-delay``) it keeps them
     (``python -m benchmarks.quadrotor_variants link``).
 
-    ``method`` ``arcade``: :data:`STACK_ARCADE_KNOBS`."""
-    if method == FLAGSHIP:
+    ``method`` ``arcade``: :data:`STACK_ARCADE_KNOBS`; ``l1``: ours' (what its adapter
+    learns) and :data:`STACK_L1_KNOBS`."""
+    if adapter_method(method) == FLAGSHIP:
         return dict(STACK_ARCADE_KNOBS)
-    if method != "ours":
-        raise ValueError(f"the stack flies {' or '.join(STACK_METHODS)}, not {method!r}")
-    return {"ours_sigma2": float(adaptation.quadrotor_config().sigma2), "ours_beta": STACK_BETA}
+    ours = {"ours_sigma2": float(adaptation.quadrotor_config().sigma2), "ours_beta": STACK_BETA}
+    return {**ours, **STACK_L1_KNOBS} if method == "l1" else ours
 
 
 def load_learner(weights: str | Path, dtype: Any, method: str = "ours") -> tuple[Any, Any]:
@@ -79,7 +95,9 @@ def load_learner(weights: str | Path, dtype: Any, method: str = "ours") -> tuple
     models = SimpleNamespace(
         vld=vld, guard=guard_from_metadata(extra), closedloop=stack_knobs(method)
     )
-    learner = initial_learner(method, models, dtype)
+    learner = initial_learner(adapter_method(method), models, dtype)
+    if method == "l1":  # ours' beam (what the model messages hold) and L1's state
+        learner = learner._replace(l1=initial_learner("l1", models, dtype))
     return learner, make_method(method)
 
 
@@ -92,6 +110,8 @@ def adapter_learner(weights: str | Path, dtype: Any, method: str = "ours") -> tu
     learner, method_ = load_learner(weights, dtype, method)
     if method == FLAGSHIP:
         learner, method_ = learner._replace(l1=None), make_method("arcade_no_l1")
+    elif method == "l1":
+        learner, method_ = learner._replace(l1=None), make_method("ours")
     return per_output_noise(learner), method_
 
 
@@ -100,7 +120,14 @@ def controller_method(name: str) -> Any:
     state: the method with the adapter's learning left out (the beam arrives in the
     ``model`` message). The flagship's ``learn`` keeps its L1 augmentation: the state
     predictor with the model the message carries (the adapter's posterior after the
-    transition, as in the in-process loop), on the input the vehicle was sent."""
+    transition, as in the in-process loop), on the input the vehicle was sent. ``l1``: the
+    in-process L1 method on the learner's ``l1`` state (the model is not used)."""
+    if name == "l1":  # the nominal MPC and L1's augmentation; the model is not used
+        l1_ = make_method("l1")
+        return l1_._replace(
+            learn=lambda a, xp, up, x: a._replace(l1=l1_.learn(a.l1, xp, up, x)),
+            correction=lambda a, x: l1_.correction(a.l1, x),
+        )
     method = make_method(name)
     if name != FLAGSHIP:
         return method._replace(learn=lambda learner, x_prev, u_prev, x: learner)
@@ -169,9 +196,11 @@ def make_adapter_update(
             new = method.learn(learner, xp, up, x)
         else:
             beam, info = adaptation.update(learner.beam, z, dn, learner.config)
-            new = learner._replace(
-                beam=beam, changepoint=info.changepoint.astype(z.dtype), cp_prob=info.cp_prob
-            )
+            new = learner._replace(beam=beam)
+            if method.changepoints:  # a learner that forgets keeps its flags at zero
+                new = new._replace(
+                    changepoint=info.changepoint.astype(z.dtype), cp_prob=info.cp_prob
+                )
         new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, learner)
         cp = (new.changepoint > 0) & learn
         theta, cov, sig = marginal(new, x, up)

@@ -38,6 +38,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from arcade_control.knobs import DEFAULT_STACK_METHOD
+
 RATE_HZ = 50.0
 
 
@@ -80,9 +82,9 @@ def run(
     rate: float = RATE_HZ,
     duration: float | None = None,
     progress: Callable[[str], None] | None = None,
-    method: str = "ours",
+    method: str = DEFAULT_STACK_METHOD,
 ) -> dict[str, Any]:
-    """Fly the stack in real time with ``method`` (``ours`` or ``arcade``) and measure (see
+    """Fly the stack in real time with ``method`` (one of ``STACK_METHODS``) and measure (see
     the module docstring); ``progress`` gets the stack's start-up lines and the simulated
     time every 10 s."""
     from arcade.demo_stack import free_hub

@@ -151,9 +151,9 @@ TUNING_GRIDS = {
     "l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1, -0.05),
     "ours_matched_beta": (0.997, 0.9, 0.5, 0.2, 0.05),
     "ours_matched_sigma2": (0.1, 0.01, 0.001, 0.0001),
-    # The flagship: its beam's knobs (sigma^2 one step past the Appendix D value), then
-    # its thrust augmentation's, on L1's grids.
-    "arcade_beta": (0.997, 0.9, 0.5, 0.2, 0.05),
+    # The flagship: its learner's knobs (forgetting factor; sigma^2 one step past the
+    # Appendix D value), then its thrust augmentation's, on L1's grids.
+    "arcade_lambda": (0.9, 0.95, 0.97, 0.98, 0.99, 0.995, 0.999),
     "arcade_sigma2": (1.0, 0.1, 0.01, 0.001, 0.0001, 0.00001),
     "arcade_l1_cutoff": (2.5, 5.0, 10.0, 20.0, 40.0, 80.0),
     "arcade_l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1, -0.05),
@@ -171,7 +171,7 @@ TUNING_START = {
     "l1_a_s": -2.0,
     "ours_matched_beta": 0.05,
     "ours_matched_sigma2": 0.1,
-    "arcade_beta": 0.05,
+    "arcade_lambda": 0.98,
     "arcade_sigma2": 0.1,
     "arcade_l1_cutoff": 40.0,
     "arcade_l1_a_s": -2.0,
@@ -184,7 +184,12 @@ MAX_TUNING_PASSES = 4
 
 KEYS = ("rmse_m", "rmse_z_m", "shift_m", "settling_s")
 #: Diagnostics averaged per cell beside :data:`KEYS` (:func:`flight_metrics`).
-DIAGNOSTIC_KEYS = ("thrust_increment_rms_n", "rate_increment_rms_rad_s", "changepoint_rate")
+DIAGNOSTIC_KEYS = (
+    "thrust_increment_rms_n",
+    "rate_increment_rms_rad_s",
+    "changepoint_rate",
+    "converged_fraction",
+)
 
 
 def _mean(values: Sequence[float]) -> float:

@@ -300,8 +300,10 @@ class Runner:
         return flight
 
 
-#: Column of ``Flight.diag`` holding the changepoint flag (after the 13 sigma entries).
+#: Column of ``Flight.diag`` holding the changepoint flag (after the 13 sigma entries), and
+#: the column of the MPC solve's convergence flag (:func:`make_controller_step`'s ``diag``).
 DIAG_CHANGEPOINT = 13
+DIAG_CONVERGED = 16
 
 
 def flight_metrics(f: Flight) -> dict[str, float]:
@@ -309,14 +311,15 @@ def flight_metrics(f: Flight) -> dict[str, float]:
 
     Diagnostics beside the paper's metrics, on the figure-eight part too: the RMS of the
     step-to-step change of the thrust command (N) and of the body-rate commands (rad/s,
-    over the three axes; :func:`arcade_core.metrics.increment_rms`), and for the beam
-    methods the fraction of control steps on which a changepoint was flagged
-    (``nan`` for the others).
+    over the three axes; :func:`arcade_core.metrics.increment_rms`), the fraction of MPC
+    solves that converged within the iteration limit, and for the beam methods the fraction
+    of control steps on which a changepoint was flagged (``nan`` for the others).
     """
     inf = float("inf")
     name = base_name(f.method)
-    # The methods with a beam: ours and its variants, the flagship but without its model.
-    beam = name.startswith("ours") or (name.startswith(FLAGSHIP) and name != "arcade_no_model")
+    # The methods whose learner has a changepoint variable: ours and its variants, and the
+    # flagship's two ablations with a beam (the flagship itself forgets at every step).
+    beam = name.startswith("ours") or name in (f"{FLAGSHIP}_beam", f"{FLAGSHIP}_no_forgetting")
     if f.crashed:
         return {
             "rmse_m": inf,
@@ -326,6 +329,7 @@ def flight_metrics(f: Flight) -> dict[str, float]:
             "thrust_increment_rms_n": inf,
             "rate_increment_rms_rad_s": inf,
             "changepoint_rate": float("nan"),
+            "converged_fraction": float("nan"),
             "crashed": 1.0,
         }
     sel = f.t >= f.scenario.t_figure - 1e-9
@@ -341,6 +345,7 @@ def flight_metrics(f: Flight) -> dict[str, float]:
         "thrust_increment_rms_n": float(du[0]),
         "rate_increment_rms_rad_s": float(np.sqrt(np.mean(du[1:] ** 2))),
         "changepoint_rate": float(np.mean(f.diag[sel, DIAG_CHANGEPOINT])) if beam else float("nan"),
+        "converged_fraction": float(np.mean(f.diag[sel, DIAG_CONVERGED])),
         "crashed": 0.0,
     }
     if np.isfinite(f.t_release):

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from arcade_control.knobs import DEFAULT_STACK_METHOD
+
 __all__ = [
     "CPU_WAKEUP_LATENCY_US",
     "NICE",
@@ -66,8 +68,8 @@ class StackConfig:
     realtime_priority: bool = True
     weights: Path | None = None
     #: The controller the stack flies (``--method`` of the adapter and the controller):
-    #: ``ours`` (the paper's) or ``arcade`` (the product's flagship).
-    method: str = "ours"
+    #: one of ``arcade_control.knobs.STACK_METHODS``.
+    method: str = DEFAULT_STACK_METHOD
     checkpoint: Path | None = None
     ready_timeout: float = 600.0
     log_level: str = "INFO"

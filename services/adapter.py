@@ -21,7 +21,8 @@ in-process evaluation's learning step (``benchmarks.quadrotor_closedloop``, meth
 training range; ``--method arcade``: the flagship's model, those features plus an
 intercept at its stack knobs ``arcade_control.stack.STACK_ARCADE_KNOBS``, the controller
 running its L1 augmentation; the changepoint detector keeps the VLD's features and the
-calibrated noise); at other rates the same update uses the nominal RK4 step over the
+calibrated noise; ``--method l1``: ours' model, which L1's controller does not use); at
+other rates the same update uses the nominal RK4 step over the
 elapsed time (the VLD was trained at the 0.05 s control period, so other rates adapt an
 approximate residual). The beam-marginal prediction of ``delta`` before the update
 (Eq. 10) is published as ``residual`` (normalised units, the variance split of Sec. IV,
@@ -151,6 +152,7 @@ class Adapter(runtime.Service):
 
         from arcade_control.stack import (
             adapter_learner,
+            adapter_method,
             detection_config,
             detector_noise,
             detector_prior,
@@ -191,7 +193,8 @@ class Adapter(runtime.Service):
         x0, u0, var0 = np.zeros(13), np.array([5.6, 0.0, 0.0, 0.0]), np.zeros(13)
         sigma2 = None if base_sigma2 is None else np.asarray(base_sigma2).tolist()
         key = (
-            f"link_delay={a.link_delay!r} exact={exact} sigma2={sigma2!r} method={a.method} "
+            f"link_delay={a.link_delay!r} exact={exact} sigma2={sigma2!r} "
+            f"method={adapter_method(a.method)} "
             f"detect_sigma2={adaptation.quadrotor_config().sigma2!r}"
         )
         self._predict = load_or_trace(

@@ -24,6 +24,8 @@ adapter started with the same option): the model message holds the flagship's po
 step to step: its predictor integrates the setpoint last sent plus what the model message
 predicts, and its filtered estimate is added to the MPC's thrust. After a step that is not
 tracking (hover, nominal MPC) its predictor synchronises again with the next state.
+``--method l1``: the nominal MPC with L1's augmentation (thrust and body rates, the stack's
+L1 knobs), carried and synchronised the same way; the model message only paces the step.
 
 With ``--link-delay D`` (the link delays every setpoint by ``D``, less than one period)
 the step plans from the state predicted ``D`` ahead with the setpoint in flight (the last
@@ -97,7 +99,7 @@ def _without_learner(step):
 
     def plain(*args):
         new, u, _ = step(*args)
-        # What a method keeps across steps in the service: the flagship's L1 state.
+        # What a method keeps across steps in the service: the flagship's or L1's L1 state.
         return new._replace(learner=getattr(new.learner, "l1", None)), u
 
     return plain

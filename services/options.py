@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from arcade_control.knobs import STACK_METHODS
+from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
 from services.bus import DEFAULT_HUB
 
 
@@ -118,18 +118,24 @@ def add_weights_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+#: ``--method``'s help, the same wherever the option is (services and command line).
+METHOD_HELP = (
+    "the controller the stack flies: arcade, the product's flagship (the learned model "
+    "through the thrust axis plus an L1 thrust augmentation that cancels what the model "
+    "misses; docs/quadrotor-closed-loop.md); ours, the paper's method (the adapter's "
+    "changepoint-aware posterior in the uncertainty-modulated MPC); l1, the L1 "
+    f"augmentation on the nominal MPC (the baseline) (default: {DEFAULT_STACK_METHOD})"
+)
+
+
 def add_method_argument(p: argparse.ArgumentParser) -> None:
     """The controller the stack flies, shared by the adapter and the controller (same
     value on both: the model message's shape follows the method's features)."""
     p.add_argument(
         "--method",
         choices=STACK_METHODS,
-        default="ours",
-        help="ours: the paper's method (the adapter's changepoint-aware posterior in the "
-        "uncertainty-modulated MPC); arcade: the product's flagship, the same with an "
-        "intercept feature, the model through the thrust axis, and an L1 thrust "
-        "augmentation in the controller that cancels what the model misses "
-        "(default: ours)",
+        default=DEFAULT_STACK_METHOD,
+        help=METHOD_HELP,
     )
 
 

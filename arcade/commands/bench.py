@@ -8,6 +8,7 @@ import sys
 
 from arcade_control.knobs import STACK_METHODS
 from arcade_io import atomicfile, jsonout
+from services.options import METHOD_HELP
 
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
@@ -88,7 +89,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--method",
         choices=STACK_METHODS,
         default=None,
-        help="the controller the stack flies (default: ours, as `arcade demo`)",
+        help=METHOD_HELP,
     )
     m = p.add_argument_group("mpc")
     m.add_argument(

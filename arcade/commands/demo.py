@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from arcade_control.knobs import STACK_METHODS
+from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
+from services.options import METHOD_HELP
 
 HELP = (
     "fly the figure-eight payload-drop demo through the full service stack (simulator, "
@@ -55,9 +56,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--method",
         choices=STACK_METHODS,
         default=None,
-        help="the controller the stack flies: ours (the paper's method) or arcade (the "
-        "product's flagship: the learned model plus an L1 thrust augmentation; "
-        "docs/quadrotor-closed-loop.md) (default: ours)",
+        help=METHOD_HELP,
+    )
+    p.add_argument(
+        "--compare",
+        action="store_true",
+        help="fly l1, ours and arcade through the stack one after the other on the same "
+        "seed and plan; writes their x, y, z errors around the release side by side "
+        "(compare.png), a metrics table (compare.json) and each flight's run folder",
     )
     p.add_argument(
         "--cartpole",
@@ -79,6 +85,7 @@ def run_cartpole(args: argparse.Namespace) -> int:
             ("--speed", args.speed is not None),
             ("--x64", args.x64),
             ("--method", args.method is not None),
+            ("--compare", args.compare),
         )
         if given
     ]
@@ -133,6 +140,8 @@ def payload_problem(payload_g: float | None) -> str | None:
 def run(args: argparse.Namespace) -> int:
     if args.cartpole:
         return run_cartpole(args)
+    if args.compare and args.method is not None:
+        return _error("--method: not with --compare (it flies l1, ours and arcade)")
     from arcade.commands.up import out_problem, weights_problem
     from arcade_io import jaxsetup
     from arcade_io.runs import new_run_dir
@@ -156,6 +165,8 @@ def run(args: argparse.Namespace) -> int:
     )
     from deploy.launcher import StackError
 
+    if args.compare:
+        return _compare(args, out, payload_g, speed)
     try:
         summary = run_demo(
             out,
@@ -164,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             x64=args.x64,
             weights=args.weights,
-            method=args.method or "ours",
+            method=args.method or DEFAULT_STACK_METHOD,
         )
     except (StackError, ValueError, OSError) as err:
         return _error(f"{err} (run folder: {out})", 1)
@@ -173,3 +184,30 @@ def run(args: argparse.Namespace) -> int:
     print(f"\nrun folder: {out} (flight.png, metrics.json, logs/, flight_log.csv, bus.mcap)")
     codes = summary["exit_codes"]
     return 0 if all(c == 0 for c in codes.values()) and not summary["crashed"] else 1
+
+
+def _compare(args: argparse.Namespace, out: Path, payload_g: float, speed: float) -> int:
+    from arcade.demo_compare import COMPARED, format_compare, run_compare
+    from deploy.launcher import StackError
+
+    print(f"flying {', '.join(COMPARED)} one after the other on seed {args.seed}", flush=True)
+    try:
+        result = run_compare(
+            out,
+            methods=COMPARED,
+            progress=lambda m: print(m, file=sys.stderr, flush=True),
+            payload_g=payload_g,
+            speed=speed,
+            seed=args.seed,
+            x64=args.x64,
+            weights=args.weights,
+        )
+    except (StackError, ValueError, OSError) as err:
+        return _error(f"{err} (run folder: {out})", 1)
+    print()
+    print(format_compare(result))
+    names = ", ".join(f"{m}/" for m in COMPARED)
+    print(f"\nrun folder: {out} (compare.png, compare.json, {names})")
+    flights = result["methods"].values()
+    clean = all(all(c == 0 for c in s["exit_codes"].values()) for s in flights)
+    return 0 if clean and not any(s["crashed"] for s in flights) else 1

@@ -7,7 +7,8 @@ import math
 import sys
 from pathlib import Path
 
-from arcade_control.knobs import STACK_METHODS
+from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
+from services.options import METHOD_HELP
 
 HELP = "launch the service stack as processes over Zenoh (profile sim or px4)"
 
@@ -126,10 +127,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--method",
         choices=STACK_METHODS,
-        default="ours",
-        help="the controller the stack flies: ours (the paper's method) or arcade (the "
-        "product's flagship: the learned model plus an L1 thrust augmentation) "
-        "(default: %(default)s)",
+        default=DEFAULT_STACK_METHOD,
+        help=METHOD_HELP,
     )
     p.add_argument(
         "--checkpoint",

@@ -121,7 +121,9 @@ def check_logs(out: Path, codes: dict) -> None:
 
 def config(out: Path, **kw: Any) -> StackConfig:
     # A take-off and hover plan: the failsafe holds near the reference.
-    return StackConfig(out=out, hub=free_hub(), rate=RATE, hover_s=1000.0, x64=True, **kw)
+    return StackConfig(
+        out=out, hub=free_hub(), rate=RATE, hover_s=1000.0, x64=True, method="ours", **kw
+    )
 
 
 def test_lockstep_controller_and_estimator_killed(tmp_path):

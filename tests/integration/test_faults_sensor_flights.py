@@ -27,6 +27,7 @@ def test_lockstep_flight_through_mocap_faults(tmp_path):
     cfg = StackConfig(
         out=tmp_path,
         hub=free_hub(),
+        method="ours",
         lockstep=True,
         rate=20.0,
         duration=11.0,
@@ -75,6 +76,7 @@ def test_lockstep_long_dropout_holds_position_then_tracks_again(tmp_path):
     cfg = StackConfig(
         out=tmp_path,
         hub=free_hub(),
+        method="ours",
         lockstep=True,
         rate=20.0,
         duration=9.0,

@@ -34,6 +34,7 @@ def test_four_vehicles_share_one_bus_without_cross_talk(tmp_path):
                 vehicle=name,
                 hub=hub,
                 lockstep=True,
+                method="ours",
                 duration=3.0,
                 hover_s=1000.0,
                 origin=origin,

@@ -111,7 +111,9 @@ def in_process_rmse(monkeypatch, delay_s: float = 0.0, method: str = "ours") -> 
 
 
 def test_lockstep_flight_matches_in_process_loop(tmp_path, monkeypatch):
-    summary = run_demo(tmp_path, seed=SEED, x64=True, truth_state=True, progress=False)
+    summary = run_demo(
+        tmp_path, seed=SEED, x64=True, truth_state=True, progress=False, method="ours"
+    )
     check_clean_run(tmp_path, summary)
     assert summary["adaptation"] == "ours"
     reference = in_process_rmse(monkeypatch)
@@ -149,6 +151,7 @@ def test_lockstep_flight_compensating_a_link_delay_matches_in_process_loop(tmp_p
         progress=False,
         extra={"sim": ["--command-delay=0.03"]},
         link_delay_s=0.03,
+        method="ours",
     )
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
     assert summary["rejects"] == {} and not summary["crashed"]
@@ -159,7 +162,7 @@ def test_lockstep_flight_compensating_a_link_delay_matches_in_process_loop(tmp_p
 
 
 def test_lockstep_flight_with_estimator(tmp_path):
-    summary = run_demo(tmp_path, seed=SEED, x64=True, progress=False)
+    summary = run_demo(tmp_path, seed=SEED, x64=True, progress=False, method="ours")
     check_clean_run(tmp_path, summary)
     truth = read_truth(tmp_path / "truth.csv")
     est = np.genfromtxt(

@@ -48,7 +48,7 @@ from services.messages import Command
 # Flown on the wall clock, with timing assertions: run alone (``make test``).
 pytestmark = pytest.mark.realtime
 
-PLAN = {"speed": 1.0, "duration": 14.0, "release": 0.3, "seed": 0, "rate": 20.0}
+PLAN = {"speed": 1.0, "duration": 14.0, "release": 0.3, "seed": 0, "rate": 20.0, "method": "ours"}
 FLIGHTS = 3
 COM_OF_LOSS_T = 1.0
 HEARTBEAT_S = 1.0
@@ -63,7 +63,7 @@ def _udp_url() -> str:
 def _px4_config(out: Path, **options) -> Px4StackConfig:
     """The stack through a simulated PX4 on a fresh hub and UDP port; by default a hover
     plan (the reference stays put) long enough for any fault sequence, no release."""
-    plan = {"duration": 60.0, "hover_s": 120.0, "release": -1.0}
+    plan = {"duration": 60.0, "hover_s": 120.0, "release": -1.0, "method": "ours"}
     return Px4StackConfig(
         out=out,
         hub=free_hub(),

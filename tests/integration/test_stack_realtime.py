@@ -18,7 +18,9 @@ pytestmark = pytest.mark.realtime
 
 
 def test_realtime_flight_at_30hz_meets_deadlines(tmp_path):
-    cfg = StackConfig(out=tmp_path, lockstep=False, hub=free_hub(), rate=30.0, duration=6.0)
+    cfg = StackConfig(
+        out=tmp_path, lockstep=False, hub=free_hub(), rate=30.0, duration=6.0, method="ours"
+    )
     with SlowdownProbe(tmp_path / "host") as host:
         result = run_flight(cfg)
     assert all(code == 0 for code in result["codes"].values()), result["codes"]

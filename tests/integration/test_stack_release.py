@@ -41,6 +41,7 @@ def test_release_payload_command_in_hover(tmp_path):
         hover_s=1000.0,
         release=-1.0,
         x64=True,
+        method="ours",
     )
     sent = threading.Event()
     buses: list[Bus] = []

@@ -106,6 +106,7 @@ def fly(out: Path, bus_configs: dict[str, Path], lockstep: bool) -> dict:
     cfg = StackConfig(
         out=out,
         lockstep=lockstep,
+        method="ours",
         rate=RATE,
         duration=DURATION,
         hover_s=1000.0,

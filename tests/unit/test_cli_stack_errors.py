@@ -195,6 +195,8 @@ def test_bad_numbers_are_argument_errors(elsewhere, capsys, argv, message):
         (["up", "--profile", "px4", "--takeoff-m", "-1"], "--takeoff-m must be a positive"),
         (["demo", "--cartpole", "--speed", "3", "--x64"], "--speed, --x64: not with --cartpole"),
         (["demo", "--cartpole", "--method", "arcade"], "--method: not with --cartpole"),
+        (["demo", "--cartpole", "--compare"], "--compare: not with --cartpole"),
+        (["demo", "--compare", "--method", "l1"], "--method: not with --compare"),
         (
             ["up", "--lockstep", "--hub", "not-an-endpoint"],
             "--hub not-an-endpoint: Endpoints must be of the form <protocol>/<address>",

@@ -13,6 +13,7 @@ from arcade_control.methods import arcade_method, make_method
 from arcade_control.nominal import CONTROL_DT, nominal_params
 from arcade_control.stack import (
     STACK_ARCADE_KNOBS,
+    STACK_L1_KNOBS,
     adapter_learner,
     controller_method,
     detector_prior,
@@ -46,7 +47,9 @@ def _close(a, b) -> None:
 def test_the_stack_flies_the_flagship_at_its_stack_knobs():
     learner, method = load_learner(DEFAULT_WEIGHTS, np.float64, "arcade")
     assert method.name == "arcade" and learner.l1 is not None
-    assert float(learner.config.beta) == pytest.approx(STACK_ARCADE_KNOBS["arcade_beta"])
+    # One hypothesis that forgets at every step (pi = 1, beta^2 = lambda).
+    assert learner.beam.means.shape[0] == 1 and float(learner.config.pi) == 1.0
+    assert float(learner.config.beta) ** 2 == pytest.approx(STACK_ARCADE_KNOBS["arcade_lambda"])
     assert float(learner.config.sigma2) == pytest.approx(STACK_ARCADE_KNOBS["arcade_sigma2"])
     l = learner.vld.theta0.shape[1]
     assert learner.beam.prior_mean.shape[1] == l + 1  # the intercept's column
@@ -55,8 +58,37 @@ def test_the_stack_flies_the_flagship_at_its_stack_knobs():
     adapter, adapter_method = adapter_learner(DEFAULT_WEIGHTS, np.float64, "arcade")
     assert adapter.l1 is None and adapter_method.name == "arcade_no_l1"
     assert stack_knobs() == stack_knobs("ours") != stack_knobs("arcade")
-    with pytest.raises(ValueError, match="the stack flies ours or arcade"):
-        stack_knobs("l1")
+    with pytest.raises(ValueError, match="the stack flies arcade or ours or l1"):
+        stack_knobs("gp")
+
+
+def test_the_stack_flies_l1_with_the_in_process_l1_step():
+    """``--method l1``: the adapter learns ours' model (the detector and the model messages
+    as with ours), the controller runs the in-process L1 method on its own state at the
+    stack's L1 knobs, whatever the model message holds."""
+    adapter, adapter_method_ = adapter_learner(DEFAULT_WEIGHTS, np.float64, "l1")
+    ours, _ = adapter_learner(DEFAULT_WEIGHTS, np.float64, "ours")
+    assert adapter.l1 is None and adapter_method_.name == "ours"
+    _close(adapter.beam, ours.beam)
+    _close(adapter.config, ours.config)
+
+    learner, _ = load_learner(DEFAULT_WEIGHTS, np.float64, "l1")
+    assert float(learner.l1.params.cutoff_thrust) == pytest.approx(STACK_L1_KNOBS["l1_cutoff"])
+    xp, up, x = _transition()
+    l1_ = make_method("l1")
+    a = jax.jit(l1_.learn)(jax.jit(l1_.learn)(learner.l1, xp, up, xp), xp, up, x)
+    ctrl = controller_method("l1")
+    c = learner
+    rng = np.random.default_rng(1)
+    for transition in ((xp, up, xp), (xp, up, x)):  # any model message: not used
+        theta = rng.standard_normal(learner.beam.means.shape[1:])
+        cov = np.broadcast_to(np.eye(theta.shape[1]), (theta.shape[0], *theta.shape[1:2] * 2))
+        held = c._replace(beam=one_hypothesis_beam(c.beam, theta, cov))
+        c = jax.jit(ctrl.learn)(held, *transition)
+    _close(c.l1, a)
+    np.testing.assert_allclose(ctrl.correction(c, x), l1_.correction(a, x), atol=1e-12)
+    assert abs(float(c.l1.thrust_adj)) > 0.0
+    assert ctrl.sigma(c, x, up) is None and not ctrl.learned
 
 
 def test_adapter_then_controller_is_the_in_process_flagship_step():
@@ -104,7 +136,7 @@ def test_adapter_then_controller_is_the_in_process_flagship_step():
 @pytest.mark.parametrize(
     ("adaptation", "text"),
     [("ours", "controller: ours (ARCADE"), ("arcade", "controller: arcade (the flagship"),
-     ("nominal", "controller: nominal MPC")],
+     ("l1", "controller: l1 (the L1"), ("nominal", "controller: nominal MPC")],
 )  # fmt: skip
 def test_the_demo_summary_names_the_controller_flown(adaptation, text):
     from arcade.demo_stack import format_summary

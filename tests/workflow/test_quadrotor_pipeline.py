@@ -11,6 +11,7 @@ import pytest
 from arcade.training_quadrotor import QUADROTOR_COMMAND, QUADROTOR_WEIGHTS
 from arcade_control.guard import Guard, guard_from_metadata
 from arcade_control.knobs import (
+    ARCADE_BEAM_BETA,
     BEAM_VARIANTS,
     METHODS,
     ORACLE,
@@ -32,6 +33,7 @@ from benchmarks import quadrotor_closedloop as cl
 from benchmarks import quadrotor_flights as flights
 from benchmarks.quadrotor_flights import (
     DIAG_CHANGEPOINT,
+    DIAG_CONVERGED,
     Flight,
     MocapEstimate,
     Runner,
@@ -201,9 +203,10 @@ def test_beam_variants_start_from_the_offline_decoder():
 
 
 def test_the_flagship_plans_with_the_learned_model_and_cancels_only_what_it_misses():
-    """``arcade``: ours_matched's beam (intercept column at zero, its own knobs) plus an L1
-    thrust augmentation whose predictor includes the learned model: a model that predicts
-    the disturbance exactly leaves the augmentation nothing to cancel."""
+    """``arcade``: ours_matched's model (intercept column at zero) learned with forgetting
+    at its own knobs, plus an L1 thrust augmentation whose predictor includes the learned
+    model: a model that predicts the disturbance exactly leaves the augmentation nothing to
+    cancel."""
     from arcade_control.methods import make_method
     from arcade_control.nominal import f_nom
 
@@ -211,12 +214,12 @@ def test_the_flagship_plans_with_the_learned_model_and_cancels_only_what_it_miss
     models = SimpleNamespace(
         vld=vld,
         guard=guard_from_metadata(extra),
-        closedloop={"arcade_beta": 0.5, "arcade_l1_cutoff": 20.0, "arcade_l1_a_s": -1.0},
+        closedloop={"arcade_lambda": 0.25, "arcade_l1_cutoff": 20.0, "arcade_l1_a_s": -1.0},
     )
     a = initial_learner("arcade", models, jnp.float64)
     d, l = vld.theta0.shape
     assert np.asarray(a.beam.means[0]).shape == (d, l + 1)
-    assert float(a.config.beta) == 0.5
+    assert int(a.config.K) == 1 and float(a.config.pi) == 1.0 and float(a.config.beta) == 0.5
     assert float(a.l1.params.cutoff_thrust) == 20.0 and float(a.l1.params.a_s) == -1.0
     assert not bool(a.l1.params.rotational)  # thrust channel only
     method = make_method("arcade")
@@ -242,8 +245,15 @@ def test_the_flagship_plans_with_the_learned_model_and_cancels_only_what_it_miss
     no_l1 = initial_learner("arcade_no_l1", models, jnp.float64)
     assert no_l1.l1 is None and float(no_l1.config.beta) == 0.5
     np.testing.assert_array_equal(make_method("arcade_no_l1").correction(no_l1, x0), 0.0)
-    no_cp = initial_learner("arcade_no_cp", models, jnp.float64)
-    assert int(no_cp.config.K) == 1 and float(no_cp.config.pi) == 0.0 and no_cp.l1 is not None
+    never = initial_learner("arcade_no_forgetting", models, jnp.float64)
+    assert int(never.config.K) == 1 and float(never.config.pi) == 0.0 and never.l1 is not None
+    assert float(never.config.beta) == 1.0
+    beam = initial_learner("arcade_beam", models, jnp.float64)
+    assert beam.beam.means.shape[0] == 15 and float(beam.config.beta) == ARCADE_BEAM_BETA
+    assert beam.l1 is not None and make_method("arcade_beam").changepoints
+    # Forgetting takes the changepoint branch at every step: no flag, no probability.
+    assert not method.changepoints
+    np.testing.assert_array_equal(method.info(a2), 0.0)
 
 
 def test_tuning_flies_only_the_methods_asked_for():
@@ -262,7 +272,7 @@ def test_tuning_flies_only_the_methods_asked_for():
     assert set(out["chosen"]) == {
         "ours_matched_beta",
         "ours_matched_sigma2",
-        "arcade_beta",
+        "arcade_lambda",
         "arcade_sigma2",
         "arcade_l1_cutoff",
         "arcade_l1_a_s",
@@ -331,7 +341,7 @@ def test_a_run_records_only_the_knobs_of_the_methods_it_flies():
     owners = {"ours_matched", "arcade"}  # not among the paper's methods
     assert set(paper) == {k for k, m in TUNING_METHOD.items() if m not in owners}
     flagship = {k for k, m in TUNING_METHOD.items() if m == "arcade"}
-    assert set(knobs_of({}, ("arcade_no_model", "arcade_no_cp"))) == flagship
+    assert set(knobs_of({}, ("arcade_no_model", "arcade_no_forgetting", "arcade_beam"))) == flagship
     assert paper["ours_beta"] == 0.2 and paper["l1_a_s"] == TUNED_DEFAULTS["l1_a_s"]
     assert set(knobs_of({}, ("ours_K5", "ours_no_cp_held"))) == {"ours_beta", "ours_sigma2"}
     assert set(knobs_of({}, ("nominal",))) == set()
@@ -389,6 +399,7 @@ def _logged_flight(method: str, u: np.ndarray, changepoint: np.ndarray) -> Fligh
     x = np.zeros((n, 13))
     diag = np.zeros((n, 17))
     diag[:, DIAG_CHANGEPOINT] = changepoint
+    diag[:, DIAG_CONVERGED] = np.arange(n) % 4 != 0  # one solve in four hit the limit
     scen = Scenario(takeoff_s=0.25, hover_s=0.25, release_fraction=-1.0)
     return Flight(method, scen, 0, t, x, x.copy(), u, diag, float("nan"), False, t)
 
@@ -407,9 +418,12 @@ def test_flight_diagnostics_measure_command_jumps_and_changepoints():
     assert m["thrust_increment_rms_n"] == pytest.approx(1.0)
     assert m["rate_increment_rms_rad_s"] == pytest.approx(np.sqrt(0.2**2 / 3))
     assert m["changepoint_rate"] == pytest.approx(0.3)
-    # The flagship's beam too; methods without a changepoint detector report none, not zero.
-    assert flight_metrics(_logged_flight("arcade", u, cp))["changepoint_rate"] == pytest.approx(0.3)
-    for method in ("l1", "arcade_no_model"):
+    assert m["converged_fraction"] == pytest.approx(0.8)  # steps 12 and 16 of 10..19
+    # The flagship's beam ablation too; methods without a changepoint variable (the
+    # flagship forgets at every step) report none, not zero.
+    beam = flight_metrics(_logged_flight("arcade_beam", u, cp))
+    assert beam["changepoint_rate"] == pytest.approx(0.3)
+    for method in ("l1", "arcade_no_model", "arcade"):
         assert np.isnan(flight_metrics(_logged_flight(method, u, cp))["changepoint_rate"])
 
 
