@@ -18,9 +18,18 @@ METHODS = ("nominal", "l1", "gp", "mlp", "ours_no_cp", "ours")
 FLAGSHIP = "arcade"
 #: The flagship without one of its parts (with its knobs): without the learned model (its
 #: L1 augmentation on the nominal MPC), without the augmentation (its learner alone),
-#: without forgetting (one hypothesis that never tempers), and with the changepoint beam
-#: in place of forgetting (its design before, :data:`ARCADE_BEAM_BETA`).
-FLAGSHIP_ABLATIONS = ("arcade_no_model", "arcade_no_l1", "arcade_no_forgetting", "arcade_beam")
+#: without the restart at a detected change, without forgetting (one hypothesis that never
+#: tempers nor restarts), and with the changepoint beam in place of forgetting and restart
+#: (its design before, :data:`ARCADE_BEAM_BETA`).
+FLAGSHIP_ABLATIONS = (
+    "arcade_no_model",
+    "arcade_no_l1",
+    "arcade_no_restart",
+    "arcade_no_forgetting",
+    "arcade_beam",
+)
+#: The flagship's learners that its changepoint detector restarts at a declared change.
+RESTARTING = (FLAGSHIP, "arcade_no_l1")
 #: ``arcade_beam``'s tempering: what the stack-condition tuning picked for the flagship's
 #: beam when it had one (``docs/quadrotor-closed-loop.md``); not tuned again.
 ARCADE_BEAM_BETA = 0.9
@@ -59,6 +68,7 @@ TUNING_METHOD = {
     "ours_matched_beta": "ours_matched",
     "ours_matched_sigma2": "ours_matched",
     "arcade_lambda": FLAGSHIP,
+    "arcade_restart_scale": FLAGSHIP,
     "arcade_sigma2": FLAGSHIP,
     "arcade_l1_cutoff": FLAGSHIP,
     "arcade_l1_a_s": FLAGSHIP,
@@ -76,12 +86,14 @@ TUNED_DEFAULTS = {
     # Tuned by `arcade bench variants` (benchmarks/results/quadrotor_variants/), 2-core AMD EPYC.
     "ours_matched_beta": 0.2,
     "ours_matched_sigma2": 0.0001,
-    # The flagship's forgetting factor: the stack condition's choice (stack.STACK_ARCADE_KNOBS),
-    # not tuned on the true state; the others tuned there with the beam it had before.
-    "arcade_lambda": 0.98,
-    "arcade_sigma2": 0.1,
+    # The flagship: tuned by the protocol on the true state before it restarted at a
+    # detected change (every knob on a grid edge then; docs/quadrotor-closed-loop.md), its
+    # restart's prior variance factor the stack condition's (stack.STACK_ARCADE_KNOBS).
+    "arcade_lambda": 0.9,
+    "arcade_restart_scale": 0.01,
+    "arcade_sigma2": 1.0,
     "arcade_l1_cutoff": 80.0,
-    "arcade_l1_a_s": -0.1,
+    "arcade_l1_a_s": -0.05,
 }
 
 

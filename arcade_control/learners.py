@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from arcade_control.detection import detection_config
 from arcade_control.guard import cast as _cast
 from arcade_control.guard import make_guard
 from arcade_control.knobs import (
@@ -19,11 +20,12 @@ from arcade_control.knobs import (
     FLAGSHIP_ABLATIONS,
     MLP_INPUT_STD,
     ORACLE,
+    RESTARTING,
     TUNED_DEFAULTS,
     base_name,
     knob_owner,
 )
-from arcade_control.methods import BeamLearner, MassOracle
+from arcade_control.methods import BeamLearner, MassOracle, Restart
 from arcade_control.nominal import nominal_params
 from arcade_core import adaptation
 from arcade_core.baselines import gp, l1, mlp
@@ -73,7 +75,7 @@ def flagship_config(
     (:func:`no_cp_config`); ``arcade_beam``: the changepoint beam of the preset, tempered
     by :data:`arcade_control.knobs.ARCADE_BEAM_BETA` (its design before)."""
     if name == "arcade_no_forgetting":
-        return no_cp_config(cfg)
+        return no_cp_config(cfg)  # one hypothesis, never tempered nor restarted
     if name == "arcade_beam":
         return cfg._replace(beta=ARCADE_BEAM_BETA)
     return forgetting_config(cfg, lam)
@@ -142,7 +144,26 @@ def initial_learner(name: str, models, dtype) -> Any:
     if flagship and name != "arcade_no_l1":  # thrust channel only
         l1_state = _l1_state(tuned["arcade_l1_cutoff"], 0.0, tuned["arcade_l1_a_s"], dtype)
         learner = learner._replace(l1=l1_state)
+    if name in RESTARTING:  # the detector at the VLD's prior, the learner's noise
+        det = detection_config(dtype=dtype)
+        scale = jnp.asarray(tuned["arcade_restart_scale"], dtype)
+        learner = learner._replace(
+            restart=Restart(
+                adaptation.init_detection(vld.theta0, det),
+                det,
+                restart_prior(beam, scale),
+                scale,
+                traced_cfg.sigma2,
+                jnp.asarray(adaptation.quadrotor_config().sigma2, dtype),
+            )
+        )
     return learner
+
+
+def restart_prior(beam: adaptation.BeamState, scale: Any) -> adaptation.BeamState:
+    """``beam`` (at the prior) with its covariances times ``scale``: where the flagship's
+    learner restarts at a detected change (:func:`arcade_control.methods.restart_at_change`)."""
+    return beam._replace(sqrt_covariances=beam.sqrt_covariances * jnp.sqrt(scale))
 
 
 def _l1_state(cutoff: float, cutoff_rates: float, a_s: float, dtype) -> l1.L1State:
@@ -173,4 +194,9 @@ def per_output_noise(learner: BeamLearner) -> BeamLearner:
     vec = cfg._replace(sigma2=jnp.broadcast_to(jnp.asarray(cfg.sigma2, dtype), (d,)))
     theta0 = learner.beam.prior_mean
     beam = beam_at_prior(theta0, vec._replace(K=int(learner.beam.means.shape[0])))
+    if learner.restart is not None:  # it restarts to the same layout
+        r = learner.restart
+        learner = learner._replace(
+            restart=r._replace(prior=restart_prior(beam, r.scale), base_sigma2=vec.sigma2)
+        )
     return learner._replace(config=vec, beam=beam)

@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -31,6 +32,7 @@ from arcade_control.knobs import (
     FLAGSHIP_ABLATIONS,
     METHODS,
     ORACLE,
+    RESTARTING,
     base_name,
 )
 from arcade_control.nominal import CONTROL_DT as DT
@@ -190,6 +192,19 @@ def mlp_method() -> Method:
     )
 
 
+class Restart(NamedTuple):
+    """The flagship's changepoint detector and the learner's state it restarts to
+    (:func:`restart_at_change`)."""
+
+    detection: adaptation.DetectionState
+    config: adaptation.DetectionConfig
+    #: The learner's beam at the offline prior mean, its covariance times ``scale``.
+    prior: adaptation.BeamState
+    scale: Array
+    base_sigma2: Array  # the learner's own noise: its step's noise less this is the estimate's
+    noise: Array  # the detector's calibrated noise (Appendix D)
+
+
 class BeamLearner(NamedTuple):
     """Adaptive state of ours: frozen VLD, beam, hyperparameters, last update's info."""
 
@@ -201,6 +216,8 @@ class BeamLearner(NamedTuple):
     cp_prob: Array
     #: The flagship's matched-disturbance estimate (:func:`arcade_method`); ``None`` in ours.
     l1: l1.L1State | None = None
+    #: The flagship's detector that restarts the learner at a declared change.
+    restart: Restart | None = None
 
 
 def clipped_features(vld: encoder.VLD, guard: Guard, x: Array, u: Array) -> Array:
@@ -220,8 +237,32 @@ def matched_residual(x: Array, delta: Array) -> Array:
     return out.at[3:6].set(jnp.dot(delta[3:6], zb) * zb)
 
 
+def restart_at_change(a: BeamLearner, z: Array, dn: Array) -> BeamLearner:
+    """The detector's step (:func:`arcade_core.adaptation.detection_step`) on a transition's
+    VLD features ``z`` and normalised residual ``dn``, with its calibrated noise plus what
+    the state estimate adds to the learner's; a declared change restarts the learner at
+    the offline prior's mean with ``scale`` times its covariance, and is the learner's
+    changepoint flag, the detector's probability its ``cp_prob``. With the whole prior
+    covariance (``scale = 1``) at the flagship's small ``sigma^2`` the restarted learner
+    refits on every period (a gain near one), which made the planned thrust chatter."""
+    r = a.restart
+    sigma2 = jnp.broadcast_to(r.noise + (a.config.sigma2 - r.base_sigma2), dn.shape)
+    state, d = adaptation.detection_step(r.detection, z, dn, sigma2, True, r.config)
+    beam = jax.tree.map(lambda p, b: jnp.where(d.declared, p, b), r.prior, a.beam)
+    return a._replace(
+        beam=beam,
+        restart=r._replace(detection=state),
+        changepoint=d.declared.astype(dn.dtype),
+        cp_prob=d.probability.astype(dn.dtype),
+    )
+
+
 def beam_method(
-    name: str = "ours", intercept: bool = False, matched: bool = False, forgetting: bool = False
+    name: str = "ours",
+    intercept: bool = False,
+    matched: bool = False,
+    forgetting: bool = False,
+    restart: bool = False,
 ) -> Method:
     """Ours (Sec. III-IV), or a variant that is not the paper's method (:data:`VARIANTS`).
 
@@ -231,7 +272,9 @@ def beam_method(
     only :func:`matched_residual` of the learned residual; learning, the changepoints and
     ``sigma_tot^2`` see every output as in ours. ``forgetting``: the learner is a single
     hypothesis that tempers at every step (:func:`arcade_control.learners.forgetting_config`),
-    so its changepoint flag and probability say nothing and stay zero.
+    so its own changepoint flag and probability say nothing and stay zero. ``restart``: its
+    detector restarts it at a declared change (:func:`restart_at_change`), and the flag and
+    the probability are the detector's.
     """
 
     def features(vld, guard, x, u):
@@ -251,6 +294,9 @@ def beam_method(
         z = features(a.vld, a.guard, xp, up)
         dn = a.vld.normalise_residual(x - f_nom(xp, up))
         beam, info = adaptation.update(a.beam, z, dn, a.config)
+        if restart:
+            z_vld = clipped_features(a.vld, a.guard, xp, up)  # what the detector watches
+            return restart_at_change(a._replace(beam=beam), z_vld, dn)
         if forgetting:
             return a._replace(beam=beam)
         return a._replace(
@@ -279,7 +325,7 @@ def beam_method(
         learned=True,
         features=lambda a, x, u: features(a.vld, a.guard, x, u),
         latent_variance=lambda a, x, u: latent_variance(a.vld, x, u),
-        changepoints=not forgetting,
+        changepoints=restart or not forgetting,
     )
 
 
@@ -307,21 +353,25 @@ def arcade_method(name: str = FLAGSHIP) -> Method:
       model: BLR on the VLD features plus an intercept), learned by one hypothesis with
       exponential forgetting (Eq. 5's tempering at every step, the offline prior
       re-injected; :func:`arcade_control.learners.flagship_config`): the changepoint
-      beam's switching between hypotheses made the planned thrust chatter.
+      beam's switching between hypotheses made the planned thrust chatter. The adapter's
+      changepoint detector restarts it at the prior when it declares a change
+      (:func:`restart_at_change`).
     - An L1 augmentation of the collective thrust whose state predictor includes that
       learned model (L1-GP): its piecewise-constant law estimates, and its low-pass filter
       cancels, only the force the learned model misses over the last period; the thrust
       correction acts between the MPC's plans like integral action.
 
     ``name`` one of :data:`FLAGSHIP_ABLATIONS`: the flagship without its learned model (the
-    augmentation on the nominal MPC), without the augmentation, without forgetting (one
-    hypothesis that never tempers), or with the changepoint beam instead of forgetting
-    (the learners: :func:`arcade_control.learners.flagship_config`).
+    augmentation on the nominal MPC), without the augmentation, without the restart,
+    without forgetting (one hypothesis that never tempers nor restarts), or with the
+    changepoint beam instead of forgetting and restart (the learners:
+    :func:`arcade_control.learners.flagship_config`).
     """
     if name == "arcade_no_model":
         return l1_method()._replace(name=name)
-    forgetting = name in (FLAGSHIP, "arcade_no_l1")
-    base = beam_method(name, intercept=True, matched=True, forgetting=forgetting)
+    forgetting = name in (FLAGSHIP, "arcade_no_l1", "arcade_no_restart")
+    restart = name in RESTARTING
+    base = beam_method(name, intercept=True, matched=True, forgetting=forgetting, restart=restart)
     if name == "arcade_no_l1":
         return base
 

@@ -11,7 +11,6 @@ encode.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -23,7 +22,12 @@ import numpy as np
 from arcade_control.guard import guard_from_metadata
 from arcade_control.knobs import FLAGSHIP, STACK_METHODS
 from arcade_control.learners import initial_learner, per_output_noise
-from arcade_control.methods import augmentation_step, clipped_features, make_method
+from arcade_control.methods import (
+    augmentation_step,
+    clipped_features,
+    make_method,
+    restart_at_change,
+)
 from arcade_core import adaptation
 from arcade_core.dynamics import quadrotor_step
 from arcade_io.weights import load_model
@@ -34,11 +38,13 @@ STACK_BETA = 0.05
 #: The flagship's knobs in the stack: ``sigma^2``, the L1 cutoff and its pole as
 #: ``arcade eval quadrotor --condition stack`` tuned them for the flagship's changepoint
 #: beam (the estimator's state, the 20 ms link delay compensated; 4 paired seeds,
-#: in-process); the forgetting factor that replaced the beam chosen in the same condition
-#: (175 g at 0.5, 1.5 and 2.5 m/s, seeds 0-2; docs/quadrotor-closed-loop.md). The adapter
-#: adds the estimator's noise to ``sigma^2`` as for ours.
+#: in-process); the forgetting factor that replaced the beam and the restart's prior
+#: variance factor chosen in the same condition (175 g at 0.5, 1.5 and 2.5 m/s;
+#: docs/quadrotor-closed-loop.md). The adapter adds the estimator's noise to ``sigma^2``
+#: as for ours.
 STACK_ARCADE_KNOBS = {
     "arcade_lambda": 0.98,
+    "arcade_restart_scale": 0.01,
     "arcade_sigma2": 1e-4,
     "arcade_l1_cutoff": 5.0,
     "arcade_l1_a_s": -0.1,
@@ -197,7 +203,9 @@ def make_adapter_update(
         else:
             beam, info = adaptation.update(learner.beam, z, dn, learner.config)
             new = learner._replace(beam=beam)
-            if method.changepoints:  # a learner that forgets keeps its flags at zero
+            if learner.restart is not None:  # the flagship's detector, as its learn runs it
+                new = restart_at_change(new, learner_features(learner, xp, up), dn)
+            elif method.changepoints:  # a learner that forgets keeps its flags at zero
                 new = new._replace(
                     changepoint=info.changepoint.astype(z.dtype), cp_prob=info.cp_prob
                 )
@@ -280,49 +288,3 @@ def detector_prior(learner: Any) -> Any:
     """The decoder prior mean over the VLD's features, where the adapter's detector starts
     (the learner's prior without the flagship's intercept column)."""
     return learner.beam.prior_mean[:, : learner.vld.theta0.shape[1]]
-
-
-def detector_noise(sigma2: Any) -> Any:
-    """The detector's observation noise beside a learner's per-output ``sigma2``: the
-    calibrated one (Appendix D), whatever the learner's tuned one (the flagship's is
-    smaller)."""
-    return jnp.full(
-        jnp.shape(sigma2), adaptation.quadrotor_config().sigma2, jnp.result_type(sigma2)
-    )
-
-
-def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, score: str = "joint"):
-    """The adapter's changepoint detector (:class:`arcade_core.adaptation.DetectionConfig`)
-    from :data:`arcade_control.knobs.DETECTION_DEFAULTS` updated with ``knobs``: a beam of
-    ``K = 15`` scored as the exact joint, at the quadrotor preset's ``tau^2`` and offline
-    prior floor, watching the outputs the knob names with the learner's noise. ``score``:
-    the hypothesis score (``"algorithm1"`` only to compare, see ``docs/changepoints.md``).
-    A knob ``nu`` gives the scores Student-t tails (``AdaptationConfig.nu``, static; default
-    ``inf``, the Gaussian of Eq. 8)."""
-    from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_OUTPUTS
-
-    k = {**DETECTION_DEFAULTS, **(knobs or {})}
-    if k["outputs"] not in DETECTION_OUTPUTS:
-        raise ValueError(f"unknown detector outputs {k['outputs']!r}")
-    dtype = dtype or jnp.result_type(float)
-    scale = np.full(13, np.inf)
-    scale[list(DETECTION_OUTPUTS[k["outputs"]])] = 1.0
-    beam = adaptation.quadrotor_config()._replace(pi=k["pi"], beta=k["beta"], score="joint")
-    f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
-    return adaptation.DetectionConfig(
-        beam=adaptation.AdaptationConfig(
-            K=beam.K,
-            pi=f(beam.pi),
-            beta=f(beam.beta),
-            tau2=f(beam.tau2),
-            sigma2=f(1.0),
-            prior_floor=f(beam.prior_floor),
-            score=score,
-            nu=float(k.get("nu", math.inf)),
-        ),
-        noise_scale=f(scale),
-        tracking=f(k["tracking"]),
-        window=jnp.asarray(k["window"], jnp.int32),
-        threshold=f(k["threshold"]),
-        refractory_steps=jnp.asarray(k["refractory_steps"], jnp.int32),
-    )

@@ -33,12 +33,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from arcade_control.detection import detection_config
 from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_OUTPUTS
 from arcade_control.methods import clipped_features
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import f_nom
 from arcade_control.scenario import Scenario
-from arcade_control.stack import detection_config, stack_knobs
+from arcade_control.stack import stack_knobs
 from arcade_core import adaptation
 from benchmarks.quadrotor_protocol import LINK_DELAY_S
 

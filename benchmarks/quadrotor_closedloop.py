@@ -153,10 +153,11 @@ TUNING_GRIDS = {
     "ours_matched_sigma2": (0.1, 0.01, 0.001, 0.0001),
     # The flagship: its learner's knobs (forgetting factor; sigma^2 one step past the
     # Appendix D value), then its thrust augmentation's, on L1's grids.
-    "arcade_lambda": (0.9, 0.95, 0.97, 0.98, 0.99, 0.995, 0.999),
-    "arcade_sigma2": (1.0, 0.1, 0.01, 0.001, 0.0001, 0.00001),
-    "arcade_l1_cutoff": (2.5, 5.0, 10.0, 20.0, 40.0, 80.0),
-    "arcade_l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1, -0.05),
+    "arcade_lambda": (0.8, 0.9, 0.95, 0.97, 0.98, 0.99, 0.995, 0.999),
+    "arcade_restart_scale": (1.0, 0.1, 0.01, 0.001),
+    "arcade_sigma2": (10.0, 1.0, 0.1, 0.01, 0.001, 0.0001, 0.00001),
+    "arcade_l1_cutoff": (2.5, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0),
+    "arcade_l1_a_s": (-5.0, -2.0, -1.0, -0.5, -0.2, -0.1, -0.05, -0.02),
 }
 #: Where :func:`tune` starts: the presets (Appendix D ``sigma^2 = 0.1``, the GP's
 #: marginal-likelihood noise, L1 on the thrust channel only) and a middle value of the
@@ -172,6 +173,7 @@ TUNING_START = {
     "ours_matched_beta": 0.05,
     "ours_matched_sigma2": 0.1,
     "arcade_lambda": 0.98,
+    "arcade_restart_scale": 0.01,
     "arcade_sigma2": 0.1,
     "arcade_l1_cutoff": 40.0,
     "arcade_l1_a_s": -2.0,

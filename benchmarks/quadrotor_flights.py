@@ -317,9 +317,11 @@ def flight_metrics(f: Flight) -> dict[str, float]:
     """
     inf = float("inf")
     name = base_name(f.method)
-    # The methods whose learner has a changepoint variable: ours and its variants, and the
-    # flagship's two ablations with a beam (the flagship itself forgets at every step).
-    beam = name.startswith("ours") or name in (f"{FLAGSHIP}_beam", f"{FLAGSHIP}_no_forgetting")
+    # The methods whose learner has a changepoint variable: ours and its variants, the
+    # flagship (its detector's declarations) and its ablations with a beam or a detector.
+    beam = name.startswith("ours") or (
+        name.startswith(FLAGSHIP) and name not in ("arcade_no_model", "arcade_no_restart")
+    )
     if f.crashed:
         return {
             "rmse_m": inf,

@@ -3,7 +3,7 @@
 Subscribes ``state`` and ``setpoint``; publishes ``residual`` and ``model`` for every state,
 and an ``event`` (kind ``changepoint``) when the changepoint detector declares one: a second
 beam beside the learner, on the same features, residuals and noise, scored as the exact
-joint and tuned for detection (:func:`arcade_control.stack.detection_config`,
+joint and tuned for detection (:func:`arcade_control.detection.detection_config`,
 :func:`arcade_core.adaptation.detection_step`), declares when the posterior probability of a
 changepoint within its window reaches the threshold, then waits a refractory period. The
 event carries that probability (``cp_prob``), the step the change is dated to
@@ -150,11 +150,10 @@ class Adapter(runtime.Service):
         # has set the precision, and not for `--help`.
         import jax.numpy as jnp
 
+        from arcade_control.detection import detection_config, detector_noise
         from arcade_control.stack import (
             adapter_learner,
             adapter_method,
-            detection_config,
-            detector_noise,
             detector_prior,
             make_adapter_update,
             same_hemisphere,

@@ -17,7 +17,7 @@ finds the detector's false alarms); no rejected message, no error in any service
 every process exits cleanly.
 
 Changepoint events come from the adapter's detector (a joint-scored beam beside the
-learner, :func:`arcade_control.stack.detection_config`), not from the learner's MAP path,
+learner, :func:`arcade_control.detection.detection_config`), not from the learner's MAP path,
 which with the tuned temperature gains a changepoint several times a second while the
 payload swings (seed 0: 20 such flags in the 5.75 s before the release with the
 ground-truth state, 29 with the estimator); ``arcade eval changepoints`` measures both.

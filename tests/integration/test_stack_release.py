@@ -11,7 +11,7 @@ With the shipped quadrotor weights (seed 0, lockstep) the learner's own MAP path
 changepoint at a 175 g release in hover: the release is a ~3 sigma innovation of the
 vertical velocity for one step against the learner's noise, which its posterior absorbs
 within a few steps. The detector (a joint-scored beam that watches the vertical outputs,
-:func:`arcade_control.stack.detection_config`) accumulates that evidence over its window
+:func:`arcade_control.detection.detection_config`) accumulates that evidence over its window
 and declares it.
 """
 

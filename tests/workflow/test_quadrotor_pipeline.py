@@ -251,9 +251,14 @@ def test_the_flagship_plans_with_the_learned_model_and_cancels_only_what_it_miss
     beam = initial_learner("arcade_beam", models, jnp.float64)
     assert beam.beam.means.shape[0] == 15 and float(beam.config.beta) == ARCADE_BEAM_BETA
     assert beam.l1 is not None and make_method("arcade_beam").changepoints
-    # Forgetting takes the changepoint branch at every step: no flag, no probability.
-    assert not method.changepoints
-    np.testing.assert_array_equal(method.info(a2), 0.0)
+    # Forgetting takes the changepoint branch at every step: without its detector's
+    # restart, no flag and no probability; with it, the detector's.
+    forgetting = make_method("arcade_no_restart")
+    assert not forgetting.changepoints and method.changepoints
+    plain = initial_learner("arcade_no_restart", models, jnp.float64)
+    assert plain.restart is None
+    learned = forgetting.learn(plain, x1, u, f_nom(x1, u).at[5].add(-0.05))
+    np.testing.assert_array_equal(forgetting.info(learned), 0.0)
 
 
 def test_tuning_flies_only_the_methods_asked_for():
@@ -273,6 +278,7 @@ def test_tuning_flies_only_the_methods_asked_for():
         "ours_matched_beta",
         "ours_matched_sigma2",
         "arcade_lambda",
+        "arcade_restart_scale",
         "arcade_sigma2",
         "arcade_l1_cutoff",
         "arcade_l1_a_s",
@@ -341,7 +347,7 @@ def test_a_run_records_only_the_knobs_of_the_methods_it_flies():
     owners = {"ours_matched", "arcade"}  # not among the paper's methods
     assert set(paper) == {k for k, m in TUNING_METHOD.items() if m not in owners}
     flagship = {k for k, m in TUNING_METHOD.items() if m == "arcade"}
-    assert set(knobs_of({}, ("arcade_no_model", "arcade_no_forgetting", "arcade_beam"))) == flagship
+    assert set(knobs_of({}, ("arcade_no_model", "arcade_no_restart", "arcade_beam"))) == flagship
     assert paper["ours_beta"] == 0.2 and paper["l1_a_s"] == TUNED_DEFAULTS["l1_a_s"]
     assert set(knobs_of({}, ("ours_K5", "ours_no_cp_held"))) == {"ours_beta", "ours_sigma2"}
     assert set(knobs_of({}, ("nominal",))) == set()
@@ -419,11 +425,12 @@ def test_flight_diagnostics_measure_command_jumps_and_changepoints():
     assert m["rate_increment_rms_rad_s"] == pytest.approx(np.sqrt(0.2**2 / 3))
     assert m["changepoint_rate"] == pytest.approx(0.3)
     assert m["converged_fraction"] == pytest.approx(0.8)  # steps 12 and 16 of 10..19
-    # The flagship's beam ablation too; methods without a changepoint variable (the
-    # flagship forgets at every step) report none, not zero.
-    beam = flight_metrics(_logged_flight("arcade_beam", u, cp))
-    assert beam["changepoint_rate"] == pytest.approx(0.3)
-    for method in ("l1", "arcade_no_model", "arcade"):
+    # The flagship (its detector's restarts) and its beam ablation too; methods without a
+    # changepoint variable (forgetting without the restart) report none, not zero.
+    for method in ("arcade", "arcade_beam"):
+        m = flight_metrics(_logged_flight(method, u, cp))
+        assert m["changepoint_rate"] == pytest.approx(0.3)
+    for method in ("l1", "arcade_no_model", "arcade_no_restart"):
         assert np.isnan(flight_metrics(_logged_flight(method, u, cp))["changepoint_rate"])
 
 
