@@ -72,10 +72,10 @@ def make_controller_step(
     the control-step index into the precomputed references. ``diag`` =
     ``[sigma (13), changepoint, cp_prob, solver iterations, converged]``.
 
-    ``hold_residual`` (learned-model methods): the learned residual is evaluated along the
-    warm start and held per stage during the solve (:func:`arcade_core.mpc.residual_along`,
-    module docstring); ``False`` (default, Sec. IV): it sits inside the rollout,
-    derivatives included.
+    ``hold_residual`` (learned-model methods; or the method's own ``hold_residual``, the
+    flagship's): the learned residual is evaluated along the warm start and held per stage
+    during the solve (:func:`arcade_core.mpc.residual_along`, module docstring); ``False``
+    (default, Sec. IV): it sits inside the rollout, derivatives included.
 
     ``delay_s`` (a diagnostic, ``compensate_delay`` of
     :meth:`benchmarks.quadrotor_flights.Runner.fly`): the setpoint
@@ -87,7 +87,7 @@ def make_controller_step(
     reference ``delay_s`` later (:func:`arcade_control.scenario.reference`'s ``offset_s``).
     """
     params = nominal_params()
-    staged = method.learned and hold_residual
+    staged = method.learned and (hold_residual or method.hold_residual)
     if staged:
         controller = mpc.make_controller(mpc.staged_residual_step(f_nom), cfg, staged=True)
     else:

@@ -255,6 +255,9 @@ def test_the_flagship_plans_with_the_learned_model_and_cancels_only_what_it_miss
     # restart, no flag and no probability; with it, the detector's.
     forgetting = make_method("arcade_no_restart")
     assert not forgetting.changepoints and method.changepoints
+    # The flagship's MPC holds the learned residual along its warm start; ours' does not.
+    assert method.hold_residual and forgetting.hold_residual
+    assert not make_method("ours").hold_residual
     plain = initial_learner("arcade_no_restart", models, jnp.float64)
     assert plain.restart is None
     learned = forgetting.learn(plain, x1, u, f_nom(x1, u).at[5].add(-0.05))
