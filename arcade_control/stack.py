@@ -107,6 +107,14 @@ def load_learner(weights: str | Path, dtype: Any, method: str = "ours") -> tuple
     return learner, make_method(method)
 
 
+def controller_learner(weights: str | Path, dtype: Any, method: str = "ours") -> Any:
+    """:func:`load_learner`'s state for the controller: without the flagship's restart
+    detector, which runs in the adapter (the controller plans with the model message and
+    carries only the augmentation), so the control step does not pass it every period."""
+    learner, _ = load_learner(weights, dtype, method)
+    return learner._replace(restart=None)
+
+
 def adapter_learner(weights: str | Path, dtype: Any, method: str = "ours") -> tuple[Any, Any]:
     """:func:`load_learner` with one noise variance per output (the state estimate's
     variance differs per component, see :class:`Adapter`): one covariance per output row,

@@ -120,8 +120,8 @@ class Controller(runtime.Service):
         from arcade_control.nominal import CONTROL_DT, nominal_params
         from arcade_control.scenario import flat_reference, reference_arguments
         from arcade_control.stack import (
+            controller_learner,
             controller_method,
-            load_learner,
             one_hypothesis_beam,
             with_finite_flag,
         )
@@ -159,7 +159,7 @@ class Controller(runtime.Service):
         )
         self._learner_nominal = jnp.zeros((), dtype)
         if weights.is_file():
-            self.learner0, _ = load_learner(weights, dtype, a.method)
+            self.learner0 = controller_learner(weights, dtype, a.method)
             step = make_controller_step(controller_method(a.method), cfg, delay_s=delay)
 
             def learned(carry, x, u_sent, k, theta, cov, x_ref_all, u_ref_all):

@@ -15,6 +15,7 @@ from arcade_control.stack import (
     STACK_ARCADE_KNOBS,
     STACK_L1_KNOBS,
     adapter_learner,
+    controller_learner,
     controller_method,
     detector_prior,
     load_learner,
@@ -54,6 +55,9 @@ def test_the_stack_flies_the_flagship_at_its_stack_knobs():
     l = learner.vld.theta0.shape[1]
     assert learner.beam.prior_mean.shape[1] == l + 1  # the intercept's column
     assert detector_prior(learner).shape == learner.vld.theta0.shape
+    # The controller carries the augmentation, not the restart detector (the adapter's).
+    ctrl = controller_learner(DEFAULT_WEIGHTS, np.float64, "arcade")
+    assert learner.restart is not None and ctrl.restart is None and ctrl.l1 is not None
     # The adapter learns the model only; the controller carries the augmentation.
     adapter, adapter_method = adapter_learner(DEFAULT_WEIGHTS, np.float64, "arcade")
     assert adapter.l1 is None and adapter_method.name == "arcade_no_l1"
