@@ -378,6 +378,7 @@ class Controller(runtime.Service):
         ):
             # Open-loop hover drifts: past the bound the vehicle link must fail safe.
             self._hover_failsafe = True
+            self._failsafe_reason = "hover_timeout"  # rides on this instant's setpoint
             self.stats["hover_failsafes"] += 1
             self.event(
                 "failsafe",
@@ -514,12 +515,21 @@ class Controller(runtime.Service):
         if mode != "track":  # the flagship's augmentation did not run on this one
             self._l1 = self._resync(self._l1)
         self._u_sent = u
+        failsafe, self._failsafe_reason = self._failsafe_reason, ""
         self.pub.put(
-            Setpoint(u=u, state_seq=s.seq, stamp=stamp, mode=mode, solve_ms=min(solve_s * 1e3, 1e6))
+            Setpoint(
+                u=u,
+                state_seq=s.seq,
+                stamp=stamp,
+                mode=mode,
+                solve_ms=min(solve_s * 1e3, 1e6),
+                failsafe=failsafe,
+            )
         )
         self.stats["setpoints"] += 1
 
     _last_stamp = 0.0
+    _failsafe_reason = ""  # a failsafe raised for the state being answered
 
     def teardown(self) -> None:
         self.stats["solve"] = self._solve_s.summary()

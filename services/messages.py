@@ -325,6 +325,10 @@ class Setpoint(Message):
         state_seq: ``seq`` of the :class:`State` this setpoint answers (lockstep pairing).
         mode: one of :data:`MODES`.
         solve_ms: controller computation time for this setpoint.
+        failsafe: the reason of the controller's ``failsafe`` event raised at this instant
+            ("" when none). The event stays the vehicle link's trigger in real time; a
+            lockstep simulator acts on this field, which arrives with the answer it waits
+            for (an event travels at a lower priority and may arrive steps later).
     """
 
     SCHEMA: ClassVar[str] = "arcade.Setpoint"
@@ -336,6 +340,7 @@ class Setpoint(Message):
     state_seq: int = field(metadata=spec_meta(IntSpec()))
     mode: str = field(default="track", metadata=spec_meta(StrSpec(choices=MODES)))
     solve_ms: float = field(default=0.0, metadata=spec_meta(FloatSpec(0.0, MAX_SOLVE_MS)))
+    failsafe: str = field(default="", metadata=spec_meta(StrSpec()))
 
     @property
     def thrust(self) -> float:

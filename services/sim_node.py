@@ -51,10 +51,12 @@ then).
 The controller's failsafe (an ``event`` of kind ``failsafe`` from ``controller/...``: it
 hovered open loop, without position feedback, for too long) engages the same position
 hold while the mission runs, as a flight controller leaves offboard on it (lockstep: at
-the first control instant after the event's stamp, so that the flight stays
-deterministic; realtime: on the next physics chunk). That hold ends only after
-``--failsafe-resume`` consecutive control instants answered by setpoints not in ``hover``
-mode (the controller keeps answering while it hovers, and those answers fly open loop).
+the control instant after the one whose setpoint carries the failsafe's reason, so that
+the flight stays deterministic: the event itself travels at a lower priority than the
+setpoints and may arrive steps later; realtime: on the next physics chunk). That hold
+ends only after ``--failsafe-resume`` consecutive control instants answered by setpoints
+not in ``hover`` mode (the controller keeps answering while it hovers, and those answers
+fly open loop).
 
 Mocap fault injection (``--mocap-fault``, repeatable; times are mission time in seconds):
 ``dropout@T+D`` (no frames captured in ``[T, T+D)``), ``freeze@T+D`` (the last pose before
@@ -108,7 +110,8 @@ class SimNode(runtime.Service):
 
     _hold_by_controller = False  # the position hold answers the controller's failsafe
     _on_ground = False  # landed on purpose (the PX4 vehicle's Land): not a crash
-    _controller_failsafe: Event | None = None  # received, not yet acted on
+    _controller_failsafe: Event | None = None  # received, not yet acted on (realtime)
+    _setpoint_failsafe = ""  # lockstep: the reason the last answer carried, acted on next
 
     def setup(self, bus) -> None:
         from arcade_control.nominal import CONTROL_DT as DT
@@ -209,7 +212,7 @@ class SimNode(runtime.Service):
     def on_event(self, e: Event) -> None:
         # Noted only: the loop acts on it (this runs on the bus's thread, where the physics
         # must not be read nor a blocking event published).
-        if e.kind == "failsafe" and e.src.startswith("controller/"):
+        if e.kind == "failsafe" and e.src.startswith("controller/") and not self.args.lockstep:
             with self._cond:
                 self._controller_failsafe = e
 
@@ -226,8 +229,9 @@ class SimNode(runtime.Service):
             self.bus.put(Command(name="start", args=args, stamp=self.now()))
 
     # -- failsafe
-    def _engage_failsafe(self, stamp: float, since: float, controller: Event | None = None) -> None:
-        """Hold position: no setpoint for ``since`` s, or the ``controller``'s failsafe."""
+    def _engage_failsafe(self, stamp: float, since: float, controller: str | None = None) -> None:
+        """Hold position: no setpoint for ``since`` s, or the controller's failsafe (its
+        reason: ``controller``)."""
         x = self.sim.state()
         self._hold = x[:3].copy()
         self._hold_by_controller = controller is not None
@@ -235,10 +239,9 @@ class SimNode(runtime.Service):
         rec = {"t": self.sim.time - self._mission0, "since_last_setpoint_s": since}
         text, data = f"no setpoint for {since:.3f} s: holding position", {}
         if controller is not None:
-            reason = str(controller.data.get("reason", ""))
-            rec["controller_reason"] = reason
-            text = f"controller failsafe: {reason or controller.text}: holding position"
-            data = {"reason": "controller_failsafe", "controller_reason": reason}
+            rec["controller_reason"] = controller
+            text = f"controller failsafe: {controller}: holding position"
+            data = {"reason": "controller_failsafe", "controller_reason": controller}
             self.stats["controller_failsafes"] += 1
         self.stats["failsafes"].append(rec)
         self.event(
@@ -255,29 +258,29 @@ class SimNode(runtime.Service):
             **data,
         )
 
-    def _take_controller_failsafe(self, before: float = math.inf) -> Event | None:
-        """The controller's failsafe received and stamped before ``before``, if any."""
+    def _take_controller_failsafe(self) -> Event | None:
+        """The controller's failsafe event received (realtime), if any."""
         with self._cond:
-            e = self._controller_failsafe
-            if e is None or e.stamp >= before:
-                return None
-            self._controller_failsafe = None
+            e, self._controller_failsafe = self._controller_failsafe, None
             return e
 
-    def _on_controller_failsafe(self, e: Event, stamp: float, since: float, flying: bool) -> None:
-        """Act on the controller's failsafe at the control instant or chunk ``stamp``."""
+    def _on_controller_failsafe(
+        self, reason: str, stamp: float, since: float, flying: bool
+    ) -> None:
+        """Act on the controller's failsafe (its ``reason``) at the control instant or
+        chunk ``stamp``."""
         if not flying:
             self.stats["controller_failsafes_ignored"] += 1
             self.log.warning("controller failsafe before the mission started: ignored")
         elif self._hold is None:
-            self._engage_failsafe(stamp, since, controller=e)
+            self._engage_failsafe(stamp, since, controller=reason)
         elif not self._hold_by_controller:
             # Holding already (no setpoints for a while): that hold now also waits for
             # answers out of hover, or it would hand the vehicle to open-loop hover.
             self._hold_by_controller = True
             self._answered_run = 0
             self.stats["controller_failsafes"] += 1
-            self.stats["failsafes"][-1]["controller_reason"] = str(e.data.get("reason", ""))
+            self.stats["failsafes"][-1]["controller_reason"] = reason
             self.log.warning("controller failsafe while holding: resume waits for tracking")
 
     def _resumes(self, sp: Setpoint | None) -> bool:
@@ -480,11 +483,13 @@ class SimNode(runtime.Service):
                         step=k,
                         ok=bool(ok),
                     )
-            # Stamped before this instant: whether it arrived before or after the answer
-            # to its own instant (another priority on the bus) changes nothing.
-            e = self._take_controller_failsafe(before=t)
-            if e is not None and not self.stop.is_set():
-                self._on_controller_failsafe(e, t, t - self._t_last_sp, flying=True)
+            # The failsafe an earlier answer carried; this one's is acted on at the next
+            # instant, as a flight controller acts on it after the setpoint it came with.
+            if self._setpoint_failsafe and not self.stop.is_set():
+                self._on_controller_failsafe(
+                    self._setpoint_failsafe, t, t - self._t_last_sp, flying=True
+                )
+            self._setpoint_failsafe = sp.failsafe if sp is not None else ""
             u_applied = self._hold_u() if self._hold is not None else sim.set_setpoint(u)
             if not self._record(u_applied):
                 break
@@ -574,7 +579,8 @@ class SimNode(runtime.Service):
             now = self.now()
             e = self._take_controller_failsafe()
             if e is not None:
-                self._on_controller_failsafe(e, now, now - sp_wall, flying=k >= 0)
+                reason = str(e.data.get("reason", "")) or e.text
+                self._on_controller_failsafe(reason, now, now - sp_wall, flying=k >= 0)
             if self._hold is None and k >= 0 and now - sp_wall > self.args.failsafe_after:
                 self._engage_failsafe(now, now - sp_wall)
             if self._hold is not None:

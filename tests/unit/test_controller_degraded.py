@@ -138,6 +138,9 @@ def test_a_long_hover_is_a_failsafe_once_per_episode(parser):
     (fs,) = svc.bus.events("failsafe")
     assert fs.stamp == pytest.approx(11.0) and fs.data["reason"] == "hover_timeout"
     assert fs.severity == "error" and svc.stats["hover_failsafes"] == 1
+    # The reason rides on the setpoint of the failsafe's instant, and on that one only.
+    flagged = [(sp.stamp, sp.failsafe) for sp in svc.bus.setpoints() if sp.failsafe]
+    assert flagged == [(pytest.approx(11.0), "hover_timeout")]
     # Tracking again ends the episode; the next hover has its own bound.
     svc._set_mode("track", "fresh state", 12.0)
     stale_mocap(svc, 12.05, 0.9, seq)

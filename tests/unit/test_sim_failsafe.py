@@ -64,16 +64,18 @@ class RestingSim:
 
 class ScriptedController:
     """Answers the ``i``-th control instant in ``mode(i)``; with the answers to the
-    instants in ``failsafe_at``, publishes the controller's failsafe event (the controller
-    publishes it first; on the bus it has a lower priority than setpoints, so it may
-    arrive after: ``event_last``)."""
+    instants in ``failsafe_at``, raises the controller's failsafe: its reason on the
+    setpoint, and the failsafe event (the controller publishes it first; on the bus it has
+    a lower priority than setpoints, so it may arrive after, ``event="last"``, or be lost,
+    ``event="lost"``)."""
 
     def __init__(
         self, session, mode: Callable[[int], str], failsafe_at=(), src="controller/c0",
-        event_last=False,
+        event="first",
     ):  # fmt: skip
         self.session, self.mode, self.failsafe_at, self.src = session, mode, failsafe_at, src
-        self.event_last = event_last
+        self.event_last = event == "last"
+        self.event_lost = event == "lost"
         self.seq = {"setpoint": 0, "event": 0}
         self.instants: list[float] = []
         session.on_put["arcade/test/imu"] = self.answer
@@ -87,9 +89,10 @@ class ScriptedController:
         i, stamp = len(self.instants), decode("imu", payload).stamp
         self.instants.append(stamp)
         mode = self.mode(i)
+        failsafe = i in self.failsafe_at and self.src.startswith("controller/")
         if mode != "silent" and self.event_last:
-            self.send("setpoint", self.setpoint(i, stamp, mode))
-        if i in self.failsafe_at:
+            self.send("setpoint", self.setpoint(i, stamp, mode, failsafe))
+        if i in self.failsafe_at and not self.event_lost:
             self.send(
                 "event",
                 Event(
@@ -101,11 +104,17 @@ class ScriptedController:
                 ),
             )
         if mode != "silent" and not self.event_last:
-            self.send("setpoint", self.setpoint(i, stamp, mode))
+            self.send("setpoint", self.setpoint(i, stamp, mode, failsafe))
 
     @staticmethod
-    def setpoint(i: int, stamp: float, mode: str) -> Setpoint:
-        return Setpoint(u=[4.9, 0.0, 0.0, 0.0], state_seq=i, stamp=stamp, mode=mode)
+    def setpoint(i: int, stamp: float, mode: str, failsafe: bool = False) -> Setpoint:
+        return Setpoint(
+            u=[4.9, 0.0, 0.0, 0.0],
+            state_seq=i,
+            stamp=stamp,
+            mode=mode,
+            failsafe="hover_timeout" if failsafe else "",
+        )
 
 
 def make_node(
@@ -148,8 +157,8 @@ def hover_between(first: int, last: int) -> Callable[[int], str]:
 LOCKSTEP = ("--lockstep", "--rate", str(1 / PERIOD), "--failsafe-resume", "3")
 
 
-@pytest.mark.parametrize("event_last", [False, True], ids=["event_first", "event_last"])
-def test_lockstep_the_controllers_failsafe_holds_until_it_tracks_again(event_last, tmp_path):
+@pytest.mark.parametrize("event", ["first", "last", "lost"])
+def test_lockstep_the_controllers_failsafe_holds_until_it_tracks_again(event, tmp_path):
     node, session = make_node(*LOCKSTEP, out=tmp_path)
     # Hover from instant 5; the failsafe comes with the answer to instant 10; tracking
     # from 15, interrupted once by a hover answer at 17.
@@ -157,11 +166,12 @@ def test_lockstep_the_controllers_failsafe_holds_until_it_tracks_again(event_las
         session,
         lambda i: "hover" if 5 <= i <= 14 or i == 17 else "track",
         failsafe_at=(10,),
-        event_last=event_last,
+        event=event,
     )
     node._lockstep()
     engaged, cleared = sim_events(session)
-    # At the first instant after the event's stamp, whatever the arrival order.
+    # At the instant after the answer that carried it, whenever the event arrives (it is
+    # not needed in lockstep).
     assert engaged.kind == "failsafe" and engaged.stamp == pytest.approx(11 * PERIOD)
     assert engaged.src.startswith("sim/") and engaged.severity == "error"
     assert engaged.text.startswith("controller failsafe: hover_timeout")
