@@ -150,7 +150,7 @@ class DetectionConfig(NamedTuple):
 
     The learner that the controller flies keeps its knobs (chosen by prediction error);
     the detector runs a second beam on the same features and residuals with knobs chosen by
-    detection quality (issue "Changepoints that mean a change"), so what is declared is
+    detection quality (``arcade eval changepoints``), so what is declared is
     not what happens to help the prediction.
 
     Attributes:

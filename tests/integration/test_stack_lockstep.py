@@ -128,8 +128,8 @@ def test_lockstep_flight_of_the_flagship_matches_in_process_loop(tmp_path, monke
     Not asserted here: the detector's release hit. At the flagship's stack knobs its model
     refits on every step and the thrust chatters at 2.5 m/s (2.8 to 10.4 N within 0.15 s
     before the release with this seed), and the detector declares a change on that, at
-    the release instant, before the release shows (the flagship's issue: its thrust
-    increments)."""
+    the release instant, before the release shows (the flagship's open problem: its
+    thrust increments)."""
     summary = run_demo(
         tmp_path, seed=SEED, x64=True, truth_state=True, progress=False, method="arcade"
     )

@@ -76,7 +76,7 @@ def test_bench_mpc_takes_the_solver_options():
 
 
 def test_bench_adapt_json_contract():
-    """`arcade bench adapt --json` prints the documented object (issue contract)."""
+    """`arcade bench adapt --json` prints the documented object."""
     proc = subprocess.run(
         [sys.executable, "-m", "arcade", "bench", "adapt", "--json", "--quick"],
         capture_output=True,
