@@ -155,6 +155,7 @@ def initial_learner(name: str, models, dtype) -> Any:
                 scale,
                 traced_cfg.sigma2,
                 jnp.asarray(adaptation.quadrotor_config().sigma2, dtype),
+                jnp.asarray(-1, jnp.int32),
             )
         )
     return learner

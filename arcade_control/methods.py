@@ -206,6 +206,8 @@ class Restart(NamedTuple):
     scale: Array
     base_sigma2: Array  # the learner's own noise: its step's noise less this is the estimate's
     noise: Array  # the detector's calibrated noise (Appendix D)
+    #: ``()`` int32, the step the latest step's declaration is dated to (``-1``: none).
+    dated: Array
 
 
 class BeamLearner(NamedTuple):
@@ -245,7 +247,9 @@ def restart_at_change(a: BeamLearner, z: Array, dn: Array) -> BeamLearner:
     VLD features ``z`` and normalised residual ``dn``, with its calibrated noise plus what
     the state estimate adds to the learner's; a declared change restarts the learner at
     the offline prior's mean with ``scale`` times its covariance, and is the learner's
-    changepoint flag, the detector's probability its ``cp_prob``. With the whole prior
+    changepoint flag, the detector's probability its ``cp_prob``, the step it is dated to
+    ``restart.dated``. The restarted beam keeps counting steps (``step``), so that the
+    learner's steps and the detector's stay one count. With the whole prior
     covariance (``scale = 1``) at the flagship's small ``sigma^2`` the restarted learner
     refits on every period (a gain near one), which made the planned thrust chatter."""
     r = a.restart
@@ -253,8 +257,8 @@ def restart_at_change(a: BeamLearner, z: Array, dn: Array) -> BeamLearner:
     state, d = adaptation.detection_step(r.detection, z, dn, sigma2, True, r.config)
     beam = jax.tree.map(lambda p, b: jnp.where(d.declared, p, b), r.prior, a.beam)
     return a._replace(
-        beam=beam,
-        restart=r._replace(detection=state),
+        beam=beam._replace(step=a.beam.step),
+        restart=r._replace(detection=state, dated=d.dated.astype(r.dated.dtype)),
         changepoint=d.declared.astype(dn.dtype),
         cp_prob=d.probability.astype(dn.dtype),
     )

@@ -13,69 +13,67 @@ knobs it flies, a forgetting step more than a detection) stays in the ``residual
 A restarted adapter's detector starts again from the prior.
 
 Per state ``k`` (after the first): the transition ``(x_{k-1}, u_{k-1}, x_k)`` with
-``u_{k-1}`` the setpoint answering state ``k-1`` (lockstep: waited for; realtime: see
-below) gives the residual
-``delta = x_k - f_nom(x_{k-1}, u_{k-1})``. At the default 20 Hz this is exactly the
-in-process evaluation's learning step (``benchmarks.quadrotor_closedloop``, method
-``ours``: paper quadrotor preset, the VLD of the weights file, features clipped to their
-training range; ``--method arcade``: the flagship's model, those features plus an
+``u_{k-1}`` the setpoint answering state ``k-1`` (lockstep: waited for; realtime: see below)
+gives the residual ``delta = x_k - f_nom(x_{k-1}, u_{k-1})``. At the default 20 Hz this is
+exactly the in-process evaluation's learning step (``benchmarks.quadrotor_closedloop``,
+method ``ours``: paper quadrotor preset, the VLD of the weights file, features clipped to
+their training range; ``--method arcade``: the flagship's model, those features plus an
 intercept at its stack knobs ``arcade_control.stack.STACK_ARCADE_KNOBS``, the controller
-running its L1 augmentation; the changepoint detector keeps the VLD's features and the
-calibrated noise; ``--method l1``: ours' model, which L1's controller does not use); at
-other rates the same update uses the nominal RK4 step over the
+running its L1 augmentation; its learner runs the changepoint detector inside its step and
+restarts at a declared change, and those declarations are the events (the same detector, on
+the VLD's features and the calibrated noise); ``--method l1``: ours' model, which L1's
+controller does not use); at other rates the same update uses the nominal RK4 step over the
 elapsed time (the VLD was trained at the 0.05 s control period, so other rates adapt an
-approximate residual). The beam-marginal prediction of ``delta`` before the update
-(Eq. 10) is published as ``residual`` (normalised units, the variance split of Sec. IV,
-the Eq. 9 changepoint probability). The ``model`` message carries the moment-matched
-beam-marginal decoder posterior (mean and per-row covariance) and ``sigma_tot^2`` at the
-newest state, in normalised units.
-Transitions that end in a state predicted through a mocap dropout are not learned from,
-nor transitions whose input the vehicle did not apply: in realtime the vehicle follows the
-controller only from the mission ``start`` command on (before it the simulator's pre-roll or
-PX4 holds the vehicle, while the controller already streams setpoints), and not while the
-vehicle link does not fly them: from a ``failsafe`` event (the PX4 bridge emits one on every
-exit from offboard, operator commands included) until ``failsafe_cleared`` (the link flies
-the setpoints again: the bridge emits it whenever offboard is engaged) or a new ``start``.
-A ``start`` that repeats the mission's ``t0`` (the clock re-sent to a restarted controller)
-is no new mission and does not resume learning. An adapter that (re)joins a running mission
-is sent its clock too, with ``flying`` (whether the link flies the setpoints at that moment):
-it learns at once, or announces that it waits for ``failsafe_cleared``. A ``failsafe`` event
-of the controller is
-a request to the vehicle link, whose own event follows when it acts: it does not pause
-learning by itself. Steps not learned from for this reason are counted (``not_applied``).
-In lockstep every setpoint is applied from the first state on.
-The input of a transition is the setpoint answering its first state; in realtime, when that
-one is missing (the controller answers only the newest state, or the bus dropped it), the
-newest setpoint stamped at or before that state (what the vehicle's zero-order hold
+approximate residual). The beam-marginal prediction of ``delta`` before the update (Eq. 10)
+is published as ``residual`` (normalised units, the variance split of Sec. IV, the Eq. 9
+changepoint probability). The ``model`` message carries the moment-matched beam-marginal
+decoder posterior (mean and per-row covariance) and ``sigma_tot^2`` at the newest state, in
+normalised units. Transitions that end in a state predicted through a mocap dropout are not
+learned from, nor transitions whose input the vehicle did not apply: in realtime the vehicle
+follows the controller only from the mission ``start`` command on (before it the simulator's
+pre-roll or PX4 holds the vehicle, while the controller already streams setpoints), and not
+while the vehicle link does not fly them: from a ``failsafe`` event (the PX4 bridge emits
+one on every exit from offboard, operator commands included) until ``failsafe_cleared`` (the
+link flies the setpoints again: the bridge emits it whenever offboard is engaged) or a new
+``start``. A ``start`` that repeats the mission's ``t0`` (the clock re-sent to a restarted
+controller) is no new mission and does not resume learning. An adapter that (re)joins a
+running mission is sent its clock too, with ``flying`` (whether the link flies the setpoints
+at that moment): it learns at once, or announces that it waits for ``failsafe_cleared``. A
+``failsafe`` event of the controller is a request to the vehicle link, whose own event
+follows when it acts: it does not pause learning by itself. Steps not learned from for this
+reason are counted (``not_applied``). In lockstep every setpoint is applied from the first
+state on. The input of a transition is the setpoint answering its first state; in realtime,
+when that one is missing (the controller answers only the newest state, or the bus dropped
+it), the newest setpoint stamped at or before that state (what the vehicle's zero-order hold
 applied) if it is at most about one period older (``input_fallback``), else the transition
 is skipped (``input_missing``; ``before_first_setpoint`` for the states before the first
-setpoint this adapter received: the controller was not answering yet).
-Quaternions: ``q`` and ``-q`` are one attitude but far apart as the vectors the features
-and the residual use; each transition is taken with the first state's scalar part
-non-negative (as in training) and the second state in the same hemisphere.
-Link delay (``--link-delay D``, the controller's value): the link applies each setpoint
-``D`` after the state it answers, so the setpoint answering state ``k-1`` acts until ``D``
-after state ``k``. Each state is then replaced by its prediction ``D`` ahead with the
-setpoint in flight at its instant (:func:`arcade_core.dynamics.predict_over_delay`, its
-variance carried along), and the transition between two such predictions is learned:
-each input acts over exactly that period. A transition whose first state has no prediction
-(the state before had no input) is skipped (``skipped``).
-Estimation noise: the residual of two estimated states contains their errors; to first
-order (errors in variables) their variances (``State.cov_diag``, propagated through the
-Jacobian of ``f_nom``) add to the observation noise ``sigma_j^2`` of each output, in
-normalised units. With exact states (``cov_diag`` absent) the update is the paper's.
+setpoint this adapter received: the controller was not answering yet). Quaternions: ``q``
+and ``-q`` are one attitude but far apart as the vectors the features and the residual use;
+each transition is taken with the first state's scalar part non-negative (as in training)
+and the second state in the same hemisphere. Link delay (``--link-delay D``, the
+controller's value): the link applies each setpoint ``D`` after the state it answers, so the
+setpoint answering state ``k-1`` acts until ``D`` after state ``k``. Each state is then
+replaced by its prediction ``D`` ahead with the setpoint in flight at its instant
+(:func:`arcade_core.dynamics.predict_over_delay`, its variance carried along), and the
+transition between two such predictions is learned: each input acts over exactly that
+period. A transition whose first state has no prediction (the state before had no input) is
+skipped (``skipped``). Estimation noise: the residual of two estimated states contains their
+errors; to first order (errors in variables) their variances (``State.cov_diag``, propagated
+through the Jacobian of ``f_nom``) add to the observation noise ``sigma_j^2`` of each
+output, in normalised units. With exact states (``cov_diag`` absent) the update is the
+paper's.
 
 Without a weights file the adapter cannot adapt: it says so in a ``degraded`` event and
 publishes an empty (zero) model per state so that the controller runs the nominal MPC.
 
-Scheduling (realtime): the update for a state starts once the controller's setpoint for
-that state is out (or half a period later): the controller solves with the newest model it
-has, which is never this state's, so the adapter only takes CPU from it otherwise.
+Scheduling (realtime): the update for a state starts once the controller's setpoint for that
+state is out (or half a period later): the controller solves with the newest model it has,
+which is never this state's, so the adapter only takes CPU from it otherwise.
 
-Checkpoints: the beam is written atomically to ``--checkpoint`` every
-``--checkpoint-every`` steps and at shutdown, and restored at start when it matches the
-weights (``restart`` event). A checkpoint that cannot be written (a full disk) is a
-``fault`` event the first time and counted (``checkpoint_errors``); adaptation goes on.
+Checkpoints: the beam is written atomically to ``--checkpoint`` every ``--checkpoint-every``
+steps and at shutdown, and restored at start when it matches the weights (``restart``
+event). A checkpoint that cannot be written (a full disk) is a ``fault`` event the first
+time and counted (``checkpoint_errors``); adaptation goes on.
 """
 
 from __future__ import annotations
@@ -163,6 +161,7 @@ class Adapter(runtime.Service):
         from arcade_io.vehicle import load_vehicle, quadrotor_params
 
         self._same_hemisphere = same_hemisphere
+        self._Detection = adaptation.Detection
 
         a = self.args
         self.jnp = jnp
@@ -215,28 +214,31 @@ class Adapter(runtime.Service):
                 return (new._replace(vld=learner.vld), *out)
 
             self._adapt = _adapt
-            self._detect_config = detection_config(dtype=self.dtype)
-            self._detection0 = adaptation.init_detection(
-                detector_prior(self.learner), self._detect_config
-            )
-            self._detection = self._detection0
-            self._detect = load_or_trace(
-                "adapter_detect",
-                detect,
-                (
-                    self._detection,
-                    self._detect_config,
-                    self.learner,
-                    x0,
-                    u0,
-                    x0,
-                    self.model_dt,
-                    False,
-                    var0,
-                    var0,
-                ),
-                key,
-            )
+            # A learner that restarts at a declared change (the flagship) runs the detector
+            # inside its own step: its declarations are the events, with no second detector.
+            if self.learner.restart is None:
+                self._detect_config = detection_config(dtype=self.dtype)
+                self._detection0 = adaptation.init_detection(
+                    detector_prior(self.learner), self._detect_config
+                )
+                self._detection = self._detection0
+                self._detect = load_or_trace(
+                    "adapter_detect",
+                    detect,
+                    (
+                        self._detection,
+                        self._detect_config,
+                        self.learner,
+                        x0,
+                        u0,
+                        x0,
+                        self.model_dt,
+                        False,
+                        var0,
+                        var0,
+                    ),
+                    key,
+                )
             self._marginal = load_or_trace(
                 "adapter_marginal", marginal, (self.learner, x0, u0), key
             )
@@ -281,6 +283,8 @@ class Adapter(runtime.Service):
         self.pub_res = bus.publisher("residual")
 
     _restored: int | None = None
+    _detect = None  # the changepoint detector's step, unless the learner runs its own
+    _detection = _detection0 = None
 
     def warmup(self) -> None:
         if self.learner is None:
@@ -289,18 +293,9 @@ class Adapter(runtime.Service):
         u = np.array([5.6, 0.0, 0.0, 0.0])
         for _ in range(3):
             self._adapt(self.learner, x, u, x, self.model_dt, False, np.zeros(13), np.zeros(13))
-            self._detect(
-                self._detection,
-                self._detect_config,
-                self.learner,
-                x,
-                u,
-                x,
-                self.model_dt,
-                False,
-                np.zeros(13),
-                np.zeros(13),
-            )
+            if self._detect is not None:
+                args = (self.learner, x, u, x, self.model_dt, False, np.zeros(13), np.zeros(13))
+                self._detect(self._detection, self._detect_config, *args)
             self._marginal(self.learner, x, u)
             if self.args.link_delay > 0.0:
                 self._predict(x, np.zeros(13), u)
@@ -398,11 +393,15 @@ class Adapter(runtime.Service):
                 self.stats["input_missing"] += 1
             return None
 
-    def _declare(self, xp, up, x, h, learn, var_p, var_x, s: State, step: int) -> None:
-        """The detector's step on the transition just learned; an event if it declares."""
-        self._detection, det = self._detect(
-            self._detection, self._detect_config, self.learner, xp, up, x, h, learn, var_p, var_x
-        )
+    def _declare(self, xp, up, x, h, learn, var_p, var_x, s: State, step: int, cp) -> None:
+        """The detector's step on the transition just learned (``cp``: the learner's
+        declaration, when its own detector runs in its step); an event if it declares."""
+        if self._detect is None:
+            r = self.learner.restart
+            det = self._Detection(probability=self.learner.cp_prob, declared=cp, dated=r.dated)
+        else:
+            args = (self.learner, xp, up, x, h, learn, var_p, var_x)
+            self._detection, det = self._detect(self._detection, self._detect_config, *args)
         if bool(det.declared):
             self.stats["changepoints"] += 1
             dated = int(det.dated)
@@ -490,7 +489,7 @@ class Adapter(runtime.Service):
                         stamp=s.stamp,
                     )
                 )
-            detect_args = (xp, sp.u, x, h, learn, var_p, var_x, s, step)
+            detect_args = (xp, sp.u, x, h, learn, var_p, var_x, s, step, cp)
         theta, cov, sig = (np.asarray(v, dtype=float) for v in (theta, cov, sig))
         # Huge but finite state variances (a long dropout) must not make the message invalid.
         cov = np.clip(cov, -MAX_VARIANCE, MAX_VARIANCE)

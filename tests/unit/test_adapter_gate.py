@@ -285,6 +285,36 @@ def test_a_declared_changepoint_is_reported_with_its_date():
     assert residual_flags == [False, True, True, False, True, False]
 
 
+def test_a_learner_with_its_own_detector_declares_the_events():
+    """The flagship's learner runs the detector in its step (and restarts on it): its
+    declarations, probability and dated step are the events, and no second detector
+    runs."""
+    svc = make_adapter("--lockstep", "--step-timeout", "0")
+    flags = iter([False, True, False, True])
+    dated = iter([-1, 1, -1, 4])
+    steps = iter(range(1, 5))
+
+    def adapt(learner, xp, up, x, h, learn, var_p, var_x):
+        cp = next(flags)
+        restart = SimpleNamespace(dated=np.asarray(next(dated)))
+        learner = SimpleNamespace(
+            beam=SimpleNamespace(step=next(steps)), cp_prob=np.asarray(0.7), restart=restart
+        )
+        z = np.zeros(13)
+        return learner, z, Prediction(z, z, z, z, z), 0.7, cp, svc.theta, z[:, None, None], z, -1
+
+    svc._adapt, svc._detect = adapt, None
+    svc.on_command(start(1.0))
+    for k in range(5):
+        svc.on_setpoint(setpoint(1.0 + 0.05 * k, 5.0, seq=k + 1))
+        svc.on_state(state(1.0 + 0.05 * k, k + 1))
+    reported = svc.bus.events("changepoint")
+    assert [e.data["changepoint_step"] for e in reported] == [1, 4]
+    assert [e.data["step"] for e in reported] == [2, 4]
+    assert [e.data["cp_prob"] for e in reported] == pytest.approx([0.7, 0.7])
+    assert svc.stats["changepoints"] == 2
+
+
 # ------------------------------------------------------------------ non-finite reset
 
 

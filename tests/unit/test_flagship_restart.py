@@ -69,12 +69,16 @@ def test_a_declared_change_restarts_the_learner_at_the_scaled_prior(models):
     eager = r._replace(config=r.config._replace(threshold=jnp.asarray(-1.0)))
     out = jax.jit(method.learn)(a._replace(restart=eager), xp, up, x)
     assert float(out.changepoint) == 1.0
-    _close(out.beam, r.prior)
+    # At the prior, still counting the steps (the detector's count), dated to this one.
+    _close(out.beam._replace(step=r.prior.step), r.prior)
+    assert int(out.beam.step) == int(learned.beam.step) == 1
+    assert 0 <= int(out.restart.dated) <= int(out.beam.step)
     # restart_at_change on its own: the flag, the probability and the detector's state.
     z = method.features(a, xp, up)[:-1]  # the VLD's features, without the intercept
     dn = a.vld.normalise_residual(x - f_nom(xp, up))
     same = restart_at_change(a._replace(restart=eager), z, dn)
-    _close(same.beam, r.prior)
+    _close(same.beam._replace(step=r.prior.step), r.prior)
+    assert int(same.beam.step) == int(a.beam.step)
     assert float(same.cp_prob) == pytest.approx(float(out.cp_prob), abs=1e-12)
     assert int(same.restart.detection.beam.step) == int(r.detection.beam.step) + 1
 
