@@ -3,20 +3,14 @@
 Standard ROS 2 types only (``common_interfaces``, present on every ROS 2 host), so that a
 host sees them without building a package of ours:
 
-=====================  ==========================================  ==========================
-record                 ROS 2 type                                  content
-=====================  ==========================================  ==========================
-state                  ``nav_msgs/msg/Odometry``                   pose in ``world`` (ENU),
-                                                                   twist in ``base_link``
-                                                                   (FLU), covariances from
-                                                                   the estimator's variances
-setpoint (thrust)      ``geometry_msgs/msg/Vector3Stamped``        ``(0, 0, T)`` N, base_link
-setpoint (body rates)  ``geometry_msgs/msg/Vector3Stamped``        rad/s, base_link (FLU)
-reference              ``trajectory_msgs/msg/MultiDOFJointTrajectory``  one point: position,
-                                                                   yaw, velocity and
-                                                                   acceleration in ``world``
-changepoint event      ``diagnostic_msgs/msg/DiagnosticArray``     one status: text, data
-=====================  ==========================================  ==========================
+- state: ``nav_msgs/msg/Odometry``, pose in ``world`` (ENU), twist in ``base_link``
+  (FLU), covariances from the estimator's variances;
+- reference: ``nav_msgs/msg/Odometry`` too, the planned state, child frame ``reference``,
+  no covariances (overlaid on the state in ROS 2's tools);
+- setpoint: two ``geometry_msgs/msg/Vector3Stamped`` in ``base_link``, the collective
+  thrust as the body force ``(0, 0, T)`` N and the body-rate setpoints in rad/s;
+- changepoint event: ``diagnostic_msgs/msg/DiagnosticArray`` with one status (level, text,
+  data).
 
 ROS uses the stack's own frames (REP-103: world ENU, body FLU), so nothing is re-axed; ROS
 quaternions are ``x, y, z, w``. ``header.stamp`` is the record's ``stamp`` (simulated
@@ -40,18 +34,14 @@ from typing import Any
 
 import numpy as np
 
-from arcade_core import frames
-
 __all__ = [
     "DIAGNOSTICS",
     "ODOMETRY",
-    "TRAJECTORY",
     "VECTOR3_STAMPED",
     "cdr",
     "changepoint_diagnostics",
     "odometry",
     "rate_setpoint",
-    "reference_trajectory",
     "ros_time",
     "thrust_setpoint",
     "type_hash",
@@ -59,7 +49,6 @@ __all__ = [
 
 ODOMETRY = "nav_msgs/msg/Odometry"
 VECTOR3_STAMPED = "geometry_msgs/msg/Vector3Stamped"
-TRAJECTORY = "trajectory_msgs/msg/MultiDOFJointTrajectory"
 DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
 
 #: ``diagnostic_msgs/msg/DiagnosticStatus`` levels by event severity.
@@ -121,6 +110,8 @@ def attitude_covariance(q: np.ndarray, var_q: np.ndarray) -> np.ndarray:
     """``(3, 3)`` covariance of the small world-frame rotation ``theta`` with ``q = exp(theta)
     ⊗ q̂``, from the marginal variances of the quaternion's components, to first order:
     ``theta ≈ 2 vec(q ⊗ q̂*)``, linear in ``q``."""
+    from arcade_core import frames  # JAX with it: loaded when a state is converted
+
     conj = frames.conjugate_np(q)
     jac = np.stack([2.0 * frames.multiply_np(e, conj)[1:] for e in np.eye(4)], axis=1)
     return jac @ np.diag(var_q) @ jac.T
@@ -138,6 +129,8 @@ def odometry(
     rotated into the body, ``R(q)^T v``. With ``cov_diag`` (the state's marginal variances)
     the covariances' diagonal blocks: position; attitude (:func:`attitude_covariance`, axes
     of ``frame_id``); body velocity ``R^T diag(var_v) R``; body rates. Without, zeros."""
+    from arcade_core import frames
+
     x = np.asarray(x, dtype=np.float64)
     p, v, q, omega = x[0:3], x[3:6], x[6:10], x[10:13]
     rot = frames.to_rotation_matrix_np(q)
@@ -172,37 +165,6 @@ def thrust_setpoint(stamp: float, thrust_n: float, frame_id: str = "base_link") 
 def rate_setpoint(stamp: float, rates: Any, frame_id: str = "base_link") -> Any:
     """``geometry_msgs/msg/Vector3Stamped``: the body-rate setpoints, rad/s, body FLU."""
     return _t(VECTOR3_STAMPED)(header=_header(stamp, frame_id), vector=_vector(rates))
-
-
-def reference_trajectory(
-    stamp: float,
-    position: Any,
-    yaw: float = 0.0,
-    velocity: Any | None = None,
-    acceleration: Any | None = None,
-    frame_id: str = "world",
-    child_frame_id: str = "base_link",
-) -> Any:
-    """``trajectory_msgs/msg/MultiDOFJointTrajectory`` with one point for one joint
-    (``child_frame_id``): the reference position and yaw (a transform from ``frame_id``), its
-    velocity and acceleration (linear, axes of ``frame_id``; left empty when not given)."""
-    translation = _vector(position)
-    rotation = _quaternion(frames.from_yaw_py(float(yaw)))
-    twist = _t("geometry_msgs/msg/Twist")
-    zero = (0.0, 0.0, 0.0)
-
-    def twists(linear: Any | None) -> list[Any]:
-        return [] if linear is None else [twist(linear=_vector(linear), angular=_vector(zero))]
-
-    point = _t("trajectory_msgs/msg/MultiDOFJointTrajectoryPoint")(
-        transforms=[_t("geometry_msgs/msg/Transform")(translation=translation, rotation=rotation)],
-        velocities=twists(velocity),
-        accelerations=twists(acceleration),
-        time_from_start=_t("builtin_interfaces/msg/Duration")(sec=0, nanosec=0),
-    )
-    return _t(TRAJECTORY)(
-        header=_header(stamp, frame_id), joint_names=[child_frame_id], points=[point]
-    )
 
 
 def changepoint_diagnostics(

@@ -10,8 +10,8 @@ running rmw_zenoh (ROS 2 Jazzy or later) see them. Topics, under ``--namespace``
 - ``odom`` (``nav_msgs/msg/Odometry``) from ``state``;
 - ``setpoint/thrust`` and ``setpoint/body_rates`` (``geometry_msgs/msg/Vector3Stamped``)
   from ``setpoint``;
-- ``reference`` (``trajectory_msgs/msg/MultiDOFJointTrajectory``) from ``reference``, when
-  the stack publishes one;
+- ``reference`` (``nav_msgs/msg/Odometry``, child frame ``reference``) from ``reference``,
+  when the stack publishes one;
 - ``changepoint`` (``diagnostic_msgs/msg/DiagnosticArray``) from the ``changepoint`` events.
 
 The ROS side is its own Zenoh session, as one ROS 2 context is: a peer that connects to
@@ -30,6 +30,9 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
+from arcade_io import ros2_messages as rm
 from services import runtime
 
 #: The node's name in the ROS 2 graph.
@@ -59,6 +62,46 @@ def default_namespace(vehicle: str) -> str:
         ) from None
 
 
+#: The ROS 2 topics (relative to the namespace) and their types, in declaration order.
+OUTPUTS = {
+    "odom": rm.ODOMETRY,
+    "setpoint/thrust": rm.VECTOR3_STAMPED,
+    "setpoint/body_rates": rm.VECTOR3_STAMPED,
+    "changepoint": rm.DIAGNOSTICS,
+    "reference": rm.ODOMETRY,
+}
+#: The bus topic each ROS 2 topic comes from.
+SOURCES = {
+    "odom": "state",
+    "setpoint/thrust": "setpoint",
+    "setpoint/body_rates": "setpoint",
+    "changepoint": "event",
+    "reference": "reference",
+}
+
+
+def ros_messages(topic: str, record: Any, vehicle: str) -> list[tuple[str, Any]]:
+    """The ``(ROS 2 topic, message)`` pairs of one record of bus ``topic`` (conversions of
+    :mod:`arcade_io.ros2_messages`); none for an event that is not a changepoint.
+    ``ValueError`` for a record ROS 2 cannot hold (a stamp past 2038)."""
+    if topic == "state":
+        return [("odom", rm.odometry(record.stamp, record.x, record.cov_diag))]
+    if topic == "reference":  # the planned state, as the state: overlaid in ROS 2's tools
+        return [("reference", rm.odometry(record.stamp, record.x, child_frame_id="reference"))]
+    if topic == "setpoint":
+        return [
+            ("setpoint/thrust", rm.thrust_setpoint(record.stamp, record.thrust)),
+            ("setpoint/body_rates", rm.rate_setpoint(record.stamp, record.rates)),
+        ]
+    if topic == "event" and record.kind == "changepoint":
+        data = {**record.data, "src": record.src}
+        msg = rm.changepoint_diagnostics(
+            record.stamp, record.text, record.severity, data, hardware_id=vehicle
+        )
+        return [("changepoint", msg)]
+    return []
+
+
 class Ros2Mirror(runtime.Service):
     """ROS 2 mirror: state, setpoint, reference and changepoints on rmw_zenoh's keys."""
 
@@ -69,7 +112,6 @@ class Ros2Mirror(runtime.Service):
         import zenoh
 
         from arcade_io import rmw_zenoh
-        from arcade_io import ros2_messages as rm
         from services.bus import peer_config, zenoh_reason
         from services.messages import MESSAGE_TYPES
 
@@ -87,14 +129,8 @@ class Ros2Mirror(runtime.Service):
             namespace=namespace,
             name=NODE_NAME,
         )
-        outputs = {
-            "odom": rm.ODOMETRY,
-            "setpoint/thrust": rm.VECTOR3_STAMPED,
-            "setpoint/body_rates": rm.VECTOR3_STAMPED,
-            "changepoint": rm.DIAGNOSTICS,
-        }
-        if "reference" in MESSAGE_TYPES:
-            outputs["reference"] = rm.TRAJECTORY
+        # a bus topic this version of the stack does not have (no reference) has no output
+        outputs = {t: ros_type for t, ros_type in OUTPUTS.items() if SOURCES[t] in MESSAGE_TYPES}
         liveliness = self.ros.liveliness()
         self._tokens = [liveliness.declare_token(node.token())]
         self._outputs: dict[str, _Output] = {}
@@ -111,60 +147,31 @@ class Ros2Mirror(runtime.Service):
             published=dict.fromkeys(self._outputs, 0),
             unconverted=0,
         )
-        bus.subscribe("state", self.on_state)
-        bus.subscribe("setpoint", self.on_setpoint)
-        bus.subscribe("event", self.on_event)
-        if "reference" in self._outputs:
-            bus.subscribe("reference", self.on_reference)
+        for source in dict.fromkeys(SOURCES[t] for t in self._outputs):
+            bus.subscribe(source, lambda record, source=source: self.mirror(source, record))
 
-    # -- conversions (arcade_io.ros2_messages) and puts
-    def on_state(self, s: Any) -> None:
-        from arcade_io import ros2_messages as rm
+    def warmup(self) -> None:
+        """Convert and encode one message of each kind: the first state is then not late
+        by the imports and the type store's set-up."""
+        from services.messages import Event, Setpoint, State
 
-        self._put("odom", lambda: rm.odometry(s.stamp, s.x, s.cov_diag))
+        x = np.r_[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+        samples = {
+            "state": State(x=x, stamp=0.0, cov_diag=np.zeros(13)),
+            "setpoint": Setpoint(u=[0.0, 0.0, 0.0, 0.0], state_seq=0, stamp=0.0),
+            "event": Event(kind="changepoint", stamp=0.0),
+        }
+        for topic, record in samples.items():
+            for ros_topic, message in ros_messages(topic, record, self.args.vehicle):
+                rm.cdr(message, OUTPUTS[ros_topic])
 
-    def on_setpoint(self, sp: Any) -> None:
-        from arcade_io import ros2_messages as rm
-
-        self._put("setpoint/thrust", lambda: rm.thrust_setpoint(sp.stamp, sp.thrust))
-        self._put("setpoint/body_rates", lambda: rm.rate_setpoint(sp.stamp, sp.rates))
-
-    def on_reference(self, r: Any) -> None:
-        from arcade_io import ros2_messages as rm
-
-        self._put(
-            "reference",
-            lambda: rm.reference_trajectory(
-                r.stamp,
-                _field(r, "p", "position"),
-                yaw=_field(r, "yaw") or 0.0,
-                velocity=_field(r, "v", "velocity"),
-                acceleration=_field(r, "a", "acceleration"),
-            ),
-        )
-
-    def on_event(self, e: Any) -> None:
-        if e.kind != "changepoint":
-            return
-        from arcade_io import ros2_messages as rm
-
-        data = {**e.data, "src": e.src}
-        self._put(
-            "changepoint",
-            lambda: rm.changepoint_diagnostics(
-                e.stamp, e.text, e.severity, data, hardware_id=self.args.vehicle
-            ),
-        )
-
-    def _put(self, topic: str, build: Any) -> None:
-        """Convert (``build()``), serialise and put on ``topic``'s key with rmw_zenoh's
-        attachment; a record ROS 2 cannot hold (a stamp past 2038) is counted, not sent."""
+    def mirror(self, topic: str, record: Any) -> None:
+        """Convert a record of bus ``topic`` and put each message on its key with rmw_zenoh's
+        attachment; a record ROS 2 cannot hold is counted (``unconverted``), not sent."""
         from arcade_io import rmw_zenoh
-        from arcade_io import ros2_messages as rm
 
-        out = self._outputs[topic]
         try:
-            payload = rm.cdr(build(), out.publication.ros_type)
+            messages = ros_messages(topic, record, self.args.vehicle)
         except ValueError as err:
             with self._lock:
                 self.stats["unconverted"] += 1
@@ -172,13 +179,16 @@ class Ros2Mirror(runtime.Service):
             if first:
                 self.log.warning("not mirrored to ROS 2 (%s): %s", topic, err)
             return
-        with self._lock:  # one sequence per publisher, from 1, in put order
-            if self._closed:  # the bus may still deliver while the service stops
-                return
-            out.seq += 1
-            attachment = rmw_zenoh.attachment(out.seq, time.time_ns(), out.publication.gid)
-            out.publisher.put(payload, attachment=attachment)
-            self.stats["published"][topic] += 1
+        for ros_topic, message in messages:
+            out = self._outputs[ros_topic]
+            payload = rm.cdr(message, out.publication.ros_type)
+            with self._lock:  # one sequence per publisher, from 1, in put order
+                if self._closed:  # the bus may still deliver while the service stops
+                    return
+                out.seq += 1
+                attachment = rmw_zenoh.attachment(out.seq, time.time_ns(), out.publication.gid)
+                out.publisher.put(payload, attachment=attachment)
+                self.stats["published"][ros_topic] += 1
 
     def teardown(self) -> None:
         with self._lock:
@@ -195,14 +205,6 @@ def _namespace_of(vehicle: str) -> str:
         return default_namespace(vehicle)
     except ValueError as err:
         raise ValueError(f"{err}: give one with --namespace") from None
-
-
-def _field(record: Any, *names: str) -> Any:
-    """The first of ``names`` that ``record`` has (None if none)."""
-    for name in names:
-        if hasattr(record, name):
-            return getattr(record, name)
-    return None
 
 
 def _domain_id(text: str) -> int:

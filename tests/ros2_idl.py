@@ -15,12 +15,6 @@ class Time(IdlStruct, typename="builtin_interfaces/msg/Time"):
 
 
 @dataclass
-class Duration(IdlStruct, typename="builtin_interfaces/msg/Duration"):
-    sec: int32
-    nanosec: uint32
-
-
-@dataclass
 class Header(IdlStruct, typename="std_msgs/msg/Header"):
     stamp: Time
     frame_id: str
@@ -77,29 +71,6 @@ class Odometry(IdlStruct, typename="nav_msgs/msg/Odometry"):
 class Vector3Stamped(IdlStruct, typename="geometry_msgs/msg/Vector3Stamped"):
     header: Header
     vector: Vector3
-
-
-@dataclass
-class Transform(IdlStruct, typename="geometry_msgs/msg/Transform"):
-    translation: Vector3
-    rotation: Quaternion
-
-
-@dataclass
-class MultiDOFJointTrajectoryPoint(
-    IdlStruct, typename="trajectory_msgs/msg/MultiDOFJointTrajectoryPoint"
-):
-    transforms: sequence[Transform]
-    velocities: sequence[Twist]
-    accelerations: sequence[Twist]
-    time_from_start: Duration
-
-
-@dataclass
-class MultiDOFJointTrajectory(IdlStruct, typename="trajectory_msgs/msg/MultiDOFJointTrajectory"):
-    header: Header
-    joint_names: sequence[str]
-    points: sequence[MultiDOFJointTrajectoryPoint]
 
 
 @dataclass

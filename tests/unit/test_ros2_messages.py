@@ -17,7 +17,6 @@ PUBLISHED = {
     "std_msgs/msg/String": "df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
     rm.ODOMETRY: "3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0",
     rm.VECTOR3_STAMPED: "d4829622288cbb443886e7ea94ea5671a3b1be6bab4ad04224432a65f7d7887a",
-    rm.TRAJECTORY: "3a18fd095292a65cfde8833c72985a30af981f3ec44494655c6267262b443a4a",
     rm.DIAGNOSTICS: "5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e",
 }
 
@@ -100,24 +99,6 @@ def test_setpoint_thrust_and_rates_decode():
         idl.Vector3Stamped, rm.cdr(rm.rate_setpoint(2.5, [0.1, -0.2, 0.3]), rm.VECTOR3_STAMPED)
     )
     np.testing.assert_array_equal(_xyz(rates.vector), [0.1, -0.2, 0.3])
-
-
-def test_reference_trajectory_decodes_with_yaw_and_optional_derivatives():
-    data = rm.cdr(
-        rm.reference_trajectory(1.0, [1.0, 2.0, 3.0], 0.7, [0.5, 0.0, -0.1], None), rm.TRAJECTORY
-    )
-    msg = _decode(idl.MultiDOFJointTrajectory, data)
-    assert msg.joint_names == ["base_link"] and msg.header.frame_id == "world"
-    (point,) = msg.points
-    (tf,) = point.transforms
-    np.testing.assert_array_equal(_xyz(tf.translation), [1.0, 2.0, 3.0])
-    r = tf.rotation
-    yaw = Rotation.from_quat([r.x, r.y, r.z, r.w]).as_euler("ZYX")[0]
-    assert yaw == pytest.approx(0.7, abs=1e-15)
-    (v,) = point.velocities
-    np.testing.assert_array_equal(_xyz(v.linear), [0.5, 0.0, -0.1])
-    assert point.accelerations == []
-    assert (point.time_from_start.sec, point.time_from_start.nanosec) == (0, 0)
 
 
 def test_changepoint_diagnostics_decode_with_level_and_exact_values():

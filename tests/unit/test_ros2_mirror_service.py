@@ -1,14 +1,66 @@
-"""`--ros2`: the mirror's place in the stack, and the options refused before anything starts."""
+"""The ROS 2 mirror service: what it makes of each record, its place in the stack
+(`--ros2`), and the options refused before anything starts."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
+import numpy as np
 import pytest
+import ros2_idl as idl
 
 from arcade.cli import main
+from arcade_io import ros2_messages as rm
 from deploy.launcher import StackConfig
 from deploy.px4_profile import Px4StackConfig
 from deploy.stack_config import STOP_ORDER
 from services import ros2_mirror
+from services.messages import Event, Setpoint, State
+
+X = np.r_[1.0, 2.0, 3.0, 0.5, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3]
+
+
+def _wire(topic: str, record) -> dict:
+    """ROS 2 topic -> the pycdr2 reading of its CDR bytes, for one bus record."""
+    out = {}
+    for ros_topic, msg in ros2_mirror.ros_messages(topic, record, "quad1"):
+        ros_type = ros2_mirror.OUTPUTS[ros_topic]
+        cls = {rm.ODOMETRY: idl.Odometry, rm.VECTOR3_STAMPED: idl.Vector3Stamped,
+               rm.DIAGNOSTICS: idl.DiagnosticArray}[ros_type]  # fmt: skip
+        out[ros_topic] = cls.deserialize(rm.cdr(msg, ros_type))
+    return out
+
+
+def test_each_record_becomes_its_ros_messages():
+    odom = _wire("state", State(x=X, stamp=1.5, cov_diag=np.full(13, 1e-4)))["odom"]
+    assert odom.child_frame_id == "base_link" and odom.pose.covariance[0] == 1e-4
+    sp = _wire("setpoint", Setpoint(u=[6.5, 0.1, -0.2, 0.3], state_seq=1, stamp=1.5))
+    assert sp["setpoint/thrust"].vector.z == 6.5 and sp["setpoint/body_rates"].vector.y == -0.2
+    event = Event(kind="changepoint", text="changepoint detected", stamp=1.5, src="adapter/ab",
+                  data={"changepoint_step": 30})  # fmt: skip
+    (status,) = _wire("event", event)["changepoint"].status
+    assert status.hardware_id == "quad1"
+    assert {kv.key: kv.value for kv in status.values} == {
+        "changepoint_step": "30",
+        "src": "adapter/ab",
+    }
+    assert _wire("event", Event(kind="fault", text="x", stamp=1.5)) == {}  # not mirrored
+
+
+def test_the_reference_is_the_planned_state_as_odometry():
+    """The stack's reference (``x``: the planned state), as a record with that field."""
+    ref = _wire("reference", SimpleNamespace(stamp=2.0, x=X))["reference"]
+    assert ref.child_frame_id == "reference" and not any(ref.pose.covariance)
+    p = ref.pose.pose.position
+    assert (p.x, p.y, p.z) == (1.0, 2.0, 3.0)
+    assert ros2_mirror.SOURCES["reference"] == "reference" and set(ros2_mirror.SOURCES) == set(
+        ros2_mirror.OUTPUTS
+    )
+
+
+def test_a_record_ros_cannot_hold_is_refused():
+    with pytest.raises(ValueError, match="not a ROS 2 time"):
+        ros2_mirror.ros_messages("state", State(x=X, stamp=3.0e9), "quad1")
 
 
 def test_the_mirror_starts_before_the_vehicle_and_stops_before_the_recorder(tmp_path):
