@@ -5,7 +5,8 @@ later) expects of a publisher on the same Zenoh network, so that ``ros2 topic li
 ``ros2 topic echo`` see it. Followed exactly from ros2/rmw_zenoh (branch ``rolling``):
 ``docs/design.md`` at commit 99a6a2bd10b949052f4f12c5854825dc005e95a5, and the code it
 describes, ``rmw_zenoh_cpp/src/detail/liveliness_utils.cpp`` at 3411fdec149f,
-``attachment_helpers.cpp`` at 534747dca92a and ``qos.cpp`` at 7efeee2b9009:
+``attachment_helpers.cpp`` at 534747dca92a, ``qos.cpp`` at 7efeee2b9009 and
+``rmw_publisher_data.cpp`` at 3e19ec730c52:
 
 - topic key: ``<domain_id>/<fully qualified topic name without its leading '/'>/<type
   name>/<type hash>``, e.g. ``0/chatter/std_msgs::msg::dds_::String_/RIHS01_df66...``;
@@ -22,7 +23,7 @@ describes, ``rmw_zenoh_cpp/src/detail/liveliness_utils.cpp`` at 3411fdec149f,
   the number of its ``rmw_qos_*`` enumerator; a keep-last depth-10 publisher is
   ``::,10:,:,:,,``;
 - the entity's GID: the 128-bit XXH3 hash of its token, low 64 bits first, each half in
-  little-endian byte order (``Entity::Entity``);
+  little-endian byte order (``Entity::Entity``); a publisher sends its entity's GID;
 - every sample's attachment (33 bytes): the sequence number (int64, little-endian, from 1),
   the source timestamp (int64 ns since the UNIX epoch, little-endian), the GID's length
   (one byte, 16) and the 16 GID bytes (zenoh-ext's serialisation of ``int64, int64,

@@ -110,3 +110,20 @@ def test_the_default_namespace_is_the_vehicles():
     assert ros2_mirror.default_namespace("quad_1") == "/arcade/quad_1"
     with pytest.raises(ValueError, match="makes no ROS 2 namespace"):
         ros2_mirror.default_namespace("quad.1")
+
+
+def test_demo_ros2_runs_the_mirror_in_its_stack(capsys, monkeypatch, tmp_path):
+    from deploy.launcher import StackError
+
+    flown = []
+
+    def run_flight(cfg, **kwargs):
+        flown.append(cfg)
+        raise StackError("not flown in a unit test")
+
+    monkeypatch.setattr("deploy.launcher.run_flight", run_flight)
+    monkeypatch.setattr("arcade.commands.up.weights_problem", lambda path: None)
+    assert main(["demo", "--ros2", "--out", str(tmp_path / "demo")]) == 1
+    assert "not flown in a unit test" in capsys.readouterr().err
+    (cfg,) = flown
+    assert cfg.ros2 and "ros2" in cfg.services()
