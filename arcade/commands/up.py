@@ -188,8 +188,11 @@ def ros2_problem(args: argparse.Namespace) -> str | None:
         return None
     grouped = group_service_args(args.service_arg)
     own = grouped.get("ros2", []) if isinstance(grouped, dict) else []
-    if any(a.startswith("--namespace") for a in own):
-        return None  # checked with the service's options
+    try:
+        if "--namespace" in options_given(service_parser("ros2"), own):
+            return None  # its own namespace, checked by the service's parser
+    except ValueError:
+        return None  # what the service's parser refuses: service_args_problem says it
     from services.ros2_mirror import default_namespace
 
     try:

@@ -93,6 +93,10 @@ def test_a_vehicle_name_that_makes_no_ros_namespace_is_refused(capsys, monkeypat
          str(tmp_path / "run")],
     )  # fmt: skip
     assert "invalid ROS 2 namespace name 'quad'" in err
+    # its own namespace, however abbreviated, is the one checked
+    own = ["--service-arg", "ros2:--names=/q1", "--service-arg", "ros2:--domain-id=300"]
+    err = _refused(capsys, ["up", "--ros2", "--lockstep", "--vehicle", "quad-1", *own])
+    assert "ROS 2 domain id 300" in err and "quad-1" not in err
     err = _refused(capsys, ["up", "--lockstep", "--service-arg", "ros2:--domain-id=3"])
     assert "--service-arg ros2: not a process of this stack" in err
     err = _refused(capsys, ["up", "--ros2", "--lockstep", "--service-arg", "ros2:--domain-id=300"])
