@@ -38,7 +38,7 @@ from deploy.stack_config import CPU_WAKEUP_LATENCY_US, REALTIME_PRIORITY, StackC
 
 #: Start order; stop order: the bridge first (it leaves offboard -> Hold), recorder last.
 PX4_SERVICES = ("recorder", "estimator", "adapter", "controller", "bridge")
-PX4_STOP_ORDER = ("bridge", "px4sim", "controller", "adapter", "estimator", "recorder")
+PX4_STOP_ORDER = ("bridge", "px4sim", "controller", "adapter", "estimator", "ros2", "recorder")
 
 
 @dataclass
@@ -66,8 +66,8 @@ class Px4StackConfig(StackConfig):
 
     def services(self) -> tuple[str, ...]:
         if self.simulate:
-            return (*PX4_SERVICES[:-1], "px4sim", "bridge")
-        return PX4_SERVICES
+            return self.with_optional((*PX4_SERVICES[:-1], "px4sim", "bridge"))
+        return self.with_optional(PX4_SERVICES)
 
     def sim_url(self) -> str:
         """The simulated PX4's side of the link (it sends to the bridge's port)."""

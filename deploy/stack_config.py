@@ -30,13 +30,13 @@ __all__ = [
 
 #: Start order; stop order is the reverse of the data flow (vehicle first, recorder last).
 SERVICES = ("recorder", "estimator", "adapter", "controller", "sim")
-STOP_ORDER = ("sim", "controller", "adapter", "estimator", "recorder")
+STOP_ORDER = ("sim", "controller", "adapter", "estimator", "ros2", "recorder")
 PROFILES = ("sim", "px4")
 #: Realtime scheduling (realtime clock only): the sense-to-actuate path (vehicle link,
 #: estimator, controller) under SCHED_FIFO at these priorities, ahead of the adapter; the
 #: recorder niced last. Without the privilege a service warns and keeps the normal policy.
 REALTIME_PRIORITY = {"sim": 30, "estimator": 25, "controller": 20}
-NICE = {"recorder": 5}
+NICE = {"recorder": 5, "ros2": 5}
 #: ... and idle CPUs that poll instead of sleeping (PM QoS; ``runtime.cpu_wakeup_latency``).
 CPU_WAKEUP_LATENCY_US = 0
 
@@ -76,6 +76,8 @@ class StackConfig:
     #: Diagnostic: the simulator publishes the ground-truth state, no estimator runs.
     truth_state: bool = False
     extra: dict[str, list[str]] = field(default_factory=dict)
+    #: Mirror the flight for ROS 2 (the ``ros2`` service, ``services.ros2_mirror``).
+    ros2: bool = False
     #: Supervision: restarts per service (0: a crash stops the stack) and the back-off
     #: before restart ``n`` (``restart_backoff_s * 2**n``, at most ``restart_backoff_max_s``).
     max_restarts: int = 3
@@ -140,8 +142,15 @@ class StackConfig:
     def services(self) -> tuple[str, ...]:
         """The processes of this configuration, in start order."""
         if self.truth_state:
-            return tuple(s for s in SERVICES if s != "estimator")
-        return SERVICES
+            return self.with_optional(tuple(s for s in SERVICES if s != "estimator"))
+        return self.with_optional(SERVICES)
+
+    def with_optional(self, services: tuple[str, ...]) -> tuple[str, ...]:
+        """``services`` (the vehicle link last) with the optional services this
+        configuration asks for (``ros2``) started just before the vehicle link: a vehicle
+        waits for every other process, so they see the whole flight."""
+        extra = ("ros2",) if self.ros2 else ()
+        return (*services[:-1], *extra, services[-1])
 
     def base_args(self) -> list[str]:
         """The arguments every process of the stack takes (vehicle, hub, run folder, rate);

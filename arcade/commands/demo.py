@@ -65,6 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "seed and plan; writes their x, y, z errors around the release side by side "
         "(compare.png), a metrics table (compare.json) and each flight's run folder",
     )
+    from arcade.commands.up import add_ros2_argument
+
+    add_ros2_argument(p)
     p.add_argument(
         "--cartpole",
         action="store_true",
@@ -86,6 +89,7 @@ def run_cartpole(args: argparse.Namespace) -> int:
             ("--x64", args.x64),
             ("--method", args.method is not None),
             ("--compare", args.compare),
+            ("--ros2", args.ros2),
         )
         if given
     ]
@@ -146,6 +150,8 @@ def run(args: argparse.Namespace) -> int:
     from arcade_io import jaxsetup
     from arcade_io.runs import new_run_dir
 
+    if args.compare and args.ros2:
+        return _error("--ros2: not with --compare (one flight at a time is mirrored)")
     problem = payload_problem(args.payload_g) or out_problem(args.out)
     if problem is not None:
         return _error(problem)
@@ -176,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
             x64=args.x64,
             weights=args.weights,
             method=args.method or DEFAULT_STACK_METHOD,
+            ros2=args.ros2,
         )
     except (StackError, ValueError, OSError) as err:
         return _error(f"{err} (run folder: {out})", 1)

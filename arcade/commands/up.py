@@ -114,7 +114,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="one Zenoh configuration per process instead of peers on the hub: "
         "DIR/<name>.json5 for launcher, recorder, estimator, adapter, controller and sim; "
         "with --profile px4 bridge (and px4sim with --simulate) instead of sim, and "
-        "operator (e.g. clients of a router with their own user and password); checked "
+        "operator; ros2 with --ros2 (e.g. clients of a router with their own user and "
+        "password); checked "
         "before anything starts",
     )
     p.add_argument(
@@ -160,9 +161,45 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "SCHED_FIFO after warm-up and request a CPU wake-up latency of 0 us, "
         "which needs root or an rtprio limit; without, they warn)",
     )
+    add_ros2_argument(p)
     from deploy import px4_profile
 
     px4_profile.add_arguments(p)
+
+
+def add_ros2_argument(p: argparse.ArgumentParser) -> None:
+    """``--ros2`` (``arcade up`` and ``arcade demo``)."""
+    p.add_argument(
+        "--ros2",
+        action="store_true",
+        help="also run the ROS 2 mirror: state (nav_msgs/Odometry), setpoint, reference and "
+        "changepoints as ROS 2 messages on rmw_zenoh's keys, under /arcade/<vehicle>, for "
+        "`ros2 topic echo` on a host with RMW_IMPLEMENTATION=rmw_zenoh_cpp; it connects to "
+        "the rmw_zenohd router on tcp/localhost:7447 and uses $ROS_DOMAIN_ID (else 0); "
+        "other router, domain or namespace: --service-arg ros2:--router=ENDPOINT, "
+        "ros2:--domain-id=N, ros2:--namespace=/NS (docs/ros2.md)",
+    )
+
+
+def ros2_problem(args: argparse.Namespace) -> str | None:
+    """Why ``--ros2`` would not start: the vehicle's name makes no ROS 2 namespace and no
+    ``--service-arg ros2:--namespace`` is given (one line), or None."""
+    if not args.ros2:
+        return None
+    grouped = group_service_args(args.service_arg)
+    own = grouped.get("ros2", []) if isinstance(grouped, dict) else []
+    try:
+        if "--namespace" in options_given(service_parser("ros2"), own):
+            return None  # its own namespace, checked by the service's parser
+    except ValueError:
+        return None  # what the service's parser refuses: service_args_problem says it
+    from services.ros2_mirror import default_namespace
+
+    try:
+        default_namespace(args.vehicle)
+    except ValueError as err:
+        return f"--ros2: {err}: give one with --service-arg ros2:--namespace=/NS"
+    return None
 
 
 #: The px4 profile's options and the value each has when not given.
@@ -186,6 +223,7 @@ def usage_problem(args: argparse.Namespace) -> str | None:
         link_delay_problem(args.link_delay, args.rate)
         or hub_problem(args.hub)
         or vehicle_name_problem(args.vehicle)
+        or ros2_problem(args)
     )
     if problem is not None:
         return problem
@@ -436,6 +474,7 @@ def stack_config(args: argparse.Namespace, out: Path, configs: dict[str, Path], 
         realtime_priority=args.realtime_priority,
         bus_configs=configs,
         extra=dict(extra),
+        ros2=args.ros2,
     )
 
 
@@ -458,6 +497,7 @@ def run(args: argparse.Namespace) -> int:
             processes = (*PX4_SERVICES, *(("px4sim",) if args.simulate else ()), "operator")
         else:
             processes = SERVICES
+        processes = (*processes, *(("ros2",) if args.ros2 else ()))
         found = bus_configs(args.bus_configs, processes)
         if isinstance(found, str):
             say(f"error: {found}")
