@@ -35,11 +35,27 @@ this way: tell PX4 it is an arbitrary-heading frame (``LOCAL_FRD``), see docs/px
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import jax.numpy as jnp
 import numpy as np
-from jax import Array
+
+if TYPE_CHECKING:
+    from jax import Array
+
+
+class _JaxNumpy:
+    """``jax.numpy``, imported at the first use of a JAX form: the processes that use only
+    the NumPy and float forms (the simulator's PX4 side, the ROS 2 mirror) do not load JAX
+    (about a second of CPU). The first use puts the module itself in its place."""
+
+    def __getattr__(self, name: str) -> Any:
+        import jax.numpy
+
+        globals()["jnp"] = jax.numpy
+        return getattr(jax.numpy, name)
+
+
+jnp: Any = _JaxNumpy()
 
 # ----------------------------------------------------------------------------- JAX
 

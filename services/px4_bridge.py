@@ -52,6 +52,7 @@ class Px4Bridge(OffboardControl, runtime.Service):
     """PX4 bridge: setpoints to PX4 offboard, mocap to PX4 vision, PX4 telemetry to the bus."""
 
     name = "bridge"
+    uses_jax = False  # NumPy's frame changes and limits only
 
     _closed = False
 

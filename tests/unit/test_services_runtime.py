@@ -12,6 +12,8 @@ import subprocess
 import sys
 import threading
 
+import pytest
+
 from services import runtime
 
 
@@ -153,14 +155,22 @@ def test_the_services_start_without_importing_scipy():
     assert out.stdout.strip() == "[]", out.stdout
 
 
-def test_the_recorder_runs_without_jax():
-    """The recorder computes nothing with a model: its process neither imports JAX nor sets
-    it up (``main_for`` skips that for it), which saves about a second of CPU at every
-    start of the stack."""
-    from services.recorder import Recorder
+@pytest.mark.parametrize(
+    ("module", "service"),
+    [
+        ("services.recorder", "Recorder"),
+        ("services.px4_bridge", "Px4Bridge"),
+        ("services.ros2_mirror", "Ros2Mirror"),
+    ],
+)
+def test_services_that_compute_no_model_run_without_jax(module, service):
+    """The recorder, the PX4 bridge and the ROS 2 mirror compute nothing with a model (the
+    frames they change are NumPy's): their processes neither import JAX nor set it up
+    (``main_for`` skips that for them), which saves about a second of CPU at every start."""
+    import importlib
 
-    assert Recorder.uses_jax is False
-    code = "import sys; import services.recorder; print('jax' in sys.modules)"
+    assert getattr(importlib.import_module(module), service).uses_jax is False
+    code = f"import sys; import {module}; print('jax' in sys.modules)"
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
     )
