@@ -112,10 +112,12 @@ def run_demo(
     hub: str | None = None,
     link_delay_s: float = 0.0,
     method: str = DEFAULT_STACK_METHOD,
+    foxglove_port: int | None = None,
 ) -> dict[str, Any]:
     """Fly the demo through the stack; writes the run folder and returns the summary.
     ``link_delay_s``: the link delay the controller and the adapter compensate
-    (``arcade up --link-delay``); ``method``: one of ``STACK_METHODS`` (``--method``)."""
+    (``arcade up --link-delay``); ``method``: one of ``STACK_METHODS`` (``--method``);
+    ``foxglove_port``: serve the flight live to Foxglove (``--foxglove``)."""
     from tqdm import tqdm
 
     from arcade_control.scenario import Scenario
@@ -138,6 +140,7 @@ def run_demo(
         truth_state=truth_state,
         link_delay_s=link_delay_s,
         method=method,
+        foxglove_port=foxglove_port,
     )
     out = cfg.out  # absolute: where the services write, whatever the working directory
 

@@ -86,6 +86,9 @@ class StackConfig:
     #: sent on a user's behalf); empty: peers on loopback through ``hub``. Given, it must
     #: name every process and the launcher; ``hub`` is then unused.
     bus_configs: dict[str, Path] = field(default_factory=dict)
+    #: Serve the live flight to Foxglove (the ``foxglove`` service) on this loopback TCP
+    #: port (0: any free one); None: no such service.
+    foxglove_port: int | None = None
 
     def __post_init__(self) -> None:
         # Absolute paths: what a service is handed does not depend on where it runs.
@@ -140,8 +143,13 @@ class StackConfig:
     def services(self) -> tuple[str, ...]:
         """The processes of this configuration, in start order."""
         if self.truth_state:
-            return tuple(s for s in SERVICES if s != "estimator")
-        return SERVICES
+            return (*(s for s in SERVICES if s != "estimator"), *self.side_services())
+        return (*SERVICES, *self.side_services())
+
+    def side_services(self) -> tuple[str, ...]:
+        """The optional processes that only listen to the bus (started after the others,
+        stopped before them)."""
+        return ("foxglove",) if self.foxglove_port is not None else ()
 
     def base_args(self) -> list[str]:
         """The arguments every process of the stack takes (vehicle, hub, run folder, rate);
@@ -183,8 +191,10 @@ class StackConfig:
         if tuple(self.origin) != (0.0, 0.0):
             plan.append(f"--origin={self.origin[0]:g},{self.origin[1]:g}")  # may start with "-"
         own: list[str] = []
-        if service in ("sim", "controller"):
+        if service in ("sim", "controller", "recorder", "foxglove"):  # the latter two draw it
             own += plan
+        if service == "foxglove":
+            own += ["--port", str(self.foxglove_port)]
         if service in ("adapter", "controller") and self.weights is not None:
             own += ["--weights", str(self.weights)]
         if service == "adapter":

@@ -1,7 +1,8 @@
 """``python -m services <name> [options]``: run one service process.
 
 Services: ``sim``, ``estimator``, ``adapter``, ``controller``, ``recorder``, ``bridge``
-(MAVSDK link to a PX4 vehicle) and ``px4sim`` (the simulator as a PX4 vehicle on MAVLink).
+(MAVSDK link to a PX4 vehicle), ``px4sim`` (the simulator as a PX4 vehicle on MAVLink) and
+``foxglove`` (the live flight for Foxglove).
 Each takes ``--help``. The launcher (``arcade up``) starts the ones a profile needs.
 """
 
@@ -18,6 +19,7 @@ SERVICES = {
     "recorder": "services.recorder",
     "px4sim": "services.px4_sim",
     "bridge": "services.px4_bridge",
+    "foxglove": "services.foxglove_live",
 }
 
 #: One line per service for ``--help`` (without importing them: JAX, MuJoCo, MAVSDK).
@@ -29,6 +31,7 @@ SUMMARIES = {
     "recorder": "MCAP log of the bus and the CSV flight log",
     "px4sim": "the simulator as a PX4 vehicle on MAVLink + motion capture on the bus",
     "bridge": "setpoints to PX4 offboard, mocap to PX4 vision, PX4 telemetry to the bus",
+    "foxglove": "the live flight over the Foxglove WebSocket protocol (loopback)",
 }
 
 USAGE = f"usage: python -m services {{{','.join(SERVICES)}}} [--help]"

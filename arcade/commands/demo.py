@@ -65,6 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "seed and plan; writes their x, y, z errors around the release side by side "
         "(compare.png), a metrics table (compare.json) and each flight's run folder",
     )
+    from arcade.commands.up import add_foxglove_argument
+
+    add_foxglove_argument(p)
     p.add_argument(
         "--cartpole",
         action="store_true",
@@ -138,6 +141,8 @@ def payload_problem(payload_g: float | None) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.foxglove is not None and (args.compare or args.cartpole):
+        return _error("--foxglove: for the stack demo, not with --compare or --cartpole")
     if args.cartpole:
         return run_cartpole(args)
     if args.compare and args.method is not None:
@@ -176,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
             x64=args.x64,
             weights=args.weights,
             method=args.method or DEFAULT_STACK_METHOD,
+            foxglove_port=args.foxglove,
         )
     except (StackError, ValueError, OSError) as err:
         return _error(f"{err} (run folder: {out})", 1)

@@ -35,7 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "together and a --weights file that does not load are refused (exit code 2)\n"
         "before anything starts. A service's own options (`python -m services NAME\n"
         "--help`) go through --service-arg, e.g. --service-arg estimator:--mocap-noise=1e-4\n"
-        "(StackConfig.extra from Python).\n"
+        "(StackConfig.extra from Python). With --foxglove, Foxglove shows the flight live\n"
+        "(open a Foxglove WebSocket connection to ws://127.0.0.1:8765).\n"
         "The clock is real time unless --lockstep is given. Without --out the run folder\n"
         "is made under $ARCADE_RUNS (default runs/)."
     )
@@ -160,9 +161,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "SCHED_FIFO after warm-up and request a CPU wake-up latency of 0 us, "
         "which needs root or an rtprio limit; without, they warn)",
     )
+    add_foxglove_argument(p)
     from deploy import px4_profile
 
     px4_profile.add_arguments(p)
+
+
+def add_foxglove_argument(p: argparse.ArgumentParser) -> None:
+    """``--foxglove [PORT]`` (``arcade up`` and ``arcade demo``)."""
+
+    def port(text: str) -> int:
+        if not text.isdigit() or int(text) > 65535:
+            raise argparse.ArgumentTypeError(f"not a TCP port (0-65535): {text!r}")
+        return int(text)
+
+    p.add_argument(
+        "--foxglove",
+        type=port,
+        nargs="?",
+        const=8765,
+        default=None,
+        metavar="PORT",
+        help="serve the live flight to Foxglove over its WebSocket protocol on "
+        "ws://127.0.0.1:PORT (loopback only; PORT default 8765, 0: any free one): the "
+        "vehicle's transform, pose and model, the reference path and the geofence, the "
+        "channels bus.mcap holds too (default: off)",
+    )
 
 
 #: The px4 profile's options and the value each has when not given.
@@ -436,6 +460,7 @@ def stack_config(args: argparse.Namespace, out: Path, configs: dict[str, Path], 
         realtime_priority=args.realtime_priority,
         bus_configs=configs,
         extra=dict(extra),
+        foxglove_port=args.foxglove,
     )
 
 
