@@ -57,7 +57,7 @@ def body_frame(vehicle: str) -> str:
 
 def timestamp(stamp: float) -> fm.Timestamp:
     sec = int(np.floor(stamp))
-    return fm.Timestamp(sec, min(int(round((stamp - sec) * 1e9)), 999_999_999))
+    return fm.Timestamp(sec, min(round((stamp - sec) * 1e9), 999_999_999))
 
 
 def _vec(v: Sequence[float]) -> fm.Vector3:

@@ -20,7 +20,9 @@ PATH = np.array([[0.0, 0.0, 1.5], [0.0, 0.0, 2.0], [1.0, 0.5, 2.0]])
 
 
 def _state(t: float) -> State:
-    return State.from_parts(p=[1.0, -2.0, 1.5 + t], v=[0.1, 0, 0], q=Q_YAW30, omega=[0, 0, 0.2], stamp=t)
+    return State.from_parts(
+        p=[1.0, -2.0, 1.5 + t], v=[0.1, 0, 0], q=Q_YAW30, omega=[0, 0, 0.2], stamp=t
+    )
 
 
 def test_a_state_becomes_the_transform_pose_and_vehicle_and_every_second_the_static_scenes():
@@ -160,7 +162,9 @@ def test_the_live_server_sends_the_channels_to_a_websocket_client():
     for i, (topic, payload) in enumerate(got.items()):
         c = channels[topic]
         assert c["encoding"] == "protobuf" and c["schemaEncoding"] == "protobuf"
-        schema = Schema(id=i + 1, name=c["schemaName"], encoding="protobuf", data=base64.b64decode(c["schema"]))
+        schema = Schema(
+            id=i + 1, name=c["schemaName"], encoding="protobuf", data=base64.b64decode(c["schema"])
+        )
         decoded[topic] = factory.decoder_for("protobuf", schema)(payload)
     tf = decoded["arcade/quad1/foxglove/transform"]
     assert tf.child_frame_id == "quad1/body" and tf.translation.x == 1.0
