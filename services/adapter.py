@@ -144,6 +144,7 @@ class Adapter(runtime.Service):
     """Adapter: ARCADE online adaptation (Algorithm 1) of the residual model."""
 
     name = "adapter"
+    announce_options = True  # arcade replay runs it again as it ran
 
     def setup(self, bus) -> None:
         # Imported here, like every JAX module of the services: after runtime.setup_jax
@@ -151,6 +152,7 @@ class Adapter(runtime.Service):
         import jax.numpy as jnp
 
         from arcade_control.detection import detection_config, detector_noise
+        from arcade_control.knobs import split_knobs
         from arcade_control.stack import (
             adapter_learner,
             adapter_method,
@@ -167,12 +169,15 @@ class Adapter(runtime.Service):
         a = self.args
         self.jnp = jnp
         self.dtype = jnp.result_type(float)
+        learner_knobs, detector_knobs = split_knobs(getattr(a, "knob", []))
         weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
         self.weights = weights
         self.learner = None
         self.meta: dict[str, Any] = {}
         if weights.is_file():
-            self.learner, self.method = adapter_learner(weights, self.dtype, a.method)
+            self.learner, self.method = adapter_learner(
+                weights, self.dtype, a.method, learner_knobs
+            )
             self.meta = {"weights_sha256": hashlib.sha256(weights.read_bytes()).hexdigest()}
         params = quadrotor_params(load_vehicle())
         self.model_dt = 0.05
@@ -215,7 +220,7 @@ class Adapter(runtime.Service):
                 return (new._replace(vld=learner.vld), *out)
 
             self._adapt = _adapt
-            self._detect_config = detection_config(dtype=self.dtype)
+            self._detect_config = detection_config(detector_knobs, dtype=self.dtype)
             self._detection0 = adaptation.init_detection(
                 detector_prior(self.learner), self._detect_config
             )
@@ -604,6 +609,16 @@ def _extra(p) -> None:
         type=float,
         default=5.0,
         help="lockstep: longest wait for the setpoint of the previous state [s]",
+    )
+    p.add_argument(
+        "--knob",
+        type=options.adapter_knob,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a knob of the learner (e.g. arcade_lambda=0.95, of the --method flown) or "
+        "of the changepoint detector (detector_threshold=0.9) instead of the stack's "
+        "(repeatable; `arcade replay --set` tries them on a recorded flight)",
     )
     p.add_argument(
         "--max-gap-periods",
