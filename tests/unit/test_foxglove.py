@@ -170,3 +170,21 @@ def test_the_live_server_sends_the_channels_to_a_websocket_client():
     assert tf.child_frame_id == "quad1/body" and tf.translation.x == 1.0
     assert decoded["arcade/quad1/foxglove/vehicle"].entities[0].id == "vehicle"
     assert live.stats["messages"]["transform"] >= 1
+
+
+def test_the_stack_starts_the_live_service_with_the_plan_and_the_bridges_geofence(tmp_path):
+    """``arcade up --foxglove PORT``: one more process, given the port and the plan (the
+    recorder gets the plan too); in the px4 profile both draw the bridge's geofence."""
+    from deploy.launcher import StackConfig
+    from deploy.px4_profile import Px4StackConfig
+
+    assert "foxglove" not in StackConfig(out=tmp_path).services()
+    cfg = StackConfig(out=tmp_path, foxglove_port=0, speed=1.5)
+    assert cfg.services()[-1] == "foxglove"
+    args = cfg.args("foxglove")
+    assert args[args.index("--port") + 1] == "0" and args[args.index("--speed") + 1] == "1.5"
+    assert "--speed" in cfg.args("recorder")
+    px4 = Px4StackConfig(out=tmp_path, foxglove_port=8765, bridge_args=["--geofence=-3,3,-3,3,0,3"])
+    assert "foxglove" in px4.services()
+    for name in ("recorder", "foxglove"):
+        assert px4.args(name)[-1] == "--geofence=-3,3,-3,3,0,3"

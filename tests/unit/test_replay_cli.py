@@ -87,3 +87,33 @@ def test_unknown_knobs_wrong_values_and_other_methods_knobs_are_refused(recordin
 def test_the_recordings_own_folder_is_refused_as_the_output(recording, capsys):
     why = _refused(capsys, [str(recording), "--out", str(recording.parent)])
     assert "own folder" in why
+
+
+def test_lockstep_replay_puts_each_state_after_the_setpoint_of_the_one_before():
+    """The recorder may receive state k+1 before the setpoint answering state k (they come
+    on different links); a lockstep adapter waits for that setpoint, so the replay feeds
+    them in that order, leaving the other records where they were."""
+    from arcade.commands.replay import lockstep_order
+    from services.messages import Command, Setpoint, State
+
+    def state(t):
+        return (
+            "state",
+            State.from_parts(p=[0, 0, 1], v=[0] * 3, q=[1, 0, 0, 0], omega=[0] * 3, stamp=t),
+        )
+
+    def setpoint(t):
+        return ("setpoint", Setpoint(u=[5.0, 0, 0, 0], state_seq=0, stamp=t))
+
+    start = ("command", Command(name="start", stamp=0.0))
+    got = lockstep_order(
+        [start, state(0.0), state(0.05), setpoint(0.0), setpoint(0.05), state(0.1)]
+    )
+    assert [(t, m.stamp) for t, m in got] == [
+        ("command", 0.0),
+        ("state", 0.0),
+        ("setpoint", 0.0),
+        ("state", 0.05),
+        ("setpoint", 0.05),
+        ("state", 0.1),
+    ]
