@@ -8,7 +8,11 @@ commands; with ``--service controller`` the controller (``services.controller``)
 plans on every recorded state with the replayed adapter's model (open loop: the states
 stay the recorded ones, and the adapter learns from the setpoints the vehicle flew). Each
 runs with the command line it announced in the recording (its ``ready`` event), plus the
-knobs of ``--set`` (the adapter's ``--knob``). What they publish goes, with the recorded
+knobs of ``--set`` (the adapter's ``--knob``); their clock reads the stamp of the newest
+record. A lockstep flight is reproduced exactly (its states and setpoints are fed in the
+order the lockstep adapter waits for them, :func:`lockstep_order`); a real-time one in the
+order the recorder received its messages, which is close to, not exactly, the order each
+service received them. What they publish goes, with the recorded
 inputs, to ``OUT/bus.mcap`` (the recorder service writes it: the same channels, Foxglove's
 included), and a comparison with what the recorded services published to
 ``OUT/replay.json``: the prediction error of the residuals, the changepoint events and,
@@ -290,11 +294,14 @@ def replay(
 
     classes = {"adapter": Adapter, "controller": Controller}
     services = {}
+    # The services' clock reads the stamp of the newest record delivered: a recorded state
+    # is as fresh as when it was published (its age in real time is the recording's).
+    clock = [0.0]
     rec_args = argparse.Namespace(out=out, incarnation=0, vehicle=vehicle, geofence="none")
     for name, svc in [("recorder", Recorder(rec_args))] + [(n, classes[n](args[n])) for n in names]:
         sessions[name] = Session(name, on_put)
         bus = Bus(vehicle, name, None).open(session=sessions[name])
-        svc.bus = bus
+        svc.bus, svc.now = bus, lambda: clock[0]
         bus.subscribe("command", svc._on_command)
         svc.setup(bus)
         services[name] = svc
@@ -316,6 +323,7 @@ def replay(
     ):
         payload, key = encode(m), key_expr(vehicle, topic)
         src = m.src.split("/")[0]
+        clock[0] = max(clock[0], m.stamp)
         if topic not in replaced and not (topic == "event" and src in names):
             sessions["recorder"].deliver(key, payload)
         for name in order:
@@ -327,6 +335,7 @@ def replay(
     elapsed = time.perf_counter() - t0
     for svc in services.values():
         svc.teardown()
+        svc.bus.close()
     result = compare(records, published, names)
     result.update(
         recording=str(path),

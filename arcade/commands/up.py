@@ -483,6 +483,8 @@ def run(args: argparse.Namespace) -> int:
             processes = (*PX4_SERVICES, *(("px4sim",) if args.simulate else ()), "operator")
         else:
             processes = SERVICES
+        if args.foxglove is not None:
+            processes = (*processes, "foxglove")
         found = bus_configs(args.bus_configs, processes)
         if isinstance(found, str):
             say(f"error: {found}")
