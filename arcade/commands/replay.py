@@ -10,9 +10,11 @@ stay the recorded ones, and the adapter learns from the setpoints the vehicle fl
 runs with the command line it announced in the recording (its ``ready`` event), plus the
 knobs of ``--set`` (the adapter's ``--knob``); their clock reads the stamp of the newest
 record. A lockstep flight is reproduced exactly (its states and setpoints are fed in the
-order the lockstep adapter waits for them, :func:`lockstep_order`); a real-time one in the
-order the recorder received its messages, which is close to, not exactly, the order each
-service received them. What they publish goes, with the recorded
+order the lockstep adapter waits for them, :func:`lockstep_order`). A real-time one is fed
+in the order the recorder received it, the adapter each state once the setpoint answering
+it has come (as it waits for it) and after the commands and events received right after
+that setpoint; which model a real-time controller had for a state depends on the timing of
+the flight, so its setpoints are close to, not exactly, the recorded ones. What they publish goes, with the recorded
 inputs, to ``OUT/bus.mcap`` (the recorder service writes it: the same channels, Foxglove's
 included), and a comparison with what the recorded services published to
 ``OUT/replay.json``: the prediction error of the residuals, the changepoint events and,
@@ -318,6 +320,12 @@ def replay(
 
     t0 = time.perf_counter()
     ctrl = services.get("controller")
+    # Real time: the adapter updates on a state once the controller's setpoint for it is
+    # out, or half a period later (services.adapter): what arrives meanwhile, and the
+    # commands and events received right after that setpoint, come first.
+    held: tuple[Any, str, bytes] | None = None
+    answered = False  # the held state's setpoint has come
+    wait_s = 0.5 / args["adapter"].rate
     for topic, m in tqdm(
         records, unit="msg", disable=None if progress else True, file=sys.stderr, desc="replay"
     ):
@@ -326,12 +334,27 @@ def replay(
         clock[0] = max(clock[0], m.stamp)
         if topic not in replaced and not (topic == "event" and src in names):
             sessions["recorder"].deliver(key, payload)
+        if held is not None and (
+            (answered and topic not in ("command", "event"))
+            or topic == "state"
+            or m.stamp > held[0].stamp + wait_s
+        ):
+            sessions["adapter"].deliver(*held[1:])
+            held, answered = None, False
         for name in order:
-            if topic in INPUTS[name]:
-                sessions[name].deliver(key, payload)
+            if topic not in INPUTS[name]:
+                continue
+            if name == "adapter" and topic == "state" and not lockstep:
+                held = (m, key, payload)  # handled once its setpoint is there
+                continue
+            sessions[name].deliver(key, payload)
+            if name == "adapter" and held is not None and topic == "setpoint":
+                answered = answered or m.stamp == held[0].stamp
             if name == "controller":
                 while not ctrl._queue.empty():
                     ctrl.step(*ctrl._queue.get_nowait())
+    if held is not None:
+        sessions["adapter"].deliver(*held[1:])
     elapsed = time.perf_counter() - t0
     for svc in services.values():
         svc.teardown()
