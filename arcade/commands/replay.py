@@ -14,11 +14,11 @@ order the lockstep adapter waits for them, :func:`lockstep_order`). A real-time 
 in the order the recorder received it, the adapter each state once the setpoint answering
 it has come (as it waits for it) and after the commands and events received right after
 that setpoint; which model a real-time controller had for a state depends on the timing of
-the flight, so its setpoints are close to, not exactly, the recorded ones. What they publish goes, with the recorded
-inputs, to ``OUT/bus.mcap`` (the recorder service writes it: the same channels, Foxglove's
-included), and a comparison with what the recorded services published to
-``OUT/replay.json``: the prediction error of the residuals, the changepoint events and,
-with the controller, the setpoints.
+the flight, so its setpoints are close to, not exactly, the recorded ones. What they
+publish goes, with the recorded inputs, to ``OUT/bus.mcap`` (the recorder service writes
+it: the same channels, Foxglove's included), and a comparison with what the recorded
+services published to ``OUT/replay.json``: the prediction error of the residuals, the
+changepoint events and, with the controller, the setpoints.
 """
 
 from __future__ import annotations
@@ -199,66 +199,6 @@ def knob_problem(knobs: list[str], method: str) -> str | None:
     return None
 
 
-# --------------------------------------------------------------- an offline bus
-
-
-class _Payload:
-    def __init__(self, data: bytes):
-        self._data = data
-
-    def to_bytes(self) -> bytes:
-        return self._data
-
-
-class _Sample:
-    def __init__(self, data: bytes):
-        self.payload, self.attachment = _Payload(data), None
-
-
-class _Declared:
-    def __init__(self, put=None):
-        self._put = put
-
-    def put(self, payload: bytes, attachment: Any = None) -> None:
-        self._put(bytes(payload))
-
-    def undeclare(self) -> None:
-        pass
-
-
-class Session:
-    """What :class:`services.bus.Bus` uses of a Zenoh session, in process: subscriptions
-    kept for :meth:`deliver`, puts handed to ``on_put(key, payload)``."""
-
-    def __init__(self, name: str, on_put) -> None:
-        self.name, self._on_put = name, on_put
-        self.handlers: dict[str, list[Any]] = defaultdict(list)
-
-    def zid(self) -> str:
-        return f"replay{self.name}"
-
-    def liveliness(self) -> Session:
-        return self
-
-    def declare_token(self, key: str) -> _Declared:
-        return _Declared()
-
-    def declare_subscriber(self, key: str, handler: Any, **_: Any) -> _Declared:
-        if key.split("/")[-2:-1] != ["alive"]:
-            self.handlers[key].append(handler)
-        return _Declared()
-
-    def declare_publisher(self, key: str, **_: Any) -> _Declared:
-        return _Declared(lambda payload: self._on_put(self, key, payload))
-
-    def deliver(self, key: str, payload: bytes) -> None:
-        for handler in self.handlers.get(key, ()):
-            handler(_Sample(payload))
-
-    def close(self) -> None:
-        pass
-
-
 # ------------------------------------------------------------------------ replay
 
 
@@ -269,6 +209,7 @@ def replay(
     from services import runtime
     from services.bus import Bus, key_expr
     from services.messages import encode
+    from services.offline_bus import Session
 
     records, vehicle = read_recording(path, progress)
     names = ["adapter", *(("controller",) if service == "controller" else ())]
