@@ -45,7 +45,11 @@ def add_scene_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def planned_path(args: argparse.Namespace) -> np.ndarray:
-    """Positions ``(n, 3)`` of the flight plan of the plan options, every :data:`PATH_DT`."""
+    """Positions ``(n, 3)`` of the flight plan of the plan options, every :data:`PATH_DT`
+    (compiled once, then from the persistent compilation cache)."""
+    from arcade_io import jaxsetup
+
+    jaxsetup.configure()
     import jax
     import jax.numpy as jnp
 
@@ -57,7 +61,7 @@ def planned_path(args: argparse.Namespace) -> np.ndarray:
 
 def scene_for(args: argparse.Namespace, log: Any = None) -> Any:
     """The :class:`~arcade_io.foxglove_scene.FoxgloveScene` of these options. The planned
-    path is computed in a thread (JAX: about 2 s of CPU, off the start-up path); the
+    path is computed in a thread (JAX: about 1 s of CPU, off the start-up path); the
     scene draws it from the next second of stamps on. Options without a plan (a recorder
     built in a test): no path; without ``geofence``: no fence."""
     from arcade_core.px4_command import Geofence

@@ -10,7 +10,9 @@ state the vehicle's ``foxglove.FrameTransform`` (world -> ``<vehicle>/body``),
 ``foxglove.PoseInFrame`` and ``foxglove.SceneUpdate``, and every second the reference path
 and the geofence, on ``arcade/<vehicle>/foxglove/<name>``
 (:mod:`arcade_io.foxglove_scene`, the conversion the live ``foxglove`` service serves too),
-so that Foxglove's 3D panel shows the flight without set-up.
+so that Foxglove's 3D panel shows the flight without set-up. The planned path is sampled
+from the plan options with JAX, once, in a thread (about 1 s of CPU at start, off the
+recording path; :func:`services.foxglove_live.scene_for`).
 
 ``<out>/flight_log.csv``: the design §5 flight log, one row per setpoint: the estimated
 state it answers and the setpoint (``t, px, ..., wz, u0..u3``; ``t`` relative to the first
