@@ -168,6 +168,10 @@ def run(args: argparse.Namespace) -> int:
         "released before the second lap (lockstep)",
         flush=True,
     )
+    if args.foxglove is not None:
+        from arcade.commands.up import foxglove_line
+
+        print(foxglove_line(args.foxglove), flush=True)
     from deploy.launcher import StackError
 
     if args.compare:

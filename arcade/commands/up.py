@@ -167,6 +167,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     px4_profile.add_arguments(p)
 
 
+def foxglove_line(port: int) -> str:
+    """Where Foxglove connects to the live flight (``--foxglove PORT``)."""
+    where = f"ws://127.0.0.1:{port}" if port else "ws://127.0.0.1 on a free port (its log)"
+    return f"Foxglove: open a Foxglove WebSocket connection to {where}"
+
+
 def add_foxglove_argument(p: argparse.ArgumentParser) -> None:
     """``--foxglove [PORT]`` (``arcade up`` and ``arcade demo``)."""
 
@@ -516,6 +522,8 @@ def run(args: argparse.Namespace) -> int:
     from deploy.launcher import StackError, last_output, run_flight, sigterm_interrupts
 
     cfg = stack_config(args, args.out or new_run_dir("up"), configs, grouped)
+    if args.foxglove is not None:
+        say(foxglove_line(args.foxglove))
 
     last = [-1.0]
 

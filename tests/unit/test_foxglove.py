@@ -188,3 +188,17 @@ def test_the_stack_starts_the_live_service_with_the_plan_and_the_bridges_geofenc
     assert "foxglove" in px4.services()
     for name in ("recorder", "foxglove"):
         assert px4.args(name)[-1] == "--geofence=-3,3,-3,3,0,3"
+
+
+def test_foxglove_takes_a_tcp_port_or_none(capsys):
+    from arcade.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["up"]).foxglove is None
+    assert parser.parse_args(["up", "--foxglove"]).foxglove == 8765
+    assert parser.parse_args(["demo", "--foxglove", "0"]).foxglove == 0
+    for bad in ("70000", "-1", "ws"):
+        with pytest.raises(SystemExit) as exit_:
+            parser.parse_args(["up", f"--foxglove={bad}"])
+        assert exit_.value.code == 2
+        assert "not a TCP port" in capsys.readouterr().err
