@@ -372,11 +372,13 @@ def service_parser(name: str) -> argparse.ArgumentParser:
 def options_given(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
     """The options (long spelling, e.g. ``--max-model-age``) that ``argv`` sets, however
     abbreviated; ``ValueError`` if ``parser`` refuses ``argv``."""
-    unset = object()
     actions = [a for a in parser._actions if a.option_strings and a.dest != "help"]
-    ns = argparse.Namespace(**{a.dest: unset for a in actions})
+    # A mark per option that parsing replaces when the option is given (an appending
+    # option copies its list before it appends: an empty list of its own).
+    marks = {a.dest: [] if isinstance(a, argparse._AppendAction) else object() for a in actions}
+    ns = argparse.Namespace(**marks)
     parser.parse_args(argv, namespace=ns)
-    return {a.option_strings[-1] for a in actions if getattr(ns, a.dest) is not unset}
+    return {a.option_strings[-1] for a in actions if getattr(ns, a.dest) is not marks[a.dest]}
 
 
 #: Options the launcher sets that ``--service-arg`` may still set for one service (the

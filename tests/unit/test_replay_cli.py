@@ -117,3 +117,15 @@ def test_lockstep_replay_puts_each_state_after_the_setpoint_of_the_one_before():
         ("setpoint", 0.05),
         ("state", 0.1),
     ]
+
+
+def test_a_knob_found_by_replay_goes_to_the_stack_adapter_through_service_arg():
+    """``arcade up --service-arg adapter:--knob=NAME=VALUE`` is checked by the adapter's
+    parser before anything starts (an appending option, told apart from the launcher's)."""
+    from arcade.commands.up import options_given, service_parser
+
+    parser = service_parser("adapter")
+    assert options_given(parser, ["--knob=arcade_lambda=0.95"]) == {"--knob"}
+    assert options_given(parser, ["--max-gap-periods=3"]) == {"--max-gap-periods"}
+    with pytest.raises(ValueError, match="unknown knob 'lamda'"):
+        options_given(parser, ["--knob=lamda=0.9"])
