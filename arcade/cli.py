@@ -17,6 +17,7 @@ from arcade import __version__
 COMMANDS: tuple[str, ...] = (
     "demo",
     "up",
+    "replay",
     "train",
     "eval",
     "bench",

@@ -113,11 +113,13 @@ def run_demo(
     link_delay_s: float = 0.0,
     method: str = DEFAULT_STACK_METHOD,
     ros2: bool = False,
+    foxglove_port: int | None = None,
 ) -> dict[str, Any]:
     """Fly the demo through the stack; writes the run folder and returns the summary.
     ``link_delay_s``: the link delay the controller and the adapter compensate
     (``arcade up --link-delay``); ``method``: one of ``STACK_METHODS`` (``--method``);
-    ``ros2``: run the ROS 2 mirror too (``--ros2``)."""
+    ``ros2``: run the ROS 2 mirror too (``--ros2``); ``foxglove_port``: serve the flight
+    live to Foxglove (``--foxglove``)."""
     from tqdm import tqdm
 
     from arcade_control.scenario import Scenario
@@ -141,6 +143,7 @@ def run_demo(
         link_delay_s=link_delay_s,
         method=method,
         ros2=ros2,
+        foxglove_port=foxglove_port,
     )
     out = cfg.out  # absolute: where the services write, whatever the working directory
 

@@ -8,7 +8,9 @@ estimate).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -153,3 +155,51 @@ DETECTION_DEFAULTS = {
     "threshold": 0.95,
     "refractory_steps": 20,
 }
+
+
+#: Prefix of the changepoint detector's knobs on a command line (``detector_threshold``).
+DETECTOR_PREFIX = "detector_"
+
+
+def parse_knob(text: str) -> tuple[str, Any]:
+    """``NAME=VALUE`` of a learner knob (:data:`TUNING_METHOD`, a number) or a detector knob
+    (``detector_`` + a key of :data:`DETECTION_DEFAULTS`, of that default's type; ``outputs``
+    one of :data:`DETECTION_OUTPUTS`) as ``(name, value)``; ``ValueError`` (one line)
+    otherwise."""
+    name, sep, raw = text.partition("=")
+    name, raw = name.strip(), raw.strip()
+    if not sep or not name or not raw:
+        raise ValueError(f"{text!r} is not NAME=VALUE")
+    detector = name.removeprefix(DETECTOR_PREFIX)
+    if name.startswith(DETECTOR_PREFIX) and detector in DETECTION_DEFAULTS:
+        kind = type(DETECTION_DEFAULTS[detector])
+        if kind is str:
+            if raw not in DETECTION_OUTPUTS:
+                raise ValueError(f"{name}: one of {', '.join(DETECTION_OUTPUTS)}, not {raw!r}")
+            return name, raw
+    elif name in TUNING_METHOD:
+        kind = float
+    else:
+        known = [*TUNING_METHOD, *(DETECTOR_PREFIX + k for k in DETECTION_DEFAULTS)]
+        raise ValueError(f"unknown knob {name!r} (knobs: {', '.join(known)})")
+    try:
+        value = kind(raw)
+    except ValueError:
+        what = "an integer" if kind is int else "a number"
+        raise ValueError(f"{name}: {raw!r} is not {what}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{name}: {raw!r} is not finite")
+    return name, value
+
+
+def split_knobs(pairs: Sequence[tuple[str, Any]]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Parsed knobs (:func:`parse_knob`) as the learner's ``{name: value}`` and the
+    detector's (keys without the prefix, as ``detection_config`` takes them); a later
+    value of a name wins."""
+    learner, detector = {}, {}
+    for name, value in pairs:
+        if name.startswith(DETECTOR_PREFIX):
+            detector[name.removeprefix(DETECTOR_PREFIX)] = value
+        else:
+            learner[name] = value
+    return learner, detector

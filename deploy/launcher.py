@@ -433,7 +433,9 @@ class Stack:
         self._stopping.set()
         with interrupts_deferred() as hurry:
             try:
-                for name in getattr(self.config, "stop_order", STOP_ORDER):
+                order = getattr(self.config, "stop_order", STOP_ORDER)
+                # The processes that only listen (e.g. foxglove) first, then the data flow.
+                for name in (*(n for n in self.procs if n not in order), *order):
                     p = self.procs.get(name)
                     if p is None or p.poll() is not None:
                         continue

@@ -88,6 +88,14 @@ class Px4StackConfig(StackConfig):
             if self.on_ground:
                 own.append("--on-ground")
             return [*own, *self.extra.get("px4sim", [])]
+        if service in ("recorder", "foxglove"):  # they draw the bridge's geofence
+            b, fence = self.bridge_args, []
+            for i, a in enumerate(b):
+                if a.startswith("--geofence="):
+                    fence = [a]
+                elif a == "--geofence" and i + 1 < len(b):
+                    fence = [f"--geofence={b[i + 1]}"]
+            return [*super().args(service), *fence]
         if service != "bridge":
             return super().args(service)
         common = [*self.base_args(), "--connect", self.connect]

@@ -88,6 +88,9 @@ class StackConfig:
     #: sent on a user's behalf); empty: peers on loopback through ``hub``. Given, it must
     #: name every process and the launcher; ``hub`` is then unused.
     bus_configs: dict[str, Path] = field(default_factory=dict)
+    #: Serve the live flight to Foxglove (the ``foxglove`` service) on this loopback TCP
+    #: port (0: any free one); None: no such service.
+    foxglove_port: int | None = None
 
     def __post_init__(self) -> None:
         # Absolute paths: what a service is handed does not depend on where it runs.
@@ -147,10 +150,15 @@ class StackConfig:
 
     def with_optional(self, services: tuple[str, ...]) -> tuple[str, ...]:
         """``services`` (the vehicle link last) with the optional services this
-        configuration asks for (``ros2``) started just before the vehicle link: a vehicle
-        waits for every other process, so they see the whole flight."""
-        extra = ("ros2",) if self.ros2 else ()
+        configuration asks for (``ros2``, ``foxglove``: they only listen to the bus) started
+        just before the vehicle link: a vehicle waits for every other process, so they see
+        the whole flight."""
+        extra = (*(("ros2",) if self.ros2 else ()), *self.side_services())
         return (*services[:-1], *extra, services[-1])
+
+    def side_services(self) -> tuple[str, ...]:
+        """The optional live Foxglove server (``foxglove_port``)."""
+        return ("foxglove",) if self.foxglove_port is not None else ()
 
     def base_args(self) -> list[str]:
         """The arguments every process of the stack takes (vehicle, hub, run folder, rate);
@@ -192,8 +200,10 @@ class StackConfig:
         if tuple(self.origin) != (0.0, 0.0):
             plan.append(f"--origin={self.origin[0]:g},{self.origin[1]:g}")  # may start with "-"
         own: list[str] = []
-        if service in ("sim", "controller"):
+        if service in ("sim", "controller", "recorder", "foxglove"):  # the latter two draw it
             own += plan
+        if service == "foxglove":
+            own += ["--port", str(self.foxglove_port)]
         if service in ("adapter", "controller") and self.weights is not None:
             own += ["--weights", str(self.weights)]
         if service == "adapter":

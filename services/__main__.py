@@ -1,8 +1,8 @@
 """``python -m services <name> [options]``: run one service process.
 
 Services: ``sim``, ``estimator``, ``adapter``, ``controller``, ``recorder``, ``bridge``
-(MAVSDK link to a PX4 vehicle), ``px4sim`` (the simulator as a PX4 vehicle on MAVLink) and
-``ros2`` (the ROS 2 mirror).
+(MAVSDK link to a PX4 vehicle), ``px4sim`` (the simulator as a PX4 vehicle on MAVLink),
+``ros2`` (the ROS 2 mirror) and ``foxglove`` (the live flight for Foxglove).
 Each takes ``--help``. The launcher (``arcade up``) starts the ones a profile needs.
 """
 
@@ -20,6 +20,7 @@ SERVICES = {
     "px4sim": "services.px4_sim",
     "bridge": "services.px4_bridge",
     "ros2": "services.ros2_mirror",
+    "foxglove": "services.foxglove_live",
 }
 
 #: One line per service for ``--help`` (without importing them: JAX, MuJoCo, MAVSDK).
@@ -32,6 +33,7 @@ SUMMARIES = {
     "px4sim": "the simulator as a PX4 vehicle on MAVLink + motion capture on the bus",
     "bridge": "setpoints to PX4 offboard, mocap to PX4 vision, PX4 telemetry to the bus",
     "ros2": "state, setpoint, reference and changepoints for ROS 2 (rmw_zenoh keys, CDR)",
+    "foxglove": "the live flight over the Foxglove WebSocket protocol (loopback)",
 }
 
 USAGE = f"usage: python -m services {{{','.join(SERVICES)}}} [--help]"

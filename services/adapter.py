@@ -142,6 +142,7 @@ class Adapter(runtime.Service):
     """Adapter: ARCADE online adaptation (Algorithm 1) of the residual model."""
 
     name = "adapter"
+    announce_options = True  # arcade replay runs it again as it ran
 
     def setup(self, bus) -> None:
         # Imported here, like every JAX module of the services: after runtime.setup_jax
@@ -149,6 +150,7 @@ class Adapter(runtime.Service):
         import jax.numpy as jnp
 
         from arcade_control.detection import detection_config, detector_noise
+        from arcade_control.knobs import split_knobs
         from arcade_control.stack import (
             adapter_learner,
             adapter_method,
@@ -166,12 +168,15 @@ class Adapter(runtime.Service):
         a = self.args
         self.jnp = jnp
         self.dtype = jnp.result_type(float)
+        learner_knobs, detector_knobs = split_knobs(getattr(a, "knob", []))
         weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
         self.weights = weights
         self.learner = None
         self.meta: dict[str, Any] = {}
         if weights.is_file():
-            self.learner, self.method = adapter_learner(weights, self.dtype, a.method)
+            self.learner, self.method = adapter_learner(
+                weights, self.dtype, a.method, learner_knobs
+            )
             self.meta = {"weights_sha256": hashlib.sha256(weights.read_bytes()).hexdigest()}
         params = quadrotor_params(load_vehicle())
         self.model_dt = 0.05
@@ -202,6 +207,11 @@ class Adapter(runtime.Service):
             key,
         )
         if self.learner is not None:
+            if self.learner.restart is not None and detector_knobs:  # the flagship's own
+                cfg = detection_config(detector_knobs, dtype=self.dtype)
+                det0 = adaptation.init_detection(detector_prior(self.learner), cfg)
+                restart = self.learner.restart._replace(config=cfg, detection=det0)
+                self.learner = self.learner._replace(restart=restart)
             adapt_plain = load_or_trace(
                 "adapter_update",
                 lambda learner, *rest: _without_network(adapt(learner, *rest)),
@@ -217,7 +227,7 @@ class Adapter(runtime.Service):
             # A learner that restarts at a declared change (the flagship) runs the detector
             # inside its own step: its declarations are the events, with no second detector.
             if self.learner.restart is None:
-                self._detect_config = detection_config(dtype=self.dtype)
+                self._detect_config = detection_config(detector_knobs, dtype=self.dtype)
                 self._detection0 = adaptation.init_detection(
                     detector_prior(self.learner), self._detect_config
                 )
@@ -603,6 +613,16 @@ def _extra(p) -> None:
         type=float,
         default=5.0,
         help="lockstep: longest wait for the setpoint of the previous state [s]",
+    )
+    p.add_argument(
+        "--knob",
+        type=options.adapter_knob,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a knob of the learner (e.g. arcade_lambda=0.95, of the --method flown) or "
+        "of the changepoint detector (detector_threshold=0.9) instead of the stack's "
+        "(repeatable; `arcade replay --set` tries them on a recorded flight)",
     )
     p.add_argument(
         "--max-gap-periods",

@@ -109,6 +109,7 @@ class Controller(runtime.Service):
     """Controller: uncertainty-modulated MPC on the latest state and model."""
 
     name = "controller"
+    announce_options = True  # arcade replay runs it again as it ran
 
     def setup(self, bus) -> None:
         # Imported here, like every JAX module of the services: after runtime.setup_jax

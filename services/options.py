@@ -139,6 +139,16 @@ def add_method_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+def adapter_knob(text: str) -> tuple[str, Any]:
+    """``--knob NAME=VALUE`` (:func:`arcade_control.knobs.parse_knob`) for argparse."""
+    from arcade_control.knobs import parse_knob
+
+    try:
+        return parse_knob(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def add_link_delay_argument(p: argparse.ArgumentParser) -> None:
     """The link's delay, shared by the controller and the adapter (same value on both: the
     controller plans from the state the adapter learns from)."""

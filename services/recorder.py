@@ -5,6 +5,15 @@
 with a JSON Schema per record type, so Foxglove Studio opens it directly. ``log_time`` is
 the receive time (``time.time_ns()``), ``publish_time`` the message ``stamp`` in ns.
 
+The same file also holds the flight in Foxglove's well-known schemas (protobuf): per
+state the vehicle's ``foxglove.FrameTransform`` (world -> ``<vehicle>/body``),
+``foxglove.PoseInFrame`` and ``foxglove.SceneUpdate``, and every second the reference path
+and the geofence, on ``arcade/<vehicle>/foxglove/<name>``
+(:mod:`arcade_io.foxglove_scene`, the conversion the live ``foxglove`` service serves too),
+so that Foxglove's 3D panel shows the flight without set-up. The planned path is sampled
+from the plan options with JAX, once, in a thread (about 1 s of CPU at start, off the
+recording path; :func:`services.foxglove_live.scene_for`).
+
 ``<out>/flight_log.csv``: the design §5 flight log, one row per setpoint: the estimated
 state it answers and the setpoint (``t, px, ..., wz, u0..u3``; ``t`` relative to the first
 state), plus the setpoint's ``mode``. Rows are written while flying, in stamp order, once
@@ -61,7 +70,7 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
     props: dict[str, Any] = {"schema": {"type": "string"}, "version": {"type": "integer"}}
     for f in dataclasses.fields(cls):
         spec = f.metadata["spec"]
-        kind = type(spec).__name__.lstrip("_")
+        kind = type(spec).__name__.removesuffix("Spec")
         if kind == "Array":
             item: dict[str, Any] = {"type": "number"}
             for _ in spec.shape:
@@ -71,6 +80,8 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
             props[f.name] = {"type": "object"}
         else:
             props[f.name] = {"type": _JSON_TYPES.get(kind.lower(), "string")}
+        if getattr(spec, "optional", False):
+            props[f.name] = {"anyOf": [props[f.name], {"type": "null"}]}
     return {"title": cls.SCHEMA, "type": "object", "properties": props}
 
 
@@ -114,6 +125,7 @@ class Recorder(runtime.Service):
         self._newest = -float("inf")  # stamp of the newest pair
         self._written = -float("inf")  # stamp of the newest row written
         self._t0: float | None = None
+        self._foxglove_channels(bus)
         self.stats["messages"] = dict.fromkeys(MESSAGE_TYPES, 0)
         self.stats.update(rows=0, late_rows=0, unpaired_setpoints=0, unrecorded=0, unwritten_rows=0)
         self.stats["recording_errors"] = {}
@@ -122,20 +134,48 @@ class Recorder(runtime.Service):
         for topic in MESSAGE_TYPES:
             bus.subscribe(topic, lambda m, topic=topic: self.record(topic, m), check_order=False)
 
+    def _foxglove_channels(self, bus) -> None:
+        """The Foxglove channels (:mod:`arcade_io.foxglove_scene`) in the MCAP file."""
+        from arcade_io.foxglove_scene import CHANNELS
+        from services.foxglove_live import scene_for
+
+        self.scene = scene_for(self.args, self.log)
+        self._fg_channels: dict[str, int] = {}
+        for name, cls in CHANNELS.items():
+            schema = cls.get_schema()
+            schema_id = self.writer.register_schema(
+                name=schema.name, encoding=schema.encoding, data=schema.data
+            )
+            self._fg_channels[name] = self.writer.register_channel(
+                topic=self.scene.topic(name), message_encoding="protobuf", schema_id=schema_id
+            )
+        self.stats["foxglove_messages"] = 0
+
     def record(self, topic: str, m: Message) -> None:
-        data = json.dumps(m.to_wire()).encode()
+        wire = m.to_wire()
+        data = json.dumps(wire).encode()
         with self._lock:
             if self._closed:
                 return
             if self.writer is not None:
                 try:
+                    now_ns = time.time_ns()
+                    publish_ns = min(int(m.stamp * 1e9), 2**64 - 1)
                     self.writer.add_message(
                         self._channels[topic],
-                        log_time=time.time_ns(),
+                        log_time=now_ns,
                         data=data,
-                        publish_time=min(int(m.stamp * 1e9), 2**64 - 1),
+                        publish_time=publish_ns,
                         sequence=m.seq % 2**32,
                     )
+                    for name, msg in self.scene.messages(topic, wire):
+                        self.writer.add_message(
+                            self._fg_channels[name],
+                            log_time=now_ns,
+                            data=msg.encode(),
+                            publish_time=publish_ns,
+                        )
+                        self.stats["foxglove_messages"] += 1
                     now = self._clock()
                     if now - self._flushed >= MCAP_FLUSH_S:
                         self._flushed = now
@@ -230,5 +270,11 @@ class Recorder(runtime.Service):
                 self.flight_log.close()
 
 
+def _extra(p) -> None:
+    from services.foxglove_live import add_scene_arguments
+
+    add_scene_arguments(p)
+
+
 def main(argv: list[str] | None = None) -> int:
-    return runtime.main_for(Recorder, argv)
+    return runtime.main_for(Recorder, argv, _extra)

@@ -267,6 +267,11 @@ class Service:
     """
 
     name = "service"
+    #: Whether the service says its command line in a ``ready`` event once it serves (the
+    #: recording then tells ``arcade replay`` how it ran).
+    announce_options = False
+    #: The command line the service was started with (:func:`main_for`).
+    argv: list[str] | None = None
     #: Whether the service computes with JAX (its cache and precision set up at start);
     #: one that does not never imports it, and starts in a fraction of the time.
     uses_jax = True
@@ -438,8 +443,21 @@ class Service:
             time.perf_counter() - t0,
             self.stats["ready_cpu_s"],
         )
+        if self.announce_options and self.argv is not None:
+            self._announce(self.argv)
         self.ready()
         self.main()
+
+    def _announce(self, argv: list[str]) -> None:
+        """The ``ready`` event with the command line (an event's text holds 1024
+        characters: a longer one is said in the log only)."""
+        import shlex
+
+        line = shlex.join(argv)
+        if len(line) > 1024:
+            self.log.warning("command line of %d characters: not announced", len(line))
+            return
+        self.event("ready", line, service=self.name)
 
     _serving = False  # warm-up done, liveliness declared
     _stats_lost = False  # stats/<name>.json could not be written: the exit code says so
@@ -593,7 +611,9 @@ def main_for(
             log.warning("could not change the priority by %d: %s", args.nice, err)
     if getattr(cls, "uses_jax", True):  # Service says (True unless it computes nothing)
         setup_jax(args.x64 or x64)
-    code = cls(args).run()
+    service = cls(args)
+    service.argv = list(sys.argv[1:] if argv is None else argv)
+    code = service.run()
     # Shut down: a stop request arriving now is moot. Ignored, not left to the interpreter,
     # which resets a Python-handled SIGINT/SIGTERM to the default action as it exits, so
     # that the launcher's SIGINT racing a vehicle process that ends its flight by itself

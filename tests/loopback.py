@@ -9,35 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 from services.messages import Message, decode
-
-
-class Payload:
-    def __init__(self, data: bytes):
-        self._data = data
-
-    def to_bytes(self) -> bytes:
-        return self._data
-
-
-class Sample:
-    def __init__(self, key: str, data: bytes):
-        self.key_expr = key
-        self.payload = Payload(data)
-        self.attachment = None
-
-
-class Declared:
-    """A declared publisher, subscriber or token; ``on_put`` receives what is put."""
-
-    def __init__(self, on_put: Callable[[bytes], None] | None = None):
-        self._on_put = on_put
-
-    def put(self, payload: bytes, attachment: Any = None) -> None:
-        if self._on_put is not None:
-            self._on_put(bytes(payload))
-
-    def undeclare(self) -> None:
-        pass
+from services.offline_bus import Declared, Sample
 
 
 class Liveliness:

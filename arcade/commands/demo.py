@@ -68,6 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from arcade.commands.up import add_ros2_argument
 
     add_ros2_argument(p)
+    from arcade.commands.up import add_foxglove_argument
+
+    add_foxglove_argument(p)
     p.add_argument(
         "--cartpole",
         action="store_true",
@@ -142,6 +145,8 @@ def payload_problem(payload_g: float | None) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.foxglove is not None and (args.compare or args.cartpole):
+        return _error("--foxglove: for the stack demo, not with --compare or --cartpole")
     if args.cartpole:
         return run_cartpole(args)
     if args.compare and args.method is not None:
@@ -169,6 +174,10 @@ def run(args: argparse.Namespace) -> int:
         "released before the second lap (lockstep)",
         flush=True,
     )
+    if args.foxglove is not None:
+        from arcade.commands.up import foxglove_line
+
+        print(foxglove_line(args.foxglove), flush=True)
     from deploy.launcher import StackError
 
     if args.compare:
@@ -183,6 +192,7 @@ def run(args: argparse.Namespace) -> int:
             weights=args.weights,
             method=args.method or DEFAULT_STACK_METHOD,
             ros2=args.ros2,
+            foxglove_port=args.foxglove,
         )
     except (StackError, ValueError, OSError) as err:
         return _error(f"{err} (run folder: {out})", 1)

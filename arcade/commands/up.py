@@ -35,7 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "together and a --weights file that does not load are refused (exit code 2)\n"
         "before anything starts. A service's own options (`python -m services NAME\n"
         "--help`) go through --service-arg, e.g. --service-arg estimator:--mocap-noise=1e-4\n"
-        "(StackConfig.extra from Python).\n"
+        "(StackConfig.extra from Python). With --foxglove, Foxglove shows the flight live\n"
+        "(open a Foxglove WebSocket connection to ws://127.0.0.1:8765).\n"
         "The clock is real time unless --lockstep is given. Without --out the run folder\n"
         "is made under $ARCADE_RUNS (default runs/)."
     )
@@ -114,9 +115,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="one Zenoh configuration per process instead of peers on the hub: "
         "DIR/<name>.json5 for launcher, recorder, estimator, adapter, controller and sim; "
         "with --profile px4 bridge (and px4sim with --simulate) instead of sim, and "
-        "operator; ros2 with --ros2 (e.g. clients of a router with their own user and "
-        "password); checked "
-        "before anything starts",
+        "operator; ros2 with --ros2, foxglove with --foxglove (e.g. clients of a router "
+        "with their own user and password); checked before anything starts",
     )
     p.add_argument(
         "--weights",
@@ -162,6 +162,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "which needs root or an rtprio limit; without, they warn)",
     )
     add_ros2_argument(p)
+    add_foxglove_argument(p)
     from deploy import px4_profile
 
     px4_profile.add_arguments(p)
@@ -200,6 +201,34 @@ def ros2_problem(args: argparse.Namespace) -> str | None:
     except ValueError as err:
         return f"--ros2: {err}: give one with --service-arg ros2:--namespace=/NS"
     return None
+
+
+def foxglove_line(port: int) -> str:
+    """Where Foxglove connects to the live flight (``--foxglove PORT``)."""
+    where = f"ws://127.0.0.1:{port}" if port else "ws://127.0.0.1 on a free port (its log)"
+    return f"Foxglove: open a Foxglove WebSocket connection to {where}"
+
+
+def add_foxglove_argument(p: argparse.ArgumentParser) -> None:
+    """``--foxglove [PORT]`` (``arcade up`` and ``arcade demo``)."""
+
+    def port(text: str) -> int:
+        if not text.isdigit() or int(text) > 65535:
+            raise argparse.ArgumentTypeError(f"not a TCP port (0-65535): {text!r}")
+        return int(text)
+
+    p.add_argument(
+        "--foxglove",
+        type=port,
+        nargs="?",
+        const=8765,
+        default=None,
+        metavar="PORT",
+        help="serve the live flight to Foxglove over its WebSocket protocol on "
+        "ws://127.0.0.1:PORT (loopback only; PORT default 8765, 0: any free one): the "
+        "vehicle's transform, pose and model, the reference path and the geofence, the "
+        "channels bus.mcap holds too (default: off)",
+    )
 
 
 #: The px4 profile's options and the value each has when not given.
@@ -380,11 +409,13 @@ def service_parser(name: str) -> argparse.ArgumentParser:
 def options_given(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
     """The options (long spelling, e.g. ``--max-model-age``) that ``argv`` sets, however
     abbreviated; ``ValueError`` if ``parser`` refuses ``argv``."""
-    unset = object()
     actions = [a for a in parser._actions if a.option_strings and a.dest != "help"]
-    ns = argparse.Namespace(**{a.dest: unset for a in actions})
+    # A mark per option that parsing replaces when the option is given (an appending
+    # option copies its list before it appends: an empty list of its own).
+    marks = {a.dest: [] if isinstance(a, argparse._AppendAction) else object() for a in actions}
+    ns = argparse.Namespace(**marks)
     parser.parse_args(argv, namespace=ns)
-    return {a.option_strings[-1] for a in actions if getattr(ns, a.dest) is not unset}
+    return {a.option_strings[-1] for a in actions if getattr(ns, a.dest) is not marks[a.dest]}
 
 
 #: Options the launcher sets that ``--service-arg`` may still set for one service (the
@@ -475,6 +506,7 @@ def stack_config(args: argparse.Namespace, out: Path, configs: dict[str, Path], 
         bus_configs=configs,
         extra=dict(extra),
         ros2=args.ros2,
+        foxglove_port=args.foxglove,
     )
 
 
@@ -498,6 +530,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             processes = SERVICES
         processes = (*processes, *(("ros2",) if args.ros2 else ()))
+        if args.foxglove is not None:
+            processes = (*processes, "foxglove")
         found = bus_configs(args.bus_configs, processes)
         if isinstance(found, str):
             say(f"error: {found}")
@@ -529,6 +563,8 @@ def run(args: argparse.Namespace) -> int:
     from deploy.launcher import StackError, last_output, run_flight, sigterm_interrupts
 
     cfg = stack_config(args, args.out or new_run_dir("up"), configs, grouped)
+    if args.foxglove is not None:
+        say(foxglove_line(args.foxglove))
 
     last = [-1.0]
 

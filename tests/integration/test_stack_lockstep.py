@@ -30,6 +30,7 @@ import types
 from pathlib import Path
 
 import numpy as np
+from foxglove_replay_checks import check_foxglove, check_replay
 
 from arcade.demo_stack import read_truth, run_demo
 from arcade_control.scenario import Scenario
@@ -162,8 +163,15 @@ def test_lockstep_flight_compensating_a_link_delay_matches_in_process_loop(tmp_p
 
 
 def test_lockstep_flight_with_estimator(tmp_path):
-    summary = run_demo(tmp_path, seed=SEED, x64=True, progress=False, method="ours")
+    """Also: the live Foxglove service flies along (``--foxglove``), the recording's
+    Foxglove channels decode to the states, and ``arcade replay`` reproduces the recorded
+    adapter and controller (``tests/foxglove_replay_checks.py``)."""
+    summary = run_demo(
+        tmp_path, seed=SEED, x64=True, progress=False, method="ours", foxglove_port=0
+    )
     check_clean_run(tmp_path, summary)
+    check_foxglove(tmp_path)
+    check_replay(tmp_path, "ours_beta=0.2")
     truth = read_truth(tmp_path / "truth.csv")
     est = np.genfromtxt(
         tmp_path / "flight_log.csv", delimiter=",", names=True, dtype=None, encoding=None
