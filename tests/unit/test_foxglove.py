@@ -180,7 +180,7 @@ def test_the_stack_starts_the_live_service_with_the_plan_and_the_bridges_geofenc
 
     assert "foxglove" not in StackConfig(out=tmp_path).services()
     cfg = StackConfig(out=tmp_path, foxglove_port=0, speed=1.5)
-    assert cfg.services()[-1] == "foxglove"
+    assert cfg.services()[-2:] == ("foxglove", "sim")  # before the vehicle: it sees it all
     args = cfg.args("foxglove")
     assert args[args.index("--port") + 1] == "0" and args[args.index("--speed") + 1] == "1.5"
     assert "--speed" in cfg.args("recorder")
