@@ -1,14 +1,24 @@
 """An in-process stand-in for the part of ``zenoh.Session`` that :class:`services.bus.Bus`
 uses, so that a service can be wired exactly as ``Service.run`` wires it, without a network:
-subscriptions are kept for :meth:`LoopbackSession.deliver`, puts are captured per key."""
+subscriptions are kept for :meth:`LoopbackSession.deliver`, puts are captured per key.
+
+What it delivers comes from one session, :data:`PEER`, which holds the liveliness token of
+every service a topic is pinned to (:data:`PINNED`): the stand-in speaks for all of them."""
 
 from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Callable
+from types import SimpleNamespace
 from typing import Any
 
+import zenoh
+
 from services.messages import Message, decode
+
+#: The session id of whatever the stand-in delivers, and the services it speaks for.
+PEER = "5e55"
+PINNED = ("controller", "adapter", "sim", "px4sim")
 
 
 class Payload:
@@ -20,10 +30,12 @@ class Payload:
 
 
 class Sample:
-    def __init__(self, key: str, data: bytes):
+    def __init__(self, key: str, data: bytes, session: str = PEER):
         self.key_expr = key
         self.payload = Payload(data)
         self.attachment = None
+        self.kind = zenoh.SampleKind.PUT
+        self.source_info = SimpleNamespace(source_id=SimpleNamespace(zid=session))
 
 
 class Declared:
@@ -32,7 +44,7 @@ class Declared:
     def __init__(self, on_put: Callable[[bytes], None] | None = None):
         self._on_put = on_put
 
-    def put(self, payload: bytes, attachment: Any = None) -> None:
+    def put(self, payload: bytes, attachment: Any = None, **_: Any) -> None:
         if self._on_put is not None:
             self._on_put(bytes(payload))
 
@@ -41,12 +53,16 @@ class Declared:
 
 
 class Liveliness:
-    """Tokens are recorded; liveliness subscribers hear nothing."""
+    """Tokens are recorded; a liveliness subscriber hears the tokens of :data:`PEER` for
+    the services of :data:`PINNED`, nothing else."""
 
     def __init__(self) -> None:
         self.tokens: list[str] = []
 
     def declare_subscriber(self, key: str, callback: Any, **_: Any) -> Declared:
+        prefix = key.removesuffix("*").removesuffix("*")  # arcade/<vehicle>/alive/
+        for service in PINNED:
+            callback(Sample(f"{prefix}{service}/{PEER}", b""))
         return Declared()
 
     def declare_token(self, key: str) -> Declared:
