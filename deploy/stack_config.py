@@ -98,8 +98,9 @@ class StackConfig:
     #: The peers on ``hub`` authenticate with a password made for this run
     #: (:meth:`make_credentials`); not with ``bus_configs``.
     credentials: bool = False
-    #: The run's peer configuration with the credentials, once made (else None).
-    credentials_file: Path | None = field(default=None, init=False)
+    #: The run's peer configuration with the credentials (a Path), once made; not a field:
+    #: copies of the options (``dataclasses.replace``, the px4 profile's) start without it.
+    credentials_file = None
 
     def __post_init__(self) -> None:
         # Absolute paths: what a service is handed does not depend on where it runs.
