@@ -10,7 +10,9 @@ report (latencies, counters) go to ``<out>/stats/<name>.json`` at exit.
 The bus session: by default a peer on loopback that meets the others through ``--hub``
 (:func:`services.bus.peer_config`); with ``--bus-config FILE`` the Zenoh configuration in
 ``FILE`` instead, e.g. a client of a router with its user/password or TLS settings
-(``deploy/zenoh/router-acl.json5``).
+(``deploy/zenoh/router-acl.json5``). A message a pinned subscription refuses (another
+session than its writer's, :class:`services.reception.SourcePins`) is counted, and the
+service raises one ``fault`` event per refused session and topic.
 """
 
 from __future__ import annotations
