@@ -131,6 +131,7 @@ def run_demo(
         out=out,
         lockstep=lockstep,
         hub=hub or free_hub(),
+        credentials=hub is None,  # a bus of its own: only this run's processes join
         rate=rate,
         duration=duration,
         payload_g=payload_g,

@@ -25,6 +25,10 @@ private loopback Zenoh hub) on the wall clock at 50 Hz and reports:
 - ``realtime``: per service of that path, the scheduling policy it got and the CPU wake-up
   latency it held (``services.runtime``): the conditions of the numbers above.
 
+``ready_s``: the stack's start-up, from the first process started to every liveliness
+token seen. The bus is ``arcade up``'s: a hub of its own with a password made for the run
+(``credentials=False``: open peers).
+
 ``quick`` flies 20 s instead of 120 s. The flight plan is the demo's (175 g payload,
 figure-eight at 2.5 m/s, released before the second lap; beyond two laps the figure-eight
 continues).
@@ -83,6 +87,7 @@ def run(
     duration: float | None = None,
     progress: Callable[[str], None] | None = None,
     method: str = DEFAULT_STACK_METHOD,
+    credentials: bool = True,
 ) -> dict[str, Any]:
     """Fly the stack in real time with ``method`` (one of ``STACK_METHODS``) and measure (see
     the module docstring); ``progress`` gets the stack's start-up lines and the simulated
@@ -102,6 +107,7 @@ def run(
             rate=rate,
             duration=duration,
             method=method,
+            credentials=credentials,
         )
         with SlowdownProbe(folder / "host") as host:
             if progress is None:
@@ -176,6 +182,7 @@ def run(
             "probe_realtime_priority": host.summary["fifo"],
         },
         "method": method,
+        "ready_s": result["ready_s"],
         "control_steps": steps,
         "duration_s": duration,
         "crashed": bool(sim["crashed"]),

@@ -40,7 +40,10 @@ Bus: by default every process (and the launcher's own session) is a peer on loop
 meets the others through ``hub``. With ``StackConfig.bus_configs`` each one opens the Zenoh
 configuration file given for it instead (``--bus-config``), e.g. a client of an ACL router
 with its own user and password (``deploy/zenoh/router-acl.json5``, which expects the
-launcher as user ``launcher``); the router must be up before the stack starts.
+launcher as user ``launcher``); the router must be up before the stack starts. With
+``StackConfig.credentials`` (``arcade up`` and ``arcade demo`` on their own hub) the launcher
+makes a password for the run, and every process, its own sessions included, opens the peer
+configuration that carries it (``<out>/bus/peer.json5``, owner-only, removed at stop).
 
 The options are :class:`StackConfig` (:mod:`deploy.stack_config`); stopping a process, the
 signals around a stop and a process's last output are :mod:`deploy.processes`. This module
@@ -145,13 +148,15 @@ class Stack:
 
         from services.bus import Bus, zenoh_reason
 
-        bus_config = self.config.bus_config("launcher")  # ValueError naming a bad file
         (self.out / "logs").mkdir(parents=True, exist_ok=True)
+        self.config.make_credentials()  # with credentials: this run's password, every process
+        bus_config = self.config.bus_config("launcher")  # ValueError naming a bad file
         if self.config.checkpoint is None:  # the run's own checkpoint: for restarts only
             self.config.checkpoint_path().unlink(missing_ok=True)
         try:
             self._bus = Bus(self.config.vehicle, "launcher", bus_config).open()
         except zenoh.ZError as err:
+            self.config.remove_credentials()
             path = self.config.bus_configs.get("launcher")
             where = f"bus config {path}" if path is not None else "peer session"
             raise StackError(
@@ -447,6 +452,7 @@ class Stack:
                 if self._bus is not None:
                     bus, self._bus = self._bus, None
                     bus.close()
+                self.config.remove_credentials()
         return {name: p.returncode for name, p in self.procs.items()}
 
     def __enter__(self) -> Stack:

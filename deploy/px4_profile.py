@@ -64,6 +64,10 @@ class Px4StackConfig(StackConfig):
         """The process whose end is the end of the flight (never restarted)."""
         return "px4sim" if self.simulate else "bridge"
 
+    def mocap_source(self) -> str | None:
+        """The simulated PX4 publishes mocap; a lab's mocap publisher is not pinned."""
+        return "px4sim" if self.simulate else None
+
     def services(self) -> tuple[str, ...]:
         if self.simulate:
             return self.with_optional((*PX4_SERVICES[:-1], "px4sim", "bridge"))
@@ -100,7 +104,7 @@ class Px4StackConfig(StackConfig):
             return super().args(service)
         common = [*self.base_args(), "--connect", self.connect]
         if self.simulate:  # the simulator clocks the estimator and the mission itself
-            common += ["--imu", "off", "--no-start-mission"]
+            common += ["--imu", "off", "--no-start-mission", "--mocap-source", "px4sim"]
         if not self.lockstep and self.realtime_priority:
             common += [
                 "--realtime-priority",

@@ -6,11 +6,20 @@ process is scheduled on the realtime clock, and the command line each process ge
 checkpoint and the bus configuration files absolute (relative to the caller's working
 directory) when it is built, and checks that the bus configuration files name every process
 (:meth:`StackConfig.bus_config_problem`). The launcher (:mod:`deploy.launcher`) runs it.
+
+Credentials (``credentials=True``, what ``arcade up`` and ``arcade demo`` use on the peers'
+loopback bus): :meth:`StackConfig.make_credentials` writes a new random password for the
+run and one peer configuration with it, readable by the owner only, and every process the
+launcher starts (and the launcher's own sessions) opens that file (``--bus-config``), so a
+process without it cannot join the bus.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
+import secrets
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -91,6 +100,12 @@ class StackConfig:
     #: Serve the live flight to Foxglove (the ``foxglove`` service) on this loopback TCP
     #: port (0: any free one); None: no such service.
     foxglove_port: int | None = None
+    #: The peers on ``hub`` authenticate with a password made for this run
+    #: (:meth:`make_credentials`); not with ``bus_configs``.
+    credentials: bool = False
+    #: The run's peer configuration with the credentials (a Path), once made; not a field:
+    #: copies of the options (``dataclasses.replace``, the px4 profile's) start without it.
+    credentials_file = None
 
     def __post_init__(self) -> None:
         # Absolute paths: what a service is handed does not depend on where it runs.
@@ -121,6 +136,8 @@ class StackConfig:
         naming the file if it cannot be read."""
         from services.bus import peer_config, read_config  # Zenoh: loaded on first use
 
+        if self.credentials_file is not None:
+            return read_config(self.credentials_file)
         if not self.bus_configs:
             return peer_config(self.hub)
         if name not in self.bus_configs:
@@ -128,9 +145,41 @@ class StackConfig:
         return read_config(self.bus_configs[name])
 
     def bus_args(self, name: str) -> list[str]:
-        """``--bus-config FILE`` of process ``name`` (none without ``bus_configs``: the
-        peers' ``--hub`` is among :meth:`base_args`)."""
+        """``--bus-config FILE`` of process ``name``: its file in ``bus_configs``, or the
+        run's credentials; none for open peers (their ``--hub`` is among :meth:`base_args`)."""
+        if self.credentials_file is not None:
+            return ["--bus-config", str(self.credentials_file)]
         return ["--bus-config", str(self.bus_configs[name])] if self.bus_configs else []
+
+    def make_credentials(self) -> Path | None:
+        """With ``credentials`` (and no ``bus_configs``): a new random password for this run
+        in ``<out>/bus/users.txt`` and the peer configuration on ``hub`` that uses it in
+        ``<out>/bus/peer.json5`` (folder and files readable by the owner only), which every
+        process then opens; returns that file (None: open peers)."""
+        if not self.credentials or self.bus_configs:
+            return None
+        from services.bus import peer_tree
+
+        folder = Path(self.out) / "bus"
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        folder.chmod(0o700)  # an existing folder too
+        users, peer = folder / "users.txt", folder / "peer.json5"
+        password = secrets.token_urlsafe(32)
+        _write_private(users, f"arcade:{password}\n")
+        tree = peer_tree(self.hub, credentials=("arcade", password, users))
+        _write_private(peer, json.dumps(tree, indent=1) + "\n")
+        self.credentials_file = peer
+        return peer
+
+    def remove_credentials(self) -> None:
+        """Delete the files of :meth:`make_credentials` (the password dies with the run)."""
+        if self.credentials_file is not None:
+            folder = self.credentials_file.parent
+            for name in ("peer.json5", "users.txt"):
+                (folder / name).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # kept if anything else is in it
+                folder.rmdir()
+            self.credentials_file = None
 
     def checkpoint_path(self) -> Path:
         """The adapter's posterior checkpoint (restored by a restarted adapter). Without
@@ -141,6 +190,10 @@ class StackConfig:
             if self.checkpoint is not None
             else (Path(self.out) / "adapter_checkpoint.npz")
         )
+
+    def mocap_source(self) -> str | None:
+        """The service whose session the estimator takes mocap from (None: any)."""
+        return "sim"
 
     def services(self) -> tuple[str, ...]:
         """The processes of this configuration, in start order."""
@@ -164,7 +217,8 @@ class StackConfig:
         """The arguments every process of the stack takes (vehicle, hub, run folder, rate);
         with ``bus_configs`` no hub: each process gets its own :meth:`bus_args` when it is
         spawned."""
-        hub = [] if self.bus_configs else ["--hub", self.hub]
+        own_file = self.bus_configs or self.credentials_file is not None
+        hub = [] if own_file else ["--hub", self.hub]
         return [
             "--vehicle",
             self.vehicle,
@@ -208,6 +262,8 @@ class StackConfig:
             own += ["--weights", str(self.weights)]
         if service == "adapter":
             own += ["--checkpoint", str(self.checkpoint_path())]
+        if service == "estimator" and self.mocap_source() is not None:
+            own += ["--mocap-source", self.mocap_source()]
         if service in ("adapter", "controller"):  # one value on both, never one alone
             own += ["--link-delay", f"{self.link_delay_s:g}", "--method", self.method]
         if service == "sim":
@@ -226,6 +282,14 @@ class StackConfig:
         if not self.lockstep and service in NICE:
             own += ["--nice", str(NICE[service])]
         return [*common, *own, *self.extra.get(service, [])]
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write ``path`` anew, readable and writable by the owner only."""
+    path.unlink(missing_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
 
 
 def _absolute(path: str | os.PathLike[str]) -> Path:

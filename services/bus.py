@@ -16,7 +16,14 @@ listens on an ephemeral loopback port and connects to the hub. Whichever process
 first owns the hub; gossip then tells every peer about the others' ephemeral endpoints and
 they link directly (peers do not route for each other). If the hub owner exits, the next
 peer to start binds the hub port and the others reconnect to it. Several independent stacks
-on one machine need different hub ports.
+on one machine need different hub ports. With ``credentials`` every link authenticates
+with one user and password (Zenoh ``transport/auth/usrpwd``; ``arcade up`` makes them per
+run): a process without them cannot join.
+
+Source pinning: each publisher puts its Zenoh entity id on every sample (source info), and
+each session declares ``arcade/<vehicle>/alive/<service>/<session id>`` when it opens. A
+subscription with ``source=`` accepts only samples of the session that token names
+(:class:`~services.reception.SourcePins`); the rest are rejected as ``foreign_publisher``.
 
 Bus latency: every ``put`` carries its ``time.monotonic()`` as an 8-byte Zenoh
 attachment (outside the message, so the schemas stay as they are); each subscription
@@ -34,7 +41,6 @@ protocol holds through a router: it forwards what one link declared in order.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import re
@@ -42,22 +48,21 @@ import struct
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from importlib import resources
-from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Generic, TypeVar
 
 import msgpack
 import zenoh
 
+from services.bus_config import *  # noqa: F403  # the configurations, re-exported
+from services.bus_config import __all__ as _CONFIGS
+from services.bus_config import peer_config
 from services.messages import TOPICS, Message, MessageError, Reason, message_type
-from services.reception import Receiver, RejectCounter, safe_handler
+from services.reception import Receiver, RejectCounter, SourcePins, safe_handler
 
 __all__ = [
-    "DEFAULT_HUB",
-    "LOOPBACK_ANY",
     "QOS",
     "Bus",
     "Publisher",
@@ -65,24 +70,12 @@ __all__ = [
     "Subscription",
     "alive_key",
     "check_name",
-    "client_config",
-    "config_path",
     "key_expr",
-    "load_config",
-    "peer_config",
-    "read_config",
-    "router_config",
-    "zenoh_reason",
+    *_CONFIGS,
 ]
 
 log = logging.getLogger("arcade.bus")
 
-#: Well-known loopback endpoint of the default peer mesh.
-DEFAULT_HUB = "tcp/127.0.0.1:7450"
-#: An ephemeral loopback endpoint (the OS picks the port).
-LOOPBACK_ANY = "tcp/127.0.0.1:0"
-#: Connection retry of peers: fast on loopback, capped at 1 s.
-_RETRY = {"period_init_ms": 50, "period_max_ms": 1000, "period_increase_factor": 2}
 _NAME = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _ENCODING = "application/msgpack"
 
@@ -109,8 +102,9 @@ def key_expr(vehicle: str, topic: str) -> str:
 
 
 def alive_key(vehicle: str, service: str) -> str:
-    """Liveliness token ``arcade/<vehicle>/alive/<service>`` (``service`` may be ``*``)."""
-    if service != "*":
+    """Liveliness token ``arcade/<vehicle>/alive/<service>`` (``service`` may be ``*`` or
+    ``**``)."""
+    if service not in ("*", "**"):
         check_name("service", service)
     return f"arcade/{check_name('vehicle', vehicle)}/alive/{service}"
 
@@ -152,147 +146,6 @@ QOS: Mapping[str, QoS] = MappingProxyType(
 )
 
 
-# -------------------------------------------------------------------------- configs
-
-
-def _config(tree: Mapping[str, Any]) -> zenoh.Config:
-    return zenoh.Config.from_json5(json.dumps(tree))
-
-
-def peer_config(
-    hub: str | None = DEFAULT_HUB,
-    *,
-    listen: Sequence[str] = (LOOPBACK_ANY,),
-    connect: Sequence[str] = (),
-    gossip: bool = True,
-) -> zenoh.Config:
-    """Peer mode without multicast scouting (the embedded default, see module docstring).
-
-    Args:
-        hub: endpoint every peer tries to listen on and connects to; ``None`` for none.
-        listen: further listen endpoints (an ephemeral loopback port by default, which
-            gossip advertises so that peers link directly).
-        connect: further endpoints to connect to (retried until they answer).
-        gossip: learn other peers' endpoints from the peers already connected.
-    """
-    hub_eps = [hub] if hub else []
-    return _config(
-        {
-            "mode": "peer",
-            # The hub port is taken by whichever peer came first: not an error.
-            "listen": {"endpoints": hub_eps + list(listen), "exit_on_failure": False},
-            "connect": {
-                "endpoints": hub_eps + list(connect),
-                "exit_on_failure": False,
-                "retry": _RETRY,
-            },
-            # No multicast, hence nothing to wait for at open.
-            "scouting": {
-                "delay": 0,
-                "multicast": {"enabled": False},
-                "gossip": {"enabled": gossip},
-            },
-        }
-    )
-
-
-def router_config(
-    listen: Sequence[str] = ("tcp/0.0.0.0:7447",), *, connect: Sequence[str] = ()
-) -> zenoh.Config:
-    """A router (a Python session in ``mode: "router"``) listening on ``listen``.
-
-    For access control, TLS or user/password, start from the files in ``deploy/zenoh/``
-    (:func:`load_config`).
-    """
-    return _config(
-        {
-            "mode": "router",
-            "listen": {"endpoints": list(listen)},
-            "connect": {"endpoints": list(connect)},
-            "scouting": {"multicast": {"enabled": False}},
-        }
-    )
-
-
-def client_config(
-    connect: Sequence[str],
-    *,
-    user: str | None = None,
-    password: str | None = None,
-    root_ca: str | Path | None = None,
-    cert: str | Path | None = None,
-    key: str | Path | None = None,
-) -> zenoh.Config:
-    """Client of a router at ``connect`` (opening fails if none answers).
-
-    ``user``/``password`` authenticate (the router's ACL subjects name users); ``root_ca``
-    verifies a ``tls/`` router; ``cert``/``key`` add a client certificate for mTLS.
-    """
-    tree: dict[str, Any] = {
-        "mode": "client",
-        "connect": {"endpoints": list(connect)},
-        "scouting": {"multicast": {"enabled": False}},
-    }
-    transport: dict[str, Any] = {}
-    if user is not None or password is not None:
-        transport["auth"] = {"usrpwd": {"user": user, "password": password}}
-    files = (
-        ("root_ca_certificate", root_ca),
-        ("connect_certificate", cert),
-        ("connect_private_key", key),
-    )
-    tls: dict[str, Any] = {k: str(v) for k, v in files if v is not None}
-    if cert is not None or key is not None:
-        tls["enable_mtls"] = True
-    if tls:
-        transport["link"] = {"tls": tls}
-    if transport:
-        tree["transport"] = transport
-    return _config(tree)
-
-
-def config_path(name: str = "peer-loopback.json5") -> Path:
-    """Path of a configuration shipped in ``deploy/zenoh/``."""
-    path = Path(str(resources.files("deploy") / "zenoh" / name))
-    if not path.is_file():
-        raise FileNotFoundError(path)
-    return path
-
-
-def load_config(path: str | Path, overrides: Mapping[str, Any] | None = None) -> zenoh.Config:
-    """Load a JSON5 configuration and apply ``overrides`` (``{"listen/endpoints": [...]}``)."""
-    config = zenoh.Config.from_file(str(path))
-    for key, value in (overrides or {}).items():
-        config.insert_json5(key, json.dumps(value))
-    return config
-
-
-#: The source location Zenoh appends to its error messages.
-_ZENOH_WHERE = re.compile(r"\s+at \S+\.rs:\d+\.?\s*$")
-
-
-def zenoh_reason(err: BaseException) -> str:
-    """A Zenoh error on one line, without the library's source location."""
-    text = _ZENOH_WHERE.sub("", str(err)).strip()
-    if "\n" in text:  # a JSON5 syntax error: " --> line:col", the source, "= expected ..."
-        where = re.search(r"-->\s*(\d+:\d+)", text)
-        last = text.splitlines()[-1].strip().lstrip("= ")
-        text = f"line:column {where.group(1)}: {last}" if where else " ".join(text.split())
-    return text
-
-
-def read_config(path: str | Path) -> zenoh.Config:
-    """The session configuration in the file ``path`` (JSON5, JSON or YAML).
-
-    Raises ``ValueError`` with one line naming the file when it is missing, unreadable or
-    not a valid Zenoh configuration.
-    """
-    try:
-        return load_config(path)
-    except zenoh.ZError as err:
-        raise ValueError(f"bus config {path}: {zenoh_reason(err)}") from None
-
-
 # ------------------------------------------------------------------------------ bus
 
 
@@ -316,6 +169,9 @@ class Publisher(Generic[M]):
         )
         self._seq = 0
         self._lock = threading.Lock()
+        #: This publisher's Zenoh entity id, put on every sample (an in-process stand-in
+        #: session may have none).
+        self._id = getattr(self._pub, "id", None)
 
     @property
     def seq(self) -> int:
@@ -334,7 +190,8 @@ class Publisher(Generic[M]):
             if len(payload) > self.type.MAX_BYTES:
                 # Not sent: the number stays free, so receivers count no lost message.
                 raise MessageError(Reason.OVERSIZE, f"{len(payload)} > {self.type.MAX_BYTES}")
-            self._pub.put(payload, attachment=_PUT_TIME.pack(time.monotonic()))
+            source = zenoh.SourceInfo(self._id, seq) if self._id is not None else None
+            self._pub.put(payload, attachment=_PUT_TIME.pack(time.monotonic()), source_info=source)
             self._seq = seq
             return seq
 
@@ -346,6 +203,12 @@ class Publisher(Generic[M]):
 _PUT_TIME = struct.Struct("<d")
 #: Transit times a subscription keeps (the newest ones).
 TRANSIT_SAMPLES = 100_000
+
+
+def source_session(sample: zenoh.Sample) -> str | None:
+    """The Zenoh session id of the publisher of ``sample`` (its source info), or None."""
+    info = getattr(sample, "source_info", None)
+    return None if info is None else str(info.source_id.zid)
 
 
 def transit_time(sample: zenoh.Sample) -> float | None:
@@ -418,6 +281,8 @@ class Bus:
         self._alive_listeners: list[Callable[[str, bool], None]] = []
         self._cond = threading.Condition()  # guards the liveliness view
         self._pub_lock = threading.Lock()
+        #: The session each service speaks from (``source=`` subscriptions check it).
+        self.pins = SourcePins()
 
     # -- lifecycle
     def open(self, session: Any = None) -> Bus:
@@ -434,8 +299,12 @@ class Bus:
             self._session = session
             self._src = f"{self.name}/{session.zid()}"
             self._alive_sub = session.liveliness().declare_subscriber(
-                alive_key(self.vehicle, "*"), self._on_alive, history=True
+                alive_key(self.vehicle, "**"), self._on_alive, history=True
             )
+            # Which session this service speaks from: declared at once, so that a
+            # (restarted) service is pinned long before its first message.
+            owner = f"{alive_key(self.vehicle, self.name)}/{session.zid()}"
+            self._owner_token = session.liveliness().declare_token(owner)
         return self
 
     def close(self) -> None:
@@ -446,6 +315,7 @@ class Bus:
         for token in self._tokens.values():
             token.undeclare()
         self._tokens.clear()
+        self._owner_token.undeclare()
         with self._cond:
             self._alive.clear()
         self._publishers.clear()
@@ -495,12 +365,14 @@ class Bus:
         check_order: bool = True,
         max_age: float | None = None,
         clock: Callable[[], float] | None = None,
+        source: str | None = None,
     ) -> Subscription:
         """Call ``callback(record)`` for every valid, in-order message on ``topic``.
 
         Invalid, out-of-order or stale (``max_age`` seconds on ``clock``) messages are
         counted in :attr:`rejects` instead, exceptions of ``callback`` in its
-        :attr:`~services.reception.RejectCounter.failures`.
+        :attr:`~services.reception.RejectCounter.failures`; with ``source`` (a service
+        name) so are messages from any session but that service's (:meth:`check_source`).
         """
         receiver = Receiver(topic, check_order=check_order, max_age=max_age, clock=clock)
         transit: deque[float] = deque(maxlen=TRANSIT_SAMPLES)
@@ -509,6 +381,8 @@ class Bus:
             hop = transit_time(sample)
             if hop is not None:
                 transit.append(hop)
+            if source is not None:
+                self.check_source(topic, source, sample)
             return receiver(sample.payload.to_bytes())
 
         handler = safe_handler(decode, callback, self.rejects, topic=topic)
@@ -522,6 +396,16 @@ class Bus:
         if receiver.checker is not None:
             self.track_stream(topic, receiver.checker)
         return sub
+
+    def check_source(self, topic: str, service: str, sample: zenoh.Sample) -> None:
+        """Raise ``foreign_publisher`` unless ``sample`` comes from the session ``service``
+        is pinned to (:class:`~services.reception.SourcePins`)."""
+        self.pins.check(topic, service, source_session(sample))
+
+    def on_foreign(self, callback: Callable[[str, str, str], None]) -> None:
+        """Call ``callback(topic, service, session)`` the first time a session is refused
+        on a ``source=`` subscription's topic (Zenoh thread)."""
+        self.pins.listeners.append(callback)
 
     def track_stream(self, topic: str, checker: Any) -> None:
         """Include ``checker`` (anything with a ``stats() -> {name: count}`` method, e.g. a
@@ -578,8 +462,11 @@ class Bus:
             self._alive_listeners.append(callback)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
-        service = str(sample.key_expr).rsplit("/", 1)[-1]
+        service, _, session = str(sample.key_expr).split("/", 3)[3].partition("/")
         up = sample.kind == zenoh.SampleKind.PUT
+        if session:  # arcade/<vehicle>/alive/<service>/<session id>
+            (self.pins.owner_up if up else self.pins.owner_down)(service, session)
+            return
         with self._cond:
             (self._alive.add if up else self._alive.discard)(service)
             listeners = list(self._alive_listeners)

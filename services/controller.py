@@ -238,7 +238,7 @@ class Controller(runtime.Service):
             hover_failsafes=0,
             stamp_reanchored=0,
         )
-        bus.subscribe("model", self.on_model)
+        bus.subscribe("model", self.on_model, source="adapter")
         self._state_sub = bus.subscribe("state", self.on_state)
         self._react_s = runtime.LatencySamples(skip=1)  # state received -> setpoint put
         self.pub = bus.publisher("setpoint")

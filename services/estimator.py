@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from services import runtime
+from services import options, runtime
 from services.messages import MAX_VARIANCE, Imu, MessageError, Mocap, State
 
 #: Frames kept while waiting for the next ``imu`` sample (~2 s of 120 Hz mocap).
@@ -139,6 +139,7 @@ class Estimator(runtime.Service):
             {"mocap": self.on_mocap, "imu": self.on_imu},
             seq_only=("mocap",),
             transit=self._transit,
+            sources={"mocap": src} if (src := getattr(self.args, "mocap_source", None)) else None,
         )
         self.pub = bus.publisher("state")
 
@@ -369,6 +370,7 @@ def _extra(p) -> None:
         help="frames captured later than the control instant by more than this "
         "have a jumped clock and are re-stamped [s]",
     )
+    options.add_mocap_source_argument(p)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -137,6 +137,8 @@ class Reason(enum.StrEnum):
     OUT_OF_RANGE = "out_of_range"
     OUT_OF_ORDER = "out_of_order"
     STALE = "stale"
+    #: A valid message from a bus session other than the one its topic is pinned to.
+    FOREIGN_PUBLISHER = "foreign_publisher"
     INTERNAL = "internal"
 
 

@@ -1,13 +1,24 @@
 """An in-process stand-in for the part of ``zenoh.Session`` that :class:`services.bus.Bus`
 uses (``Bus.open(session=...)``), so that services run wired exactly as ``Service.run``
 wires them, without a network: ``arcade replay`` runs the recorded adapter and controller
-on it, the tests drive a service's handlers with it."""
+on it, the tests drive a service's handlers with it.
+
+What it delivers comes from one session, :data:`PEER`, which holds the liveliness token of
+every service a topic is pinned to (:data:`PINNED`, ``Bus.subscribe(source=...)``): the
+stand-in speaks for all of them."""
 
 from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Callable
+from types import SimpleNamespace
 from typing import Any
+
+import zenoh
+
+#: The session id of whatever the stand-in delivers, and the services it speaks for.
+PEER = "5e55"
+PINNED = ("controller", "adapter", "sim", "px4sim")
 
 
 class Payload:
@@ -19,12 +30,15 @@ class Payload:
 
 
 class Sample:
-    """A received sample: ``key_expr``, ``payload`` and no attachment (no transit time)."""
+    """A received sample: ``key_expr``, ``payload``, no attachment (no transit time), put
+    by the session ``session``."""
 
-    def __init__(self, key: str, data: bytes):
+    def __init__(self, key: str, data: bytes, session: str = PEER):
         self.key_expr = key
         self.payload = Payload(data)
         self.attachment = None
+        self.kind = zenoh.SampleKind.PUT
+        self.source_info = SimpleNamespace(source_id=SimpleNamespace(zid=session))
 
 
 class Declared:
@@ -33,12 +47,30 @@ class Declared:
     def __init__(self, on_put: Callable[[bytes], None] | None = None):
         self._on_put = on_put
 
-    def put(self, payload: bytes, attachment: Any = None) -> None:
+    def put(self, payload: bytes, attachment: Any = None, **_: Any) -> None:
         if self._on_put is not None:
             self._on_put(bytes(payload))
 
     def undeclare(self) -> None:
         pass
+
+
+class Liveliness:
+    """Tokens are recorded; a liveliness subscriber hears the tokens of :data:`PEER` for
+    the services of :data:`PINNED`, nothing else."""
+
+    def __init__(self) -> None:
+        self.tokens: list[str] = []
+
+    def declare_subscriber(self, key: str, callback: Any, **_: Any) -> Declared:
+        prefix = key.removesuffix("*").removesuffix("*")  # arcade/<vehicle>/alive/
+        for service in PINNED:
+            callback(Sample(f"{prefix}{service}/{PEER}", b""))
+        return Declared()
+
+    def declare_token(self, key: str) -> Declared:
+        self.tokens.append(key)
+        return Declared()
 
 
 class Session:

@@ -149,6 +149,18 @@ def adapter_knob(text: str) -> tuple[str, Any]:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
+def add_mocap_source_argument(p: argparse.ArgumentParser) -> None:
+    """``--mocap-source``: the one service whose bus session mocap is taken from."""
+    p.add_argument(
+        "--mocap-source",
+        default=None,
+        metavar="SERVICE",
+        help="accept mocap only from the bus session of this service (its liveliness "
+        "token arcade/<vehicle>/alive/SERVICE/<session>), e.g. sim; the rest is refused "
+        "as foreign_publisher (default: from any publisher)",
+    )
+
+
 def add_link_delay_argument(p: argparse.ArgumentParser) -> None:
     """The link's delay, shared by the controller and the adapter (same value on both: the
     controller plans from the state the adapter learns from)."""

@@ -60,10 +60,10 @@ class Px4Bridge(OffboardControl, runtime.Service):
     def setup(self, bus) -> None:
         self._init_state()
         self._connect()
-        bus.subscribe("setpoint", self.on_setpoint)
+        bus.subscribe("setpoint", self.on_setpoint, source="controller")
         bus.subscribe("event", self.on_event, check_order=False)
         if self.args.vision != "off":
-            bus.subscribe("mocap", self.on_mocap)
+            bus.subscribe("mocap", self.on_mocap, source=self.args.mocap_source)
         bus.on_alive_change(self._on_alive_change)
         self.pub_imu = bus.publisher("imu")
         self._wait_healthy()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from services import options
+
 DEFAULT_URL = "udpin://0.0.0.0:14540"
 #: The allowed box (``--geofence``), ENU metres.
 DEFAULT_GEOFENCE = "-5,5,-5,5,-0.5,4"
@@ -88,6 +90,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="forward mocap to PX4 as ODOMETRY for EKF2 (estimator type vision), "
         "as mocap-type ODOMETRY, or not at all",
     )
+    options.add_mocap_source_argument(p)
     p.add_argument(
         "--vision-frame",
         choices=("local_frd", "mocap_ned"),

@@ -7,7 +7,8 @@ whether a valid record is accepted from its stream and what happens to the rest.
 :class:`Receiver` decodes one topic and applies those checks, :class:`RejectCounter` counts
 rejects by reason and topic and logs them (rate limited), apart from the receiving
 service's own failures on valid messages, and :func:`safe_handler` turns a decoder and a
-callback into a function that never raises.
+callback into a function that never raises. :class:`SourcePins` accepts a topic only from the
+bus session of the one service that writes it (the ``setpoint`` from the controller's).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Any, TypeVar
 
 from services.messages import Message, MessageError, Reason, decode, message_type
 
-__all__ = ["Receiver", "RejectCounter", "StreamChecker", "safe_handler"]
+__all__ = ["Receiver", "RejectCounter", "SourcePins", "StreamChecker", "safe_handler"]
 
 log = logging.getLogger("arcade.messages")  # the wire layer's logger
 
@@ -151,6 +152,73 @@ class Receiver:
         if self.checker is not None:
             self.checker.check(record)
         return record
+
+
+# ------------------------------------------------------------------ source pinning
+
+
+class SourcePins:
+    """Which bus session each service speaks from, and the check that a message comes from it.
+
+    The bus tells the sessions (:meth:`owner_up`/:meth:`owner_down`, from the liveliness
+    tokens ``arcade/<vehicle>/alive/<service>/<session id>``) and the session a message came
+    from (the Zenoh source id the publisher's session puts on each sample); the message's own
+    ``src`` field plays no part. A service is pinned to the oldest of its sessions whose token
+    is still alive: a second process under the same name cannot take over a live one, and a
+    restarted service is pinned to its new session as soon as the old token is gone.
+
+    :meth:`check` raises ``foreign_publisher`` for any other session (or none), and calls
+    every ``listener(topic, service, session)`` the first time a session is refused on a
+    topic (a ``fault`` event of the receiving service). Thread-safe.
+    """
+
+    def __init__(self) -> None:
+        self._owners: dict[str, list[str]] = {}
+        self._refused: set[tuple[str, str]] = set()
+        self._lock = threading.Lock()
+        self.listeners: list[Callable[[str, str, str], None]] = []
+
+    def owner_up(self, service: str, session: str) -> None:
+        with self._lock:
+            owners = self._owners.setdefault(service, [])
+            if session not in owners:
+                owners.append(session)
+
+    def owner_down(self, service: str, session: str) -> None:
+        with self._lock:
+            owners = self._owners.get(service, [])
+            if session in owners:
+                owners.remove(session)
+
+    def pinned(self, service: str) -> str | None:
+        """The session ``service`` is pinned to (None: no token of it alive)."""
+        with self._lock:
+            owners = self._owners.get(service)
+            return owners[0] if owners else None
+
+    def check(self, topic: str, service: str, session: str | None) -> None:
+        """Accept a ``topic`` message from bus session ``session`` (None: the sample said
+        none) if ``service`` is pinned to it, else raise :class:`MessageError`."""
+        pinned = self.pinned(service)
+        if session is not None and session == pinned:
+            return
+        who = session or "unknown"
+        with self._lock:
+            # Bounded: past 1024 refused sessions the rest are counted, not announced.
+            first = (topic, who) not in self._refused and len(self._refused) < 1024
+            if first:
+                self._refused.add((topic, who))
+                listeners = list(self.listeners)
+        if first:
+            for listener in listeners:
+                try:
+                    listener(topic, service, who)
+                except Exception:
+                    log.exception("foreign-publisher listener failed")
+        raise MessageError(
+            Reason.FOREIGN_PUBLISHER,
+            f"{topic} from session {who}, not the {service}'s ({pinned or 'none alive'})",
+        )
 
 
 # -------------------------------------------------------------------- reject counts

@@ -10,7 +10,9 @@ report (latencies, counters) go to ``<out>/stats/<name>.json`` at exit.
 The bus session: by default a peer on loopback that meets the others through ``--hub``
 (:func:`services.bus.peer_config`); with ``--bus-config FILE`` the Zenoh configuration in
 ``FILE`` instead, e.g. a client of a router with its user/password or TLS settings
-(``deploy/zenoh/router-acl.json5``).
+(``deploy/zenoh/router-acl.json5``). A message a pinned subscription refuses (another
+session than its writer's, :class:`services.reception.SourcePins`) is counted, and the
+service raises one ``fault`` event per refused session and topic.
 """
 
 from __future__ import annotations
@@ -180,6 +182,7 @@ def subscribe_ordered(
     topics: dict[str, Any],
     seq_only: tuple[str, ...] = (),
     transit: dict[str, Any] | None = None,
+    sources: dict[str, str] | None = None,
 ) -> list[Any]:
     """Subscribe ``{topic: callback}`` with callbacks run on Zenoh's receiving thread.
 
@@ -191,7 +194,8 @@ def subscribe_ordered(
     topics in ``seq_only`` are order-checked on ``seq`` alone: their stamps are judged by
     the service (a jumped sensor clock must reach the estimator, which re-stamps it).
     With ``transit``, each topic's bus transit times (see :mod:`services.bus`) are appended
-    to ``transit[topic]`` (a bounded deque).
+    to ``transit[topic]`` (a bounded deque). ``sources``: ``{topic: service}`` accepted only
+    from that service's session (``source=`` of :meth:`Bus.subscribe`).
     """
     from collections import deque
 
@@ -213,9 +217,11 @@ def subscribe_ordered(
         if transit is not None:
             hops = transit.setdefault(topic, deque(maxlen=TRANSIT_SAMPLES))
 
-        def decode(sample, r=receiver, hops=hops):
+        def decode(sample, r=receiver, hops=hops, topic=topic):
             if hops is not None and (hop := transit_time(sample)) is not None:
                 hops.append(hop)
+            if sources and topic in sources:
+                bus.check_source(topic, sources[topic], sample)
             return r(sample.payload.to_bytes())
 
         handler = safe_handler(decode, callback, bus.rejects, topic=topic)
@@ -337,6 +343,10 @@ class Service:
         else:
             self.on_command(cmd)
 
+    def _on_foreign(self, topic: str, service: str, session: str) -> None:
+        text = f"{topic} from a session that is not the {service}'s refused (foreign_publisher)"
+        self.event("fault", text, "error", topic=topic, source=service, session=session)
+
     def on_command(self, cmd: Any) -> None:
         """Commands other than ``shutdown`` (default: ignored)."""
 
@@ -396,6 +406,7 @@ class Service:
         try:
             with self._open_bus() as bus:
                 self.bus = bus
+                bus.on_foreign(self._on_foreign)
                 bus.subscribe("command", self._on_command)
                 bus.publisher("event")  # declared now, not on the first (timed) event
                 self.setup(bus)

@@ -188,7 +188,7 @@ class SimNode(runtime.Service):
         )
         self.pub_mocap = bus.publisher("mocap")
         self.pub_imu = bus.publisher("imu")
-        self._sp_sub = bus.subscribe("setpoint", self.on_setpoint)
+        self._sp_sub = bus.subscribe("setpoint", self.on_setpoint, source="controller")
         # Events come from several publishers, each with its own clock: no order check.
         bus.subscribe("event", self.on_event, check_order=False)
         self._publish_lag = runtime.LatencySamples()  # sample instant -> imu put (realtime)

@@ -1,6 +1,9 @@
 """An in-process stand-in for the part of ``zenoh.Session`` that :class:`services.bus.Bus`
 uses, so that a service can be wired exactly as ``Service.run`` wires it, without a network:
-subscriptions are kept for :meth:`LoopbackSession.deliver`, puts are captured per key."""
+subscriptions are kept for :meth:`LoopbackSession.deliver`, puts are captured per key.
+
+What it delivers comes from one session, :data:`PEER`, which holds the liveliness token of
+every service a topic is pinned to (:data:`PINNED`): the stand-in speaks for all of them."""
 
 from __future__ import annotations
 
@@ -9,21 +12,9 @@ from collections.abc import Callable
 from typing import Any
 
 from services.messages import Message, decode
-from services.offline_bus import Declared, Sample
+from services.offline_bus import PEER, PINNED, Declared, Liveliness, Sample
 
-
-class Liveliness:
-    """Tokens are recorded; liveliness subscribers hear nothing."""
-
-    def __init__(self) -> None:
-        self.tokens: list[str] = []
-
-    def declare_subscriber(self, key: str, callback: Any, **_: Any) -> Declared:
-        return Declared()
-
-    def declare_token(self, key: str) -> Declared:
-        self.tokens.append(key)
-        return Declared()
+__all__ = ["PEER", "PINNED", "LoopbackSession", "RecordingBus", "Sample"]
 
 
 class LoopbackSession:

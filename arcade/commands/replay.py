@@ -209,7 +209,7 @@ def replay(
     from services import runtime
     from services.bus import Bus, key_expr
     from services.messages import encode
-    from services.offline_bus import Session
+    from services.offline_bus import PEER, PINNED, Session
 
     records, vehicle = read_recording(path, progress)
     names = ["adapter", *(("controller",) if service == "controller" else ())]
@@ -244,6 +244,8 @@ def replay(
     for name, svc in [("recorder", Recorder(rec_args))] + [(n, classes[n](args[n])) for n in names]:
         sessions[name] = Session(name, on_put)
         bus = Bus(vehicle, name, None).open(session=sessions[name])
+        for pinned in PINNED:  # every record comes from the one offline peer session
+            bus.pins.owner_up(pinned, PEER)
         svc.bus, svc.now = bus, lambda: clock[0]
         bus.subscribe("command", svc._on_command)
         svc.setup(bus)

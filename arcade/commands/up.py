@@ -105,7 +105,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--hub",
         default=None,
-        help="Zenoh hub endpoint of the peers (default: a free loopback port)",
+        help="Zenoh hub endpoint of the peers, open to any process that connects to it "
+        "(default: a free loopback port that only this run's processes, given a password "
+        "made for the run, can join)",
     )
     p.add_argument(
         "--bus-configs",
@@ -504,6 +506,7 @@ def stack_config(args: argparse.Namespace, out: Path, configs: dict[str, Path], 
         checkpoint=args.checkpoint,
         realtime_priority=args.realtime_priority,
         bus_configs=configs,
+        credentials=args.hub is None,  # a bus of its own: only this run's processes join
         extra=dict(extra),
         ros2=args.ros2,
         foxglove_port=args.foxglove,

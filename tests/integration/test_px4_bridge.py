@@ -264,7 +264,8 @@ def rig(tmp_path):
     ]
     log = (tmp_path / "bridge.out").open("w")
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
-    bus = Bus("default", "tester", peer_config(hub)).open()
+    # The test's session is the controller's: the bridge takes setpoints from it alone.
+    bus = Bus("default", "controller", peer_config(hub)).open()
     events = Events(bus)
     try:
         deadline = time.monotonic() + 60.0

@@ -79,3 +79,49 @@ def test_stack_config_bus_configs(elsewhere):
         Stack(StackConfig(out=Path("r"), bus_configs={**files, "simm": Path("x.json5")}))
     with pytest.raises(ValueError, match=r"^bus config .*launcher\.json5: No such file"):
         cfg.bus_config("launcher")
+
+
+def test_stack_config_credentials_are_made_per_run_for_the_owner_only(elsewhere):
+    import json
+    import stat
+
+    from arcade.commands.up import stack_config
+    from arcade.demo_stack import free_hub
+
+    cfg = StackConfig(out=Path("r"), hub="tcp/127.0.0.1:1234", credentials=True)
+    peer = cfg.make_credentials()
+    folder = elsewhere / "r" / "bus"
+    assert peer == folder / "peer.json5"
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    for f in ("peer.json5", "users.txt"):
+        assert stat.S_IMODE((folder / f).stat().st_mode) == 0o600, f
+    auth = json.loads(peer.read_text())["transport"]["auth"]["usrpwd"]
+    user, password = (folder / "users.txt").read_text().strip().split(":")
+    assert (auth["user"], auth["password"]) == (user, password) and len(password) >= 40
+    assert auth["dictionary_file"] == str(folder / "users.txt")
+    # Every process, whatever its name, opens that file instead of the open hub.
+    for name in ("sim", "controller", "bridge", "some-new-service"):
+        assert cfg.bus_args(name) == ["--bus-config", str(peer)]
+    assert "--hub" not in cfg.args("sim")
+    assert cfg.bus_config("operator") is not None  # the launcher's own sessions too
+    # A new run, a new password; the files go with the run.
+    again = StackConfig(out=Path("r2"), hub=free_hub(), credentials=True)
+    again.make_credentials()
+    assert (elsewhere / "r2" / "bus" / "users.txt").read_text() != f"{user}:{password}\n"
+    cfg.remove_credentials()
+    assert not folder.exists()
+    assert cfg.bus_args("sim") == [] and cfg.args("sim")[2:4] == ["--hub", "tcp/127.0.0.1:1234"]
+    # Router configurations keep their set-up; so do open peers.
+    files = {name: Path(f"bus/{name}.json5") for name in ("launcher", *SERVICES)}
+    assert (
+        StackConfig(out=Path("r3"), bus_configs=files, credentials=True).make_credentials() is None
+    )
+    assert StackConfig(out=Path("r4")).make_credentials() is None
+    assert not (elsewhere / "r3" / "bus").exists() and not (elsewhere / "r4").exists()
+    # `arcade up` on a hub of its own makes credentials; given --hub, the hub stays open.
+    from arcade.cli import build_parser
+
+    parsed = build_parser().parse_args(["up"])
+    assert stack_config(parsed, Path("r5"), {}, {}).credentials
+    parsed = build_parser().parse_args(["up", "--hub", "tcp/127.0.0.1:7450"])
+    assert not stack_config(parsed, Path("r5"), {}, {}).credentials

@@ -86,7 +86,8 @@ def test_a_stop_during_warm_up_never_announces_ready(tmp_path):
     probe = Probe(args(tmp_path), warmup=lambda p: p.stop.set())  # e.g. SIGTERM meanwhile
     assert probe.run() == 0
     assert probe.calls == ["setup", "warmup"]  # no ready(), main() or teardown()
-    assert probe.session.tokens == []  # no liveliness token either
+    # No liveliness token either: only the one naming the bus session (declared at open).
+    assert probe.session.tokens == ["arcade/test/alive/probe/f0220000"]
     assert (tmp_path / "stats" / "probe.json").is_file()
 
 
@@ -99,7 +100,7 @@ def test_a_failing_teardown_still_writes_the_statistics(tmp_path):
     before = list(gc.callbacks)
     assert probe.run() == 1  # the failure is the exit code, after the rest of the shutdown
     assert probe.calls == ["setup", "warmup", "ready", "main", "teardown"]
-    assert probe.session.tokens == ["arcade/test/alive/probe"]
+    assert probe.session.tokens == ["arcade/test/alive/probe/f0220000", "arcade/test/alive/probe"]
     stats = json.loads((tmp_path / "stats" / "probe.json").read_text())
     assert stats["teardown_started"] is True and "gc_pauses" in stats
     assert gc.callbacks == before  # the pause hook was removed too
