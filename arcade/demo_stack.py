@@ -112,16 +112,20 @@ def run_demo(
     hub: str | None = None,
     link_delay_s: float = 0.0,
     method: str = DEFAULT_STACK_METHOD,
+    trajectory: tuple[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Fly the demo through the stack; writes the run folder and returns the summary.
     ``link_delay_s``: the link delay the controller and the adapter compensate
-    (``arcade up --link-delay``); ``method``: one of ``STACK_METHODS`` (``--method``)."""
+    (``arcade up --link-delay``); ``method``: one of ``STACK_METHODS`` (``--method``);
+    ``trajectory``: ``--trajectory``'s spec and what :func:`deploy.trajectories.prepare`
+    made of it, flown instead of the figure-eight."""
     from tqdm import tqdm
 
-    from arcade_control.scenario import Scenario
+    from arcade_control.scenario import planned
     from deploy.launcher import StackConfig, run_flight, sigterm_interrupts
+    from deploy.trajectories import stage
 
-    scen = Scenario(payload_g=payload_g, speed_mps=speed)
+    scen = planned(payload_g, speed, trajectory=trajectory[1] if trajectory else None)
     t_end = duration if duration is not None else scen.t_end
     cfg = StackConfig(
         out=out,
@@ -140,6 +144,9 @@ def run_demo(
         method=method,
     )
     out = cfg.out  # absolute: where the services write, whatever the working directory
+    if trajectory is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        cfg.trajectory, cfg.trajectory_sha256 = stage(out, *trajectory)
 
     bar = tqdm(
         total=round(t_end, 2),
@@ -188,6 +195,7 @@ def run_demo(
             "lockstep": lockstep,
             "x64": x64,
             "method": method,
+            "trajectory": trajectory[0] if trajectory else None,
         },
     )
     rejects, failures = {}, {}

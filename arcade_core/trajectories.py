@@ -65,6 +65,90 @@ class FigureEight(NamedTuple):
         return c + offset
 
 
+class Circle(NamedTuple):
+    """Circle in the horizontal plane at height ``center[2]``, flown counter-clockwise.
+
+    ``p(t) = center + r [cos(phi), sin(phi), 0]`` with ``phi = speed t / r``: it starts on
+    the ``+x`` side of the centre; ``speed`` is constant [m/s].
+    """
+
+    center: Array | tuple[float, float, float] = (0.0, 0.0, 1.0)
+    radius: float | Array = 1.5
+    speed: float | Array = 1.0
+
+    def period(self) -> Array:
+        """Time for one circle [s]."""
+        return 2 * jnp.pi * jnp.asarray(self.radius) / self.speed
+
+    def position(self, t: Array) -> Array:
+        phi = self.speed * t / self.radius
+        c = jnp.asarray(self.center, dtype=jnp.result_type(phi, float))
+        return c + self.radius * jnp.stack([jnp.cos(phi), jnp.sin(phi), 0.0 * phi])
+
+
+class Lissajous(NamedTuple):
+    """Three-axis Lissajous curve ``p(t) = center + A * sin(n * phi)`` (per axis, integer
+    ``n``), ``phi = 2 pi t / period``: it starts at the centre. ``speed`` is the *mean*
+    speed along the curve [m/s]; the period is the arc length divided by it.
+    """
+
+    center: Array | tuple[float, float, float] = (0.0, 0.0, 1.0)
+    amplitude: Array | tuple[float, float, float] = (1.5, 1.0, 0.25)
+    frequency: Array | tuple[float, float, float] = (1.0, 3.0, 2.0)
+    speed: float | Array = 1.0
+
+    def arc_length(self) -> Array:
+        """Length of one period [m] (fixed-grid midpoint rule, jit-friendly)."""
+        phi = (jnp.arange(_ARC_SAMPLES) + 0.5) * (2 * jnp.pi / _ARC_SAMPLES)
+        a, n = jnp.asarray(self.amplitude), jnp.asarray(self.frequency)
+        d = a[:, None] * n[:, None] * jnp.cos(n[:, None] * phi[None, :])
+        return jnp.sum(jnp.linalg.norm(d, axis=0)) * (2 * jnp.pi / _ARC_SAMPLES)
+
+    def period(self) -> Array:
+        """Time for one period [s] at the mean ``speed``."""
+        return self.arc_length() / self.speed
+
+    def position(self, t: Array) -> Array:
+        phi = 2 * jnp.pi * t / self.period()
+        c = jnp.asarray(self.center, dtype=phi.dtype)
+        a = jnp.asarray(self.amplitude, dtype=phi.dtype)
+        return c + a * jnp.sin(jnp.asarray(self.frequency, dtype=phi.dtype) * phi)
+
+
+class PiecewisePolynomial(NamedTuple):
+    """A position given piece by piece (a fitted spline; scipy's ``PPoly`` layout).
+
+    On ``[breaks[i], breaks[i+1])`` the position is ``sum_k coeffs[k, i] (t -
+    breaks[i])^(K-1-k)`` for ``K`` coefficients per axis; ``t`` is clamped to
+    ``[breaks[0], breaks[-1]]`` (the path holds its first and last points outside).
+    """
+
+    breaks: Array  # (M+1,) increasing times [s]
+    coeffs: Array  # (K, M, 3), highest power first
+
+    def position(self, t: Array) -> Array:
+        b = jnp.asarray(self.breaks)
+        tc = jnp.clip(t, b[0], b[-1])
+        i = jnp.clip(jnp.searchsorted(b, tc, side="right") - 1, 0, b.shape[0] - 2)
+        dt = tc - b[i]
+        c = jnp.asarray(self.coeffs)[:, i]
+        p = c[0]
+        for k in range(1, c.shape[0]):  # Horner
+            p = p * dt + c[k]
+        return p
+
+
+class Offset(NamedTuple):
+    """``path`` moved by ``offset`` [m]."""
+
+    path: Path
+    offset: Array | tuple[float, float, float]
+
+    def position(self, t: Array) -> Array:
+        p = self.path.position(t)
+        return p + jnp.asarray(self.offset, dtype=p.dtype)
+
+
 class Hover(NamedTuple):
     """Hold a fixed position."""
 

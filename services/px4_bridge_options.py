@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 
 DEFAULT_URL = "udpin://0.0.0.0:14540"
+#: The allowed box, ENU metres: also what a ``--trajectory`` is checked against in the
+#: sim profile.
+DEFAULT_GEOFENCE = "-5,5,-5,5,-0.5,4"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -64,7 +67,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--geofence",
-        default="-5,5,-5,5,-0.5,4",
+        default=DEFAULT_GEOFENCE,
         help="xmin,xmax,ymin,ymax,zmin,zmax of the allowed box, ENU metres",
     )
     p.add_argument(

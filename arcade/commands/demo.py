@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from arcade.commands.up import TRAJECTORY_HELP
 from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
 from services.options import METHOD_HELP
 
@@ -40,8 +41,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=number(0.0, low_open=True),
         default=None,
-        help=f"figure-eight mean speed [m/s] (default: {SPEED:g})",
+        help="mean speed of the figure-eight, of a built-in --trajectory and of waypoints "
+        f"without times [m/s] (default: {SPEED:g})",
     )
+    p.add_argument("--trajectory", default=None, metavar="FILE|NAME", help=TRAJECTORY_HELP)
     p.add_argument("--seed", type=count(0), default=0, help="trial seed (default: %(default)s)")
     p.add_argument(
         "--weights",
@@ -86,6 +89,7 @@ def run_cartpole(args: argparse.Namespace) -> int:
             ("--x64", args.x64),
             ("--method", args.method is not None),
             ("--compare", args.compare),
+            ("--trajectory", args.trajectory is not None),
         )
         if given
     ]
@@ -129,6 +133,23 @@ def run_cartpole(args: argparse.Namespace) -> int:
     return 0
 
 
+def trajectory_problem(spec: str, speed: float, payload_g: float):
+    """``--trajectory`` resolved and checked against the shipped vehicle and the default
+    geofence: (the trajectory or None, why it is refused or None)."""
+    from arcade_core.px4_command import Geofence
+    from arcade_io.vehicle import load_vehicle
+    from deploy.trajectories import prepare
+    from services.px4_bridge_options import DEFAULT_GEOFENCE
+
+    return prepare(
+        spec,
+        speed=speed,
+        payload_g=payload_g,
+        vehicle=load_vehicle(None),
+        geofence=Geofence.parse(DEFAULT_GEOFENCE),
+    )
+
+
 def payload_problem(payload_g: float | None) -> str | None:
     """Why the stack demo's payload is more than the shipped vehicle lifts, or None."""
     from arcade.commands.sim import payload_limit_problem
@@ -142,6 +163,8 @@ def run(args: argparse.Namespace) -> int:
         return run_cartpole(args)
     if args.compare and args.method is not None:
         return _error("--method: not with --compare (it flies l1, ours and arcade)")
+    if args.compare and args.trajectory is not None:
+        return _error("--trajectory: not with --compare (it flies the figure-eight)")
     from arcade.commands.up import out_problem, weights_problem
     from arcade_io import jaxsetup
     from arcade_io.runs import new_run_dir
@@ -157,10 +180,17 @@ def run(args: argparse.Namespace) -> int:
 
     payload_g = PAYLOAD_G if args.payload_g is None else args.payload_g
     speed = SPEED if args.speed is None else args.speed
+    planned = None
+    if args.trajectory is not None:
+        trajectory, problem = trajectory_problem(args.trajectory, speed, payload_g)
+        if problem is not None:
+            return _error(problem)
+        planned = (args.trajectory, trajectory)
     out = Path(args.out or new_run_dir("demo")).absolute()
+    path = f"{speed:g} m/s figure-eight" if planned is None else f"trajectory {args.trajectory}"
     print(
-        f"ARCADE stack demo: {payload_g:g} g payload, {speed:g} m/s figure-eight, "
-        "released before the second lap (lockstep)",
+        f"ARCADE stack demo: {payload_g:g} g payload, {path}, released before the "
+        "second lap (lockstep)",
         flush=True,
     )
     from deploy.launcher import StackError
@@ -176,6 +206,7 @@ def run(args: argparse.Namespace) -> int:
             x64=args.x64,
             weights=args.weights,
             method=args.method or DEFAULT_STACK_METHOD,
+            trajectory=planned,
         )
     except (StackError, ValueError, OSError) as err:
         return _error(f"{err} (run folder: {out})", 1)

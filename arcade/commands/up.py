@@ -11,6 +11,15 @@ from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
 from services.options import METHOD_HELP
 
 HELP = "launch the service stack as processes over Zenoh (profile sim or px4)"
+#: ``--trajectory``'s help, the same in ``arcade up`` and ``arcade demo``.
+TRAJECTORY_HELP = (
+    "fly this after the take-off and hover instead of the figure-eight: a CSV file "
+    "(t,px,py,pz[,vx,vy,vz[,ax,ay,az]][,yaw], ENU, header row; a smooth quintic spline "
+    "through it) or waypoints (header [t,]x,y,z), or a built-in: figure-eight, "
+    "circle[:radius=R,laps=N], lissajous[:ax=,ay=,az=,nx=,ny=,nz=,laps=], "
+    "hover[:seconds=S]; checked against the vehicle's limits (speed, acceleration, tilt, "
+    "thrust, body rates, geofence) before anything starts (docs/trajectories.md)"
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,6 +36,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "  arcade up --profile px4 --simulate --arm   the same chain against a simulated PX4\n"
         "  arcade up --profile px4 --service-arg estimator:--mocap-noise=1e-4\n"
         "                                              your motion capture's noise [m]\n"
+        "  arcade up --lockstep --trajectory my_path.csv\n"
+        "                                              your own path (docs/trajectories.md)\n"
         "  arcade up --lockstep --bus-configs deploy/my-router\n"
         "                                              every process a client of a router\n"
         "The run folder gets logs/<service>.log, stats/, events.jsonl, truth.csv,\n"
@@ -74,7 +85,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=number(0.0, low_open=True),
         default=2.5,
-        help="figure-eight mean speed [m/s] (default: %(default)s)",
+        help="mean speed of the figure-eight, of a built-in --trajectory and of "
+        "waypoints without times [m/s] (default: %(default)s)",
+    )
+    p.add_argument(
+        "--trajectory",
+        default=None,
+        metavar="FILE|NAME",
+        help=TRAJECTORY_HELP,
     )
     p.add_argument(
         "--rate",
@@ -266,6 +284,30 @@ def bridge_args_problem(bridge_args: list[str]) -> str | None:
     return None
 
 
+def trajectory_problem(args: argparse.Namespace):
+    """``--trajectory`` resolved and checked against the vehicle (the shipped one, or the
+    bridge's ``--vehicle-file``) and the geofence (the bridge's ``--geofence``): (the
+    trajectory or None, why it is refused or None)."""
+    if args.trajectory is None:
+        return None, None
+    from arcade_core.px4_command import Geofence
+    from arcade_io.vehicle import load_vehicle
+    from deploy.trajectories import prepare
+    from services.px4_bridge_options import DEFAULT_GEOFENCE
+
+    vehicle_file, fence = None, DEFAULT_GEOFENCE
+    if args.profile == "px4" and args.bridge_arg:
+        bridge = parse_bridge_args(args.bridge_arg)
+        vehicle_file, fence = bridge.vehicle_file, bridge.geofence
+    return prepare(
+        args.trajectory,
+        speed=args.speed,
+        payload_g=args.payload_g,
+        vehicle=load_vehicle(vehicle_file),
+        geofence=Geofence.parse(fence),
+    )
+
+
 def payload_problem(args: argparse.Namespace) -> str | None:
     """Why ``--payload-g`` is more than the vehicle lifts (the shipped vehicle, or the
     bridge's ``--vehicle-file``), or None."""
@@ -449,6 +491,10 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         say(f"error: {problem}")
         return 2
+    trajectory, problem = trajectory_problem(args)
+    if problem is not None:
+        say(f"error: {problem}")
+        return 2
     configs: dict[str, Path] = {}
     if args.bus_configs is not None:
         from deploy.launcher import SERVICES
@@ -489,6 +535,10 @@ def run(args: argparse.Namespace) -> int:
     from deploy.launcher import StackError, last_output, run_flight, sigterm_interrupts
 
     cfg = stack_config(args, args.out or new_run_dir("up"), configs, grouped)
+    if args.trajectory is not None:
+        from deploy.trajectories import stage
+
+        cfg.trajectory, cfg.trajectory_sha256 = stage(cfg.out, args.trajectory, trajectory)
 
     last = [-1.0]
 
