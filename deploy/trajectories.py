@@ -88,8 +88,8 @@ def check(scenario: Any, limits: Limits) -> Violation | None:
     import jax.numpy as jnp
 
     from arcade_control.nominal import nominal_params
-    from arcade_io.traced import load_or_trace
     from arcade_control.scenario import flat_reference
+    from arcade_io.traced import load_or_trace
 
     params = nominal_params()
     times = np.arange(0.0, scenario.t_end + CHECK_DT / 2, CHECK_DT)

@@ -13,10 +13,10 @@ import pytest
 from scipy.interpolate import BPoly, make_interp_spline
 
 from arcade_control import trajectory as traj
-from arcade_control.scenario import RampedPath, Scenario, flat_reference, planned
+from arcade_control.scenario import RampedPath, Scenario, planned
 from arcade_core import frames
 from arcade_core.px4_command import Geofence
-from arcade_core.trajectories import Chain, FigureEight, Hover, PiecewisePolynomial, Takeoff
+from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff
 from arcade_io.trajectory_file import load_fitted, read_samples, save_fitted
 from arcade_io.vehicle import load_vehicle
 from deploy import trajectories as deploy_traj
@@ -76,7 +76,7 @@ def test_plan_climbs_to_the_first_point_and_flies_the_trajectory():
     assert np.allclose(_positions(path, jnp.asarray([3.0]))[0], (0.0, 0.0, 2.0))  # hovering
     assert np.allclose(_positions(path, jnp.asarray([6.0]))[0], (3.0, 0.0, 2.0))
     # A first point 2 m away: the climb takes 4 s (0.5 m/s mean) instead of 2.5 s.
-    far = traj.sampled("far", traj.fit_samples(t, p + [2.0, 0.0, 0.0]))
+    far = traj.sampled("far", traj.fit_samples(t, p + np.array([2.0, 0.0, 0.0])))
     assert planned(trajectory=far).climb_s == pytest.approx(np.hypot(2.0, 0.5) / 0.5)
     # The origin moves the trajectory with the plan.
     moved = planned(origin=(1.0, -1.0), trajectory=scen.trajectory)
@@ -163,7 +163,7 @@ def test_given_velocities_and_accelerations_are_matched():
     # Velocities alone: the accelerations come from the quintic spline of the positions.
     v_only = traj.fit_samples(t, p, v)
     spline = traj.clamped_spline(t, p)
-    for i, ti in enumerate(t):
+    for ti in t:
         assert np.allclose(_derivatives(v_only, ti)[2], spline(ti, 2), atol=1e-9)
 
 
