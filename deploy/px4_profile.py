@@ -232,6 +232,15 @@ def add_arguments(p: Any) -> None:
         help="--simulate: start disarmed on the floor (use with --takeoff-m)",
     )
     g.add_argument(
+        "--forward",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="the bridge also passes MAVLink to and from this MAVSDK URL, so that a ground "
+        "station watches while the stack flies, e.g. udpout://127.0.0.1:14550 for "
+        "QGroundControl on this machine (repeatable)",
+    )
+    g.add_argument(
         "--bridge-arg",
         action="append",
         default=[],
@@ -259,7 +268,7 @@ def config_from_args(args: Any, base: StackConfig) -> Px4StackConfig:
         simulate=args.simulate,
         takeoff_m=args.takeoff_m,
         on_ground=args.on_ground,
-        bridge_args=list(args.bridge_arg),
+        bridge_args=[*(f"--forward={url}" for url in args.forward), *args.bridge_arg],
     )
 
 

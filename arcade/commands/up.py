@@ -34,6 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "  arcade up --profile px4 --connect serial:///dev/ttyACM0:921600\n"
         "                                              a real PX4 (asks before arming)\n"
         "  arcade up --profile px4 --simulate --arm   the same chain against a simulated PX4\n"
+        "  arcade up --profile px4 --forward udpout://127.0.0.1:14550\n"
+        "                                              QGroundControl watches the vehicle\n"
         "  arcade up --profile px4 --service-arg estimator:--mocap-noise=1e-4\n"
         "                                              your motion capture's noise [m]\n"
         "  arcade up --lockstep --trajectory my_path.csv\n"
@@ -190,6 +192,7 @@ PX4_OPTIONS = {
     "arm": False,
     "takeoff_m": None,
     "on_ground": False,
+    "forward": [],
     "bridge_arg": [],
 }
 
@@ -219,7 +222,7 @@ def usage_problem(args: argparse.Namespace) -> str | None:
         return "--on-ground is for the simulated PX4: add --simulate"
     if args.takeoff_m is not None and not (math.isfinite(args.takeoff_m) and args.takeoff_m > 0):
         return f"--takeoff-m must be a positive number, got {args.takeoff_m:g}"
-    return bridge_args_problem(args.bridge_arg)
+    return bridge_args_problem([*(f"--forward={url}" for url in args.forward), *args.bridge_arg])
 
 
 def hub_problem(hub: str | None) -> str | None:
