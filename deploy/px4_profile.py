@@ -231,9 +231,12 @@ def add_arguments(p: Any) -> None:
         action="store_true",
         help="--simulate: start disarmed on the floor (use with --takeoff-m)",
     )
+    from services.px4_bridge_options import mavlink_url
+
     g.add_argument(
         "--forward",
         action="append",
+        type=mavlink_url,
         default=[],
         metavar="URL",
         help="the bridge also passes MAVLink to and from this MAVSDK URL, so that a ground "

@@ -294,10 +294,12 @@ def trajectory_problem(args: argparse.Namespace):
     if args.trajectory is None:
         return None, None
     from arcade_core.px4_command import Geofence
+    from arcade_io import jaxsetup
     from arcade_io.vehicle import load_vehicle
     from deploy.trajectories import prepare
     from services.px4_bridge_options import DEFAULT_GEOFENCE
 
+    jaxsetup.configure(x64=args.x64)  # the check computes the flat reference
     vehicle_file, fence = None, DEFAULT_GEOFENCE
     if args.profile == "px4" and args.bridge_arg:
         bridge = parse_bridge_args(args.bridge_arg)
