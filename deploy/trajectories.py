@@ -17,11 +17,10 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from arcade_control.trajectory import BUILTINS, Limits, Trajectory, Violation, first_violation
+if TYPE_CHECKING:  # loaded on first use: ``arcade --help`` does not load JAX
+    from arcade_control.trajectory import Limits, Trajectory, Violation
 
 #: Sampling period of the check [s] (a fifth of the control period).
 CHECK_DT = 0.01
@@ -46,7 +45,7 @@ def resolve(spec: str, speed: float) -> Trajectory | None:
         return traj.builtin(spec, Scenario().center, speed)
     path = Path(spec)
     if not path.is_file():
-        raise ValueError(f"{spec}: no such file and no built-in ({', '.join(BUILTINS)})")
+        raise ValueError(f"{spec}: no such file and no built-in ({', '.join(traj.BUILTINS)})")
     s = read_samples(path)
     if s.waypoints:
         fitted = traj.fit_waypoints(s.p, s.t, speed, what=str(path))
@@ -58,6 +57,7 @@ def resolve(spec: str, speed: float) -> Trajectory | None:
 def vehicle_limits(vehicle: dict[str, Any], payload_g: float, geofence: Any) -> Limits:
     """The :class:`Limits` of a vehicle file carrying ``payload_g`` inside ``geofence``
     (:class:`arcade_core.px4_command.Geofence`)."""
+    from arcade_control.trajectory import Limits
     from arcade_io.vehicle import DEFAULT_CABLE_MASS_KG, DEFAULT_ELECTROMAGNET_MASS_KG
 
     own = {**LIMIT_DEFAULTS, **vehicle.get("limits", {})}
@@ -86,9 +86,11 @@ def check(scenario: Any, limits: Limits) -> Violation | None:
     """The first limit the flight plan's reference breaks (every :data:`CHECK_DT` from
     take-off to the end), or None."""
     import jax.numpy as jnp
+    import numpy as np
 
     from arcade_control.nominal import nominal_params
     from arcade_control.scenario import flat_reference
+    from arcade_control.trajectory import first_violation
     from arcade_io.traced import load_or_trace
 
     params = nominal_params()
@@ -97,6 +99,40 @@ def check(scenario: Any, limits: Limits) -> Violation | None:
     # Traced once per plan and kept on disk (arcade_io.traced), as the services do.
     x, u = load_or_trace("reference", flat_reference, ref_args)(*ref_args)
     return first_violation(limits, times, x, u, float(params.mass), float(params.gravity))
+
+
+#: ``--trajectory``'s help, the same in ``arcade up`` and ``arcade demo``.
+HELP = (
+    "fly this after the take-off and hover instead of the figure-eight: a CSV file "
+    "(t,px,py,pz[,vx,vy,vz[,ax,ay,az]][,yaw], ENU, header row; a smooth quintic spline "
+    "through it) or waypoints (header [t,]x,y,z), or a built-in: figure-eight, "
+    "circle[:radius=R,laps=N], lissajous[:ax=,ay=,az=,nx=,ny=,nz=,laps=], "
+    "hover[:seconds=S]; checked against the vehicle's limits (speed, acceleration, tilt, "
+    "thrust, body rates, geofence) before anything starts (docs/trajectories.md)"
+)
+
+
+def option_problem(
+    spec: str,
+    *,
+    speed: float,
+    payload_g: float,
+    vehicle_file: str | None = None,
+    geofence: str | None = None,
+) -> tuple[Trajectory | None, str | None]:
+    """:func:`prepare` for the command line: the vehicle file (None: the shipped one) and
+    the geofence (None: the bridge's default box) as given on it."""
+    from arcade_core.px4_command import Geofence
+    from arcade_io.vehicle import load_vehicle
+    from services.px4_bridge_options import DEFAULT_GEOFENCE
+
+    return prepare(
+        spec,
+        speed=speed,
+        payload_g=payload_g,
+        vehicle=load_vehicle(vehicle_file),
+        geofence=Geofence.parse(geofence or DEFAULT_GEOFENCE),
+    )
 
 
 def prepare(

@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from arcade.commands.up import TRAJECTORY_HELP
 from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
+from deploy import trajectories
 from services.options import METHOD_HELP
 
 HELP = (
@@ -44,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="mean speed of the figure-eight, of a built-in --trajectory and of waypoints "
         f"without times [m/s] (default: {SPEED:g})",
     )
-    p.add_argument("--trajectory", default=None, metavar="FILE|NAME", help=TRAJECTORY_HELP)
+    p.add_argument("--trajectory", default=None, metavar="FILE|NAME", help=trajectories.HELP)
     p.add_argument("--seed", type=count(0), default=0, help="trial seed (default: %(default)s)")
     p.add_argument(
         "--weights",
@@ -133,23 +133,6 @@ def run_cartpole(args: argparse.Namespace) -> int:
     return 0
 
 
-def trajectory_problem(spec: str, speed: float, payload_g: float):
-    """``--trajectory`` resolved and checked against the shipped vehicle and the default
-    geofence: (the trajectory or None, why it is refused or None)."""
-    from arcade_core.px4_command import Geofence
-    from arcade_io.vehicle import load_vehicle
-    from deploy.trajectories import prepare
-    from services.px4_bridge_options import DEFAULT_GEOFENCE
-
-    return prepare(
-        spec,
-        speed=speed,
-        payload_g=payload_g,
-        vehicle=load_vehicle(None),
-        geofence=Geofence.parse(DEFAULT_GEOFENCE),
-    )
-
-
 def payload_problem(payload_g: float | None) -> str | None:
     """Why the stack demo's payload is more than the shipped vehicle lifts, or None."""
     from arcade.commands.sim import payload_limit_problem
@@ -182,7 +165,9 @@ def run(args: argparse.Namespace) -> int:
     speed = SPEED if args.speed is None else args.speed
     planned = None
     if args.trajectory is not None:
-        trajectory, problem = trajectory_problem(args.trajectory, speed, payload_g)
+        from deploy.trajectories import option_problem
+
+        trajectory, problem = option_problem(args.trajectory, speed=speed, payload_g=payload_g)
         if problem is not None:
             return _error(problem)
         planned = (args.trajectory, trajectory)

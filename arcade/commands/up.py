@@ -8,18 +8,10 @@ import sys
 from pathlib import Path
 
 from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
+from deploy import trajectories
 from services.options import METHOD_HELP
 
 HELP = "launch the service stack as processes over Zenoh (profile sim or px4)"
-#: ``--trajectory``'s help, the same in ``arcade up`` and ``arcade demo``.
-TRAJECTORY_HELP = (
-    "fly this after the take-off and hover instead of the figure-eight: a CSV file "
-    "(t,px,py,pz[,vx,vy,vz[,ax,ay,az]][,yaw], ENU, header row; a smooth quintic spline "
-    "through it) or waypoints (header [t,]x,y,z), or a built-in: figure-eight, "
-    "circle[:radius=R,laps=N], lissajous[:ax=,ay=,az=,nx=,ny=,nz=,laps=], "
-    "hover[:seconds=S]; checked against the vehicle's limits (speed, acceleration, tilt, "
-    "thrust, body rates, geofence) before anything starts (docs/trajectories.md)"
-)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -94,7 +86,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--trajectory",
         default=None,
         metavar="FILE|NAME",
-        help=TRAJECTORY_HELP,
+        help=trajectories.HELP,
     )
     p.add_argument(
         "--rate",
@@ -293,23 +285,17 @@ def trajectory_problem(args: argparse.Namespace):
     trajectory or None, why it is refused or None)."""
     if args.trajectory is None:
         return None, None
-    from arcade_core.px4_command import Geofence
     from arcade_io import jaxsetup
-    from arcade_io.vehicle import load_vehicle
-    from deploy.trajectories import prepare
-    from services.px4_bridge_options import DEFAULT_GEOFENCE
+    from deploy.trajectories import option_problem
 
     jaxsetup.configure(x64=args.x64)  # the check computes the flat reference
-    vehicle_file, fence = None, DEFAULT_GEOFENCE
-    if args.profile == "px4" and args.bridge_arg:
-        bridge = parse_bridge_args(args.bridge_arg)
-        vehicle_file, fence = bridge.vehicle_file, bridge.geofence
-    return prepare(
+    bridge = parse_bridge_args(args.bridge_arg) if args.profile == "px4" else None
+    return option_problem(
         args.trajectory,
         speed=args.speed,
         payload_g=args.payload_g,
-        vehicle=load_vehicle(vehicle_file),
-        geofence=Geofence.parse(fence),
+        vehicle_file=bridge.vehicle_file if bridge else None,
+        geofence=bridge.geofence if bridge else None,
     )
 
 
@@ -399,6 +385,9 @@ def options_given(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
 #: Options the launcher sets that ``--service-arg`` may still set for one service (the
 #: service's own value comes last and wins).
 OVERRIDABLE = frozenset({"--log-level"})
+#: Options only the launcher sets, given to it or not (one process alone must not fly
+#: another path).
+LAUNCHER_ONLY = frozenset({"--trajectory", "--trajectory-sha256"})
 
 
 def service_args_problem(cfg) -> str | None:
@@ -416,7 +405,8 @@ def service_args_problem(cfg) -> str | None:
             given = options_given(parser, argv)
         except ValueError as err:
             return f"--service-arg {name}:{' '.join(argv)}: {err}"
-        clash = sorted((given & options_given(parser, own.args(name))) - OVERRIDABLE)
+        launcher = options_given(parser, own.args(name)) | (given & LAUNCHER_ONLY)
+        clash = sorted((given & launcher) - OVERRIDABLE)
         if clash:
             return (
                 f"--service-arg {name}: {', '.join(clash)} set by the launcher (from "

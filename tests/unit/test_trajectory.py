@@ -335,3 +335,13 @@ def test_an_infeasible_plan_is_refused_before_take_off(tmp_path, capsys):
     assert trajectory is None
     assert why.startswith("--trajectory circle:radius=3: geofence: x = -5.")
     assert "into the trajectory" in why and "m outside the box" in why
+
+
+def test_one_process_alone_cannot_be_given_another_path(tmp_path):
+    from arcade.commands.up import service_args_problem
+
+    cfg = StackConfig(out=tmp_path, extra={"controller": ["--trajectory=circle"]})
+    assert service_args_problem(cfg) == (
+        "--service-arg controller: --trajectory set by the launcher (from arcade up's own "
+        "options), not through --service-arg"
+    )
