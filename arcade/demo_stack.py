@@ -66,7 +66,11 @@ def truth_metrics(
 
 
 def plot(
-    path: Path, truth: dict[str, np.ndarray], t_release: float | None, changepoints: list[float]
+    path: Path,
+    truth: dict[str, np.ndarray],
+    t_release: float | None,
+    changepoints: list[float],
+    flown: str = "figure-eight",
 ) -> None:
     import matplotlib
 
@@ -89,7 +93,7 @@ def plot(
     ax2.set_xlabel("t [s]")
     ax2.set_ylabel("z - z_ref [m]")
     ax2.legend(fontsize=8)
-    fig.suptitle("ARCADE service stack (lockstep): figure-eight with payload release")
+    fig.suptitle(f"ARCADE service stack (lockstep): {flown} with payload release")
     fig.tight_layout()
     atomicfile.save_figure(fig, path, dpi=120)
     plt.close(fig)
@@ -207,7 +211,8 @@ def run_demo(
             failures[f.stem] = n
     summary["rejects"] = rejects
     summary["callback_failures"] = failures
-    plot(out / "flight.png", truth, t_release, cps)
+    flown = f"trajectory {Path(trajectory[0]).name}" if trajectory else "figure-eight"
+    plot(out / "flight.png", truth, t_release, cps, flown)
     atomicfile.write_text(out / "metrics.json", jsonout.dumps(summary, indent=2))
     return summary
 

@@ -172,12 +172,11 @@ def run(args: argparse.Namespace) -> int:
             return _error(problem)
         planned = (args.trajectory, trajectory)
     out = Path(args.out or new_run_dir("demo")).absolute()
-    path = f"{speed:g} m/s figure-eight" if planned is None else f"trajectory {args.trajectory}"
-    print(
-        f"ARCADE stack demo: {payload_g:g} g payload, {path}, released before the "
-        "second lap (lockstep)",
-        flush=True,
-    )
+    if planned is None:
+        plan = f"{speed:g} m/s figure-eight, released before the second lap"
+    else:
+        plan = f"trajectory {args.trajectory}, released at 95 % of its first lap"
+    print(f"ARCADE stack demo: {payload_g:g} g payload, {plan} (lockstep)", flush=True)
     from deploy.launcher import StackError
 
     if args.compare:
