@@ -26,7 +26,7 @@ from jax import Array
 
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import nominal_params
-from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff, flat_state
+from arcade_core.trajectories import Chain, FigureEight, Headed, Hover, Takeoff, flat_state
 
 #: Mean speed of a take-off to a trajectory's first point farther than ``takeoff_s`` allows
 #: at it [m/s] (the degree-7 smoothstep peaks at 2.19 times the mean).
@@ -136,11 +136,14 @@ class Scenario:
         f = jnp.asarray
         if self.trajectory is not None:
             to = jax.tree.map(f, self.trajectory.path)
-            return Chain(
+            plan = Chain(
                 Takeoff(f(self.start), f(self.first_point), f(self.climb_s)),
                 Chain(Hover(f(self.first_point)), to, f(self.hover_s)),
                 f(self.climb_s),
             )
+            if self.trajectory.yaw is None:
+                return plan
+            return Headed(plan, jax.tree.map(f, self.trajectory.yaw), f(self.t_figure))
         fig = FigureEight(
             center=f(self.center),
             half_length=f(self.half_length_m),

@@ -75,6 +75,8 @@ class Trajectory:
         laps: laps flown.
         ramp_s: the speed ramp of a periodic path [s] (0: none); the path's clock then
             runs ``ramp_s / 2`` behind the flight's.
+        yaw: the heading [rad] over the path's clock (a one-axis
+            :class:`PiecewisePolynomial`, 0 at its start); None: yaw 0 throughout.
     """
 
     name: str
@@ -82,6 +84,7 @@ class Trajectory:
     lap_s: float
     laps: float = 1.0
     ramp_s: float = 0.0
+    yaw: Any = None
 
     def t_of_clock(self, s: float) -> float:
         """Time since the trajectory's start at which its own clock reads ``s``
@@ -167,7 +170,7 @@ def _as_path(pp: Any) -> PiecewisePolynomial:
     if isinstance(pp, BPoly):
         pp = PPoly.from_bernstein_basis(pp)
     if isinstance(pp, BSpline):  # PPoly.from_spline takes one axis at a time
-        axes = [PPoly.from_spline(BSpline(pp.t, pp.c[:, j], pp.k)) for j in range(3)]
+        axes = [PPoly.from_spline(BSpline(pp.t, pp.c[:, j], pp.k)) for j in range(pp.c.shape[1])]
         x, c = axes[0].x, np.stack([a.c for a in axes], axis=-1)
     else:
         x, c = pp.x, pp.c
@@ -187,11 +190,11 @@ def _check_times(t: np.ndarray, what: str) -> None:
 
 
 def clamped_spline(t: np.ndarray, p: np.ndarray) -> Any:
-    """Quintic interpolating spline through ``p`` (n, 3) at ``t`` with zero velocity and
+    """Quintic interpolating spline through ``p`` (n, d) at ``t`` with zero velocity and
     acceleration at both ends (scipy ``make_interp_spline``, ``k = 5``)."""
     from scipy.interpolate import make_interp_spline
 
-    zero = np.zeros(3)
+    zero = np.zeros(p.shape[1])
     rest = [(1, zero), (2, zero)]
     if t.size == 2:  # two conditions per end and two points: the quintic itself
         from scipy.interpolate import BPoly
@@ -227,6 +230,20 @@ def fit_samples(
     return _as_path(BPoly.from_derivatives(t, np.stack([p, v, a], axis=1)))
 
 
+def fit_yaw(t: Any, yaw: Any, what: str = "trajectory") -> PiecewisePolynomial:
+    """The heading through ``yaw`` [rad] (n,) at ``t`` (unwrapped): the clamped quintic
+    spline of :func:`clamped_spline`; it must start at 0 (the heading at take-off)."""
+    t = np.asarray(t, dtype=float)
+    yaw = np.unwrap(np.asarray(yaw, dtype=float))
+    _check_times(t, what)
+    if abs(yaw[0]) > REST_TOL:
+        raise ValueError(
+            f"{what}: yaw at the first sample is {yaw[0]:g} rad, not 0: the heading starts "
+            "as the vehicle takes off"
+        )
+    return _as_path(clamped_spline(t, yaw[:, None]))
+
+
 def waypoint_times(points: Any, speed: float) -> np.ndarray:
     """Times of ``points`` (n, 3) spaced by distance at the mean ``speed`` [m/s]."""
     points = np.asarray(points, dtype=float)
@@ -244,10 +261,12 @@ def fit_waypoints(
     return fit_samples(t, points, what=what)
 
 
-def sampled(name: str, path: PiecewisePolynomial) -> Trajectory:
-    """A fitted path as a :class:`Trajectory` (flown once, no ramp)."""
+def sampled(
+    name: str, path: PiecewisePolynomial, yaw: PiecewisePolynomial | None = None
+) -> Trajectory:
+    """A fitted path (and heading) as a :class:`Trajectory` (flown once, no ramp)."""
     b = np.asarray(path.breaks)
-    return Trajectory(name, path, lap_s=float(b[-1] - b[0]))
+    return Trajectory(name, path, lap_s=float(b[-1] - b[0]), yaw=yaw)
 
 
 # ----------------------------------------------------------------------- limits

@@ -138,6 +138,21 @@ class PiecewisePolynomial(NamedTuple):
         return p
 
 
+class Headed(NamedTuple):
+    """``path`` flown with a varying heading: the yaw [rad] of ``yaw`` (a one-axis
+    :class:`PiecewisePolynomial`) at ``t - t0`` (its first value before ``t0``)."""
+
+    path: Path
+    yaw: PiecewisePolynomial
+    t0: float | Array
+
+    def position(self, t: Array) -> Array:
+        return self.path.position(t)
+
+    def heading(self, t: Array) -> Array:
+        return self.yaw.position(t - self.t0)[0]
+
+
 class Offset(NamedTuple):
     """``path`` moved by ``offset`` [m]."""
 
@@ -208,11 +223,20 @@ def flat_state(
     """Nominal state (13,) and input (4,) at time ``t`` by differential flatness (App. D model).
 
     Thrust ``T = m |a + g e3|``; body z axis along the thrust vector; heading fixed by a
-    constant ``yaw``; ``omega = vee(R^T Rdot)``; rate setpoint ``omega + tau omegadot``.
+    constant ``yaw``, or following the path's own ``heading(t)`` [rad] if it has one
+    (:class:`Headed`); ``omega = vee(R^T Rdot)``; rate setpoint ``omega + tau omegadot``.
     """
     t = jnp.asarray(t, dtype=jnp.result_type(t, float))
     e3 = jnp.array([0.0, 0.0, 1.0], dtype=t.dtype)
     x_c = jnp.stack([jnp.cos(yaw), jnp.sin(yaw), 0.0 * yaw]).astype(t.dtype)
+    heading = getattr(path, "heading", None)
+
+    def course(s):
+        """The heading axis ``[cos yaw, sin yaw, 0]`` at ``s``."""
+        if heading is None:
+            return x_c
+        psi = heading(s)
+        return jnp.stack([jnp.cos(psi), jnp.sin(psi), 0.0 * psi]).astype(s.dtype)
 
     pos = path.position
     vel = _derivative(pos)
@@ -224,7 +248,7 @@ def flat_state(
     def attitude(s):
         f = thrust_vector(s)
         z_b = f / jnp.linalg.norm(f)
-        y_b = jnp.cross(z_b, x_c)
+        y_b = jnp.cross(z_b, course(s))
         y_b = y_b / jnp.linalg.norm(y_b)
         x_b = jnp.cross(y_b, z_b)
         return jnp.stack([x_b, y_b, z_b], axis=-1)

@@ -7,8 +7,8 @@ sample; world ENU, SI units, ``#`` lines are comments::
 
 ``t`` in seconds, increasing (the first row is the trajectory's start, whatever its
 value); velocities and accelerations are optional (all three axes together, accelerations
-only with velocities). ``yaw`` [rad] may be given but must be 0 throughout: the reference
-keeps the heading fixed.
+only with velocities); ``yaw`` [rad, ENU: 0 along x, counter-clockwise] is optional and
+starts at 0.
 
 **Waypoint CSV**: a header row ``x,y,z`` (or ``t,x,y,z``), one waypoint per row; without
 ``t`` the times follow from the distances at the plan's mean speed.
@@ -28,6 +28,7 @@ import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -45,6 +46,7 @@ class Samples:
     p: np.ndarray
     v: np.ndarray | None = None
     a: np.ndarray | None = None
+    yaw: np.ndarray | None = None
     waypoints: bool = False
 
 
@@ -102,32 +104,39 @@ def read_samples(path: str | Path) -> Samples:
     def block(*names: str) -> np.ndarray | None:
         return np.stack([col[n] for n in names], axis=1) if names[0] in col else None
 
-    if "yaw" in col and np.any(col["yaw"] != 0.0):
-        i = int(np.flatnonzero(col["yaw"])[0])
-        raise ValueError(
-            f"{path}: row {i + 2}: yaw {col['yaw'][i]:g} rad: the reference keeps yaw 0 "
-            "(leave the column out or give 0)"
-        )
     if waypoints:
         return Samples(col.get("t"), block("x", "y", "z"), waypoints=True)
     return Samples(
-        col["t"], block("px", "py", "pz"), block("vx", "vy", "vz"), block("ax", "ay", "az")
+        col["t"],
+        block("px", "py", "pz"),
+        block("vx", "vy", "vz"),
+        block("ax", "ay", "az"),
+        col.get("yaw"),
     )
 
 
-def save_fitted(path: str | Path, name: str, breaks: np.ndarray, coeffs: np.ndarray) -> str:
+def save_fitted(
+    path: str | Path,
+    name: str,
+    breaks: np.ndarray,
+    coeffs: np.ndarray,
+    yaw: tuple[np.ndarray, np.ndarray] | None = None,
+) -> str:
     """Write a fitted path (:class:`arcade_core.trajectories.PiecewisePolynomial` arrays)
-    atomically; returns the file's SHA-256 (hex)."""
+    and its heading's (``yaw``: breaks, coefficients) atomically; returns the file's
+    SHA-256 (hex)."""
     buf = io.BytesIO()
-    np.savez(buf, name=np.array(name), breaks=np.asarray(breaks), coeffs=np.asarray(coeffs))
+    heading = {} if yaw is None else {"yaw_breaks": yaw[0], "yaw_coeffs": yaw[1]}
+    np.savez(buf, name=np.array(name), breaks=breaks, coeffs=coeffs, **heading)
     data = buf.getvalue()
     write_bytes(Path(path), data)
     return hashlib.sha256(data).hexdigest()
 
 
-def load_fitted(path: str | Path, sha256: str) -> tuple[str, np.ndarray, np.ndarray]:
-    """``(name, breaks, coeffs)`` of a file :func:`save_fitted` wrote; ``ValueError`` if it
-    cannot be read or its SHA-256 is not ``sha256``."""
+def load_fitted(path: str | Path, sha256: str) -> tuple[str, np.ndarray, np.ndarray, Any]:
+    """``(name, breaks, coeffs, yaw)`` of a file :func:`save_fitted` wrote (``yaw``: its
+    breaks and coefficients, or None); ``ValueError`` if it cannot be read or its SHA-256
+    is not ``sha256``."""
     path = Path(path)
     try:
         data = path.read_bytes()
@@ -139,4 +148,5 @@ def load_fitted(path: str | Path, sha256: str) -> tuple[str, np.ndarray, np.ndar
             f"{path}: SHA-256 {digest[:12]}... is not the checked one {sha256[:12]}..."
         )
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        return str(z["name"]), np.asarray(z["breaks"], float), np.asarray(z["coeffs"], float)
+        yaw = (z["yaw_breaks"], z["yaw_coeffs"]) if "yaw_breaks" in z else None
+        return str(z["name"]), z["breaks"], z["coeffs"], yaw

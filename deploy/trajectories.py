@@ -51,7 +51,8 @@ def resolve(spec: str, speed: float) -> Trajectory | None:
         fitted = traj.fit_waypoints(s.p, s.t, speed, what=str(path))
     else:
         fitted = traj.fit_samples(s.t, s.p, s.v, s.a, what=str(path))
-    return traj.sampled(path.name, fitted)
+    yaw = None if s.yaw is None else traj.fit_yaw(s.t, s.yaw, what=str(path))
+    return traj.sampled(path.name, fitted, yaw)
 
 
 def vehicle_limits(vehicle: dict[str, Any], payload_g: float, geofence: Any) -> Limits:
@@ -178,5 +179,9 @@ def stage(out: Path, spec: str, trajectory: Trajectory | None) -> tuple[str | No
     if not isinstance(trajectory.path, PiecewisePolynomial):
         return spec, None
     path = Path(out) / "trajectory.npz"
-    sha = save_fitted(path, trajectory.name, trajectory.path.breaks, trajectory.path.coeffs)
+    yaw = trajectory.yaw
+    heading = None if yaw is None else (yaw.breaks, yaw.coeffs)
+    sha = save_fitted(
+        path, trajectory.name, trajectory.path.breaks, trajectory.path.coeffs, heading
+    )
     return str(path), sha

@@ -276,6 +276,7 @@ def trajectory(value: str | None, sha256: str | None, center: Any, speed: float)
 
         if not sha256:
             raise ValueError(f"--trajectory {value}: needs --trajectory-sha256")
-        name, breaks, coeffs = load_fitted(value, sha256)
-        return traj.sampled(name, PiecewisePolynomial(breaks, coeffs))
+        name, breaks, coeffs, yaw = load_fitted(value, sha256)
+        heading = None if yaw is None else PiecewisePolynomial(*yaw)
+        return traj.sampled(name, PiecewisePolynomial(breaks, coeffs), heading)
     return traj.builtin(value, center, speed)

@@ -188,6 +188,28 @@ def test_waypoints_are_timed_by_distance_and_passed_through():
     assert np.allclose(_positions(two, jnp.asarray([1.0]))[0], [1.5, 0, 2])
 
 
+def test_a_given_yaw_is_the_reference_heading(tmp_path):
+    """Hovering in place while the yaw turns 0 -> 1 rad: the flat reference's heading is
+    the fitted yaw, its body z rate the yaw's derivative; a yaw must start at 0."""
+    from arcade_control.scenario import flat_reference
+    from arcade_io.traced import load_or_trace
+
+    f = tmp_path / "turn.csv"
+    t = np.linspace(0.0, 4.0, 9)
+    yaw = 0.5 * (1 - np.cos(np.pi * t / 4))
+    f.write_text("t,px,py,pz,yaw\n" + "".join(f"{a},0,0,2,{float(b)!r}\n" for a, b in zip(t, yaw)))
+    scen = planned(trajectory=deploy_traj.resolve(str(f), 2.5))
+    times = scen.t_figure + t
+    ref_args = (scen.path(), jnp.asarray(times))  # traced once, kept as the services keep it
+    x = load_or_trace("reference", flat_reference, ref_args)(*ref_args)[0]
+    heading = frames.to_rpy_np(np.asarray(x)[:, 6:10])[:, 2]
+    assert np.allclose(heading, yaw, atol=1e-9)
+    rate = np.asarray(_derivatives(scen.trajectory.yaw, 2.0))[1, 0]
+    assert np.asarray(x)[4, 12] == pytest.approx(rate, abs=1e-9)
+    with pytest.raises(ValueError, match=r"yaw at the first sample is 0\.3 rad, not 0"):
+        traj.fit_yaw([0.0, 1.0], [0.3, 0.5])
+
+
 # ------------------------------------------------------------------ files
 
 
@@ -214,7 +236,6 @@ def test_trajectory_and_waypoint_csv_read(tmp_path):
         ("t,px,py,pz\n0,0,0,2\n1,0,nan,2\n", "row 3, column py: not a number"),
         ("t,px,py,pz\n0,0,0,2\n1,0,2\n", "row 3 has 3 values, want 4"),
         ("t,px,py,pz\n0,0,0,2\n", "at least two rows"),
-        ("t,px,py,pz,yaw\n0,0,0,2,0\n1,0,0,2,0.3\n", "row 3: yaw 0.3 rad"),
     ],
 )
 def test_bad_files_are_refused_with_the_file_and_the_place(tmp_path, text, why):
@@ -228,9 +249,13 @@ def test_bad_files_are_refused_with_the_file_and_the_place(tmp_path, text, why):
 def test_fitted_path_file_round_trips_and_checks_its_hash(tmp_path):
     path = traj.fit_samples([0.0, 1.0, 2.5], [[0, 0, 2], [1, 0, 2], [1, 1, 2.5]])
     sha = save_fitted(tmp_path / "p.npz", "mine.csv", path.breaks, path.coeffs)
-    name, breaks, coeffs = load_fitted(tmp_path / "p.npz", sha)
-    assert name == "mine.csv"
+    name, breaks, coeffs, yaw = load_fitted(tmp_path / "p.npz", sha)
+    assert name == "mine.csv" and yaw is None
     assert np.array_equal(breaks, path.breaks) and np.array_equal(coeffs, path.coeffs)
+    heading = traj.fit_yaw([0.0, 1.0, 2.5], [0.0, 0.5, 1.0])
+    sha = save_fitted(tmp_path / "y.npz", "y", path.breaks, path.coeffs, heading[:2])
+    yaw = load_fitted(tmp_path / "y.npz", sha)[3]
+    assert np.array_equal(yaw[0], heading.breaks) and np.array_equal(yaw[1], heading.coeffs)
     with pytest.raises(ValueError, match="is not the checked one"):
         load_fitted(tmp_path / "p.npz", "0" * 64)
 
