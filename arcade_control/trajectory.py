@@ -15,7 +15,8 @@ number of laps, and the speed ramp of a periodic path. It comes from
   the last sample, so the vehicle starts from its hover and ends at rest; given
   velocities (and accelerations) are matched exactly by piecewise quintic Hermite
   interpolation (scipy's ``BPoly.from_derivatives``), the accelerations that are not
-  given taken from that quintic spline. A sampled trajectory must start at rest;
+  given taken from that quintic spline. A sampled trajectory must start at rest; a given
+  yaw follows the same clamped quintic spline (:func:`fit_yaw`) and starts at 0;
 - waypoints (:func:`fit_waypoints`): the same clamped quintic spline through the points,
   at the given times or, without times, at times spaced by distance at the mean speed.
 
