@@ -66,7 +66,11 @@ def truth_metrics(
 
 
 def plot(
-    path: Path, truth: dict[str, np.ndarray], t_release: float | None, changepoints: list[float]
+    path: Path,
+    truth: dict[str, np.ndarray],
+    t_release: float | None,
+    changepoints: list[float],
+    flown: str = "figure-eight",
 ) -> None:
     import matplotlib
 
@@ -89,7 +93,7 @@ def plot(
     ax2.set_xlabel("t [s]")
     ax2.set_ylabel("z - z_ref [m]")
     ax2.legend(fontsize=8)
-    fig.suptitle("ARCADE service stack (lockstep): figure-eight with payload release")
+    fig.suptitle(f"ARCADE service stack (lockstep): {flown} with payload release")
     fig.tight_layout()
     atomicfile.save_figure(fig, path, dpi=120)
     plt.close(fig)
@@ -114,18 +118,21 @@ def run_demo(
     method: str = DEFAULT_STACK_METHOD,
     ros2: bool = False,
     foxglove_port: int | None = None,
+    trajectory: tuple[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Fly the demo through the stack; writes the run folder and returns the summary.
     ``link_delay_s``: the link delay the controller and the adapter compensate
     (``arcade up --link-delay``); ``method``: one of ``STACK_METHODS`` (``--method``);
     ``ros2``: run the ROS 2 mirror too (``--ros2``); ``foxglove_port``: serve the flight
-    live to Foxglove (``--foxglove``)."""
+    live to Foxglove (``--foxglove``); ``trajectory``: ``--trajectory``'s spec and what
+    :func:`deploy.trajectories.prepare` made of it, flown instead of the figure-eight."""
     from tqdm import tqdm
 
-    from arcade_control.scenario import Scenario
+    from arcade_control.scenario import planned
     from deploy.launcher import StackConfig, run_flight, sigterm_interrupts
+    from deploy.trajectories import stage
 
-    scen = Scenario(payload_g=payload_g, speed_mps=speed)
+    scen = planned(payload_g, speed, trajectory=trajectory[1] if trajectory else None)
     t_end = duration if duration is not None else scen.t_end
     cfg = StackConfig(
         out=out,
@@ -147,6 +154,9 @@ def run_demo(
         foxglove_port=foxglove_port,
     )
     out = cfg.out  # absolute: where the services write, whatever the working directory
+    if trajectory is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        cfg.trajectory, cfg.trajectory_sha256 = stage(out, *trajectory)
 
     bar = tqdm(
         total=round(t_end, 2),
@@ -195,6 +205,7 @@ def run_demo(
             "lockstep": lockstep,
             "x64": x64,
             "method": method,
+            "trajectory": trajectory[0] if trajectory else None,
         },
     )
     rejects, failures = {}, {}
@@ -206,7 +217,8 @@ def run_demo(
             failures[f.stem] = n
     summary["rejects"] = rejects
     summary["callback_failures"] = failures
-    plot(out / "flight.png", truth, t_release, cps)
+    flown = f"trajectory {Path(trajectory[0]).name}" if trajectory else "figure-eight"
+    plot(out / "flight.png", truth, t_release, cps, flown)
     atomicfile.write_text(out / "metrics.json", jsonout.dumps(summary, indent=2))
     return summary
 

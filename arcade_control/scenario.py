@@ -6,6 +6,12 @@ Every flight climbs from 1.5 m to the centre of the figure-eight at 2.0 m (2.5 s
 The first 2 s of the figure-eight ramp the speed up smoothly (:class:`RampedPath`) so the
 reference starts at rest. The payload is released just before the second lap (at 95 % of
 the first lap).
+
+With a ``trajectory`` (:class:`arcade_control.trajectory.Trajectory`: a built-in circle,
+Lissajous curve or hover, or one fitted to a file) the flight climbs from the start to the
+trajectory's first point instead (2.5 s, or at 0.5 m/s mean when that is farther), hovers
+there, then flies the trajectory; the payload is released at the same fraction of its
+first lap. Without one the plan is the figure-eight above, unchanged.
 """
 
 from __future__ import annotations
@@ -20,7 +26,11 @@ from jax import Array
 
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import nominal_params
-from arcade_core.trajectories import Chain, FigureEight, Hover, Takeoff, flat_state
+from arcade_core.trajectories import Chain, FigureEight, Headed, Hover, Takeoff, flat_state
+
+#: Mean speed of a take-off to a trajectory's first point farther than ``takeoff_s`` allows
+#: at it [m/s] (the degree-7 smoothstep peaks at 2.19 times the mean).
+CLIMB_SPEED_MPS = 0.5
 
 
 class RampedPath(NamedTuple):
@@ -32,7 +42,7 @@ class RampedPath(NamedTuple):
     ``r = t / ramp <= 1``, then ``ramp / 2 + (t - ramp)``.
     """
 
-    path: FigureEight
+    path: Any  # a periodic path (figure-eight, circle, Lissajous)
     ramp: Array | float
 
     def clock(self, t: Array) -> Array:
@@ -65,6 +75,8 @@ class Scenario:
     #: Transport delay of every setpoint to the rate loop (``QuadrotorSim``'s
     #: ``command_delay_s``); the evaluation's cells fly without one.
     command_delay_s: float = 0.0
+    #: What is flown after the hover instead of the figure-eight (None: the figure-eight).
+    trajectory: Any = None
 
     @property
     def figure_eight(self) -> FigureEight:
@@ -77,15 +89,36 @@ class Scenario:
 
     @property
     def lap_s(self) -> float:
+        if self.trajectory is not None:
+            return float(self.trajectory.lap_s)
         return float(self.figure_eight.period())
 
     @property
+    def first_point(self) -> tuple[float, float, float]:
+        """Where the take-off ends and the hover holds: the figure-eight's centre or the
+        trajectory's first point."""
+        if self.trajectory is None:
+            return self.center
+        return tuple(float(v) for v in self.trajectory.start())
+
+    @property
+    def climb_s(self) -> float:
+        """Duration of the take-off [s]: ``takeoff_s``, longer to a trajectory's first
+        point farther than ``takeoff_s * 0.5 m/s`` (module docstring)."""
+        if self.trajectory is None:
+            return self.takeoff_s
+        distance = float(np.linalg.norm(np.subtract(self.first_point, self.start)))
+        return max(self.takeoff_s, distance / CLIMB_SPEED_MPS)
+
+    @property
     def t_figure(self) -> float:
-        """Start of the figure-eight [s]."""
-        return self.takeoff_s + self.hover_s
+        """Start of the figure-eight (or of the trajectory) [s]."""
+        return self.climb_s + self.hover_s
 
     def t_of_clock(self, s: float) -> float:
-        """Flight time at which the figure-eight clock reads ``s`` (s >= ramp / 2)."""
+        """Flight time at which the figure-eight (trajectory) clock reads ``s`` (s >= ramp / 2)."""
+        if self.trajectory is not None:
+            return self.t_figure + self.trajectory.t_of_clock(s)
         return self.t_figure + self.ramp_s + (s - 0.5 * self.ramp_s)
 
     @property
@@ -94,11 +127,23 @@ class Scenario:
 
     @property
     def t_end(self) -> float:
+        if self.trajectory is not None:
+            return self.t_figure + self.trajectory.duration_s
         return self.t_of_clock(self.laps * self.lap_s)
 
     def path(self):
         """The reference as one pytree path (all numbers as arrays: no recompilation)."""
         f = jnp.asarray
+        if self.trajectory is not None:
+            to = jax.tree.map(f, self.trajectory.path)
+            plan = Chain(
+                Takeoff(f(self.start), f(self.first_point), f(self.climb_s)),
+                Chain(Hover(f(self.first_point)), to, f(self.hover_s)),
+                f(self.climb_s),
+            )
+            if self.trajectory.yaw is None:
+                return plan
+            return Headed(plan, jax.tree.map(f, self.trajectory.yaw), f(self.t_figure))
         fig = FigureEight(
             center=f(self.center),
             half_length=f(self.half_length_m),
@@ -113,6 +158,31 @@ class Scenario:
             hover_then_fig,
             f(self.takeoff_s),
         )
+
+
+def planned(
+    payload_g: float = 175.0,
+    speed_mps: float = 2.5,
+    release_fraction: float = 0.95,
+    hover_s: float | None = None,
+    origin: tuple[float, float] = (0.0, 0.0),
+    trajectory: Any = None,
+) -> Scenario:
+    """The flight plan of the stack's plan options: the scenario moved horizontally by
+    ``origin`` (a ``trajectory`` with it), ``hover_s`` None: the scenario's hover."""
+    ox, oy = origin
+    base = Scenario()
+    if trajectory is not None and (ox, oy) != (0.0, 0.0):
+        trajectory = trajectory.shifted((ox, oy, 0.0))
+    return Scenario(
+        payload_g=float(payload_g),
+        speed_mps=float(speed_mps),
+        release_fraction=float(release_fraction),
+        hover_s=float(base.hover_s if hover_s is None else hover_s),
+        start=(base.start[0] + ox, base.start[1] + oy, base.start[2]),
+        center=(base.center[0] + ox, base.center[1] + oy, base.center[2]),
+        trajectory=trajectory,
+    )
 
 
 def flat_reference(path, times) -> tuple[Array, Array]:

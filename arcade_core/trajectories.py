@@ -65,6 +65,105 @@ class FigureEight(NamedTuple):
         return c + offset
 
 
+class Circle(NamedTuple):
+    """Circle in the horizontal plane at height ``center[2]``, flown counter-clockwise.
+
+    ``p(t) = center + r [cos(phi), sin(phi), 0]`` with ``phi = speed t / r``: it starts on
+    the ``+x`` side of the centre; ``speed`` is constant [m/s].
+    """
+
+    center: Array | tuple[float, float, float] = (0.0, 0.0, 1.0)
+    radius: float | Array = 1.5
+    speed: float | Array = 1.0
+
+    def period(self) -> Array:
+        """Time for one circle [s]."""
+        return 2 * jnp.pi * jnp.asarray(self.radius) / self.speed
+
+    def position(self, t: Array) -> Array:
+        phi = self.speed * t / self.radius
+        c = jnp.asarray(self.center, dtype=jnp.result_type(phi, float))
+        return c + self.radius * jnp.stack([jnp.cos(phi), jnp.sin(phi), 0.0 * phi])
+
+
+class Lissajous(NamedTuple):
+    """Three-axis Lissajous curve ``p(t) = center + A * sin(n * phi)`` (per axis, integer
+    ``n``), ``phi = 2 pi t / period``: it starts at the centre. ``speed`` is the *mean*
+    speed along the curve [m/s]; the period is the arc length divided by it.
+    """
+
+    center: Array | tuple[float, float, float] = (0.0, 0.0, 1.0)
+    amplitude: Array | tuple[float, float, float] = (1.5, 1.0, 0.25)
+    frequency: Array | tuple[float, float, float] = (1.0, 3.0, 2.0)
+    speed: float | Array = 1.0
+
+    def arc_length(self) -> Array:
+        """Length of one period [m] (fixed-grid midpoint rule, jit-friendly)."""
+        phi = (jnp.arange(_ARC_SAMPLES) + 0.5) * (2 * jnp.pi / _ARC_SAMPLES)
+        a, n = jnp.asarray(self.amplitude), jnp.asarray(self.frequency)
+        d = a[:, None] * n[:, None] * jnp.cos(n[:, None] * phi[None, :])
+        return jnp.sum(jnp.linalg.norm(d, axis=0)) * (2 * jnp.pi / _ARC_SAMPLES)
+
+    def period(self) -> Array:
+        """Time for one period [s] at the mean ``speed``."""
+        return self.arc_length() / self.speed
+
+    def position(self, t: Array) -> Array:
+        phi = 2 * jnp.pi * t / self.period()
+        c = jnp.asarray(self.center, dtype=phi.dtype)
+        a = jnp.asarray(self.amplitude, dtype=phi.dtype)
+        return c + a * jnp.sin(jnp.asarray(self.frequency, dtype=phi.dtype) * phi)
+
+
+class PiecewisePolynomial(NamedTuple):
+    """A position given piece by piece (a fitted spline; scipy's ``PPoly`` layout).
+
+    On ``[breaks[i], breaks[i+1])`` the position is ``sum_k coeffs[k, i] (t -
+    breaks[i])^(K-1-k)`` for ``K`` coefficients per axis; ``t`` is clamped to
+    ``[breaks[0], breaks[-1]]`` (the path holds its first and last points outside).
+    """
+
+    breaks: Array  # (M+1,) increasing times [s]
+    coeffs: Array  # (K, M, 3), highest power first
+
+    def position(self, t: Array) -> Array:
+        b = jnp.asarray(self.breaks)
+        tc = jnp.clip(t, b[0], b[-1])
+        i = jnp.clip(jnp.searchsorted(b, tc, side="right") - 1, 0, b.shape[0] - 2)
+        dt = tc - b[i]
+        c = jnp.asarray(self.coeffs)[:, i]
+        p = c[0]
+        for k in range(1, c.shape[0]):  # Horner
+            p = p * dt + c[k]
+        return p
+
+
+class Headed(NamedTuple):
+    """``path`` flown with a varying heading: the yaw [rad] of ``yaw`` (a one-axis
+    :class:`PiecewisePolynomial`) at ``t - t0`` (its first value before ``t0``)."""
+
+    path: Path
+    yaw: PiecewisePolynomial
+    t0: float | Array
+
+    def position(self, t: Array) -> Array:
+        return self.path.position(t)
+
+    def heading(self, t: Array) -> Array:
+        return self.yaw.position(t - self.t0)[0]
+
+
+class Offset(NamedTuple):
+    """``path`` moved by ``offset`` [m]."""
+
+    path: Path
+    offset: Array | tuple[float, float, float]
+
+    def position(self, t: Array) -> Array:
+        p = self.path.position(t)
+        return p + jnp.asarray(self.offset, dtype=p.dtype)
+
+
 class Hover(NamedTuple):
     """Hold a fixed position."""
 
@@ -124,11 +223,20 @@ def flat_state(
     """Nominal state (13,) and input (4,) at time ``t`` by differential flatness (App. D model).
 
     Thrust ``T = m |a + g e3|``; body z axis along the thrust vector; heading fixed by a
-    constant ``yaw``; ``omega = vee(R^T Rdot)``; rate setpoint ``omega + tau omegadot``.
+    constant ``yaw``, or following the path's own ``heading(t)`` [rad] if it has one
+    (:class:`Headed`); ``omega = vee(R^T Rdot)``; rate setpoint ``omega + tau omegadot``.
     """
     t = jnp.asarray(t, dtype=jnp.result_type(t, float))
     e3 = jnp.array([0.0, 0.0, 1.0], dtype=t.dtype)
     x_c = jnp.stack([jnp.cos(yaw), jnp.sin(yaw), 0.0 * yaw]).astype(t.dtype)
+    heading = getattr(path, "heading", None)
+
+    def course(s):
+        """The heading axis ``[cos yaw, sin yaw, 0]`` at ``s``."""
+        if heading is None:
+            return x_c
+        psi = heading(s)
+        return jnp.stack([jnp.cos(psi), jnp.sin(psi), 0.0 * psi]).astype(s.dtype)
 
     pos = path.position
     vel = _derivative(pos)
@@ -140,7 +248,7 @@ def flat_state(
     def attitude(s):
         f = thrust_vector(s)
         z_b = f / jnp.linalg.norm(f)
-        y_b = jnp.cross(z_b, x_c)
+        y_b = jnp.cross(z_b, course(s))
         y_b = y_b / jnp.linalg.norm(y_b)
         x_b = jnp.cross(y_b, z_b)
         return jnp.stack([x_b, y_b, z_b], axis=-1)

@@ -15,8 +15,9 @@ in Foxglove):
   arrow) locked to the body frame.
 
 Every :data:`STATIC_EVERY_S` seconds of state stamps (from the first state on):
-``reference`` (the planned path as a line strip, world frame) and ``geofence`` (the box's
-twelve edges), so that a player that seeks into the log shows them too.
+``reference`` (the controller's reference flown so far, from its ``reference`` records, as
+a line strip, world frame) and ``geofence`` (the box's twelve edges), so that a player that
+seeks into the log shows them too.
 
 The payload is not on the bus (no record carries its position): it is not drawn.
 """
@@ -41,6 +42,9 @@ CHANNELS: Mapping[str, Any] = {
 WORLD = "world"
 #: The static scenes (reference path, geofence) are sent again this often [s of stamps].
 STATIC_EVERY_S = 1.0
+#: Spacing of the reference path's points [s], and how many it keeps at most.
+PATH_DT = 0.1
+PATH_POINTS = 4096
 #: Airframe drawn for the vehicle: arm length (centre to rotor) and rotor radius [m].
 ARM_M, ROTOR_M = 0.12, 0.06
 
@@ -144,7 +148,8 @@ def box_edges(lo: Sequence[float], hi: Sequence[float]) -> np.ndarray:
 class FoxgloveScene:
     """The Foxglove messages of one vehicle's bus records.
 
-    ``reference``: the planned path ``(n, 3)`` [m] (None: not drawn); ``geofence``: the
+    ``reference``: a reference path ``(n, 3)`` [m] to start from (None: the ``reference``
+    records draw it as they come); ``geofence``: the
     box ``(lo, hi)`` [m] (None: not drawn). :meth:`messages` is for one caller at a time.
     """
 
@@ -159,11 +164,25 @@ class FoxgloveScene:
         self.set_reference(reference)
         self.geofence = geofence
         self._static_at = -np.inf  # stamp of the last static scenes
+        self._trail_at = -np.inf  # stamp of the newest reference point kept
 
     def set_reference(self, reference: np.ndarray | None) -> None:
-        """The planned path ``(n, 3)`` [m] (None: none); drawn from the next static scenes
-        on (may be called from another thread: one assignment)."""
+        """The reference path ``(n, 3)`` [m] (None: none); drawn from the next static
+        scenes on."""
         self.reference = None if reference is None else np.asarray(reference, dtype=float)
+        self._trail = [] if reference is None else list(self.reference)
+
+    def add_reference(self, stamp: float, position: Sequence[float]) -> None:
+        """The controller's reference at ``stamp`` (a ``reference`` record): the path drawn
+        is the reference flown so far, a point every :data:`PATH_DT` s (at most
+        :data:`PATH_POINTS`, then every other one)."""
+        if stamp - self._trail_at < PATH_DT - 1e-9:  # stamps a period apart, rounded
+            return
+        self._trail_at = stamp
+        self._trail.append(np.asarray(position, dtype=float)[:3])
+        if len(self._trail) > PATH_POINTS:
+            self._trail = self._trail[::2]
+        self.reference = np.array(self._trail)
 
     def topic(self, name: str) -> str:
         return topic(self.vehicle, name)
@@ -171,6 +190,9 @@ class FoxgloveScene:
     def messages(self, kind: str, wire: Mapping[str, Any]) -> list[tuple[str, Any]]:
         """``(channel name, Foxglove message)`` for the record ``wire`` of topic ``kind``
         (``"state"``, ...); records without a Foxglove form give none."""
+        if kind == "reference":
+            self.add_reference(float(wire["stamp"]), wire["x"])
+            return []
         if kind != "state":
             return []
         stamp = float(wire["stamp"])

@@ -243,6 +243,18 @@ def add_arguments(p: Any) -> None:
         action="store_true",
         help="--simulate: start disarmed on the floor (use with --takeoff-m)",
     )
+    from services.px4_bridge_options import mavlink_url
+
+    g.add_argument(
+        "--forward",
+        action="append",
+        type=mavlink_url,
+        default=[],
+        metavar="URL",
+        help="the bridge also passes MAVLink to and from this MAVSDK URL, so that a ground "
+        "station watches while the stack flies, e.g. udpout://127.0.0.1:14550 for "
+        "QGroundControl on this machine (repeatable)",
+    )
     g.add_argument(
         "--bridge-arg",
         action="append",
@@ -271,7 +283,7 @@ def config_from_args(args: Any, base: StackConfig) -> Px4StackConfig:
         simulate=args.simulate,
         takeoff_m=args.takeoff_m,
         on_ground=args.on_ground,
-        bridge_args=list(args.bridge_arg),
+        bridge_args=[*(f"--forward={url}" for url in args.forward), *args.bridge_arg],
     )
 
 

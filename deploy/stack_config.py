@@ -68,6 +68,11 @@ class StackConfig:
     #: Hover before the figure-eight [s] (None: the scenario's); horizontal plan offset [m].
     hover_s: float | None = None
     origin: tuple[float, float] = (0.0, 0.0)
+    #: What is flown instead of the figure-eight (``--trajectory`` of the simulator and
+    #: the controller): a built-in spec, or a fitted path file with its SHA-256
+    #: (:func:`deploy.trajectories.stage`); None: the figure-eight.
+    trajectory: str | None = None
+    trajectory_sha256: str | None = None
     x64: bool = False
     #: The link's setpoint delay that the controller and the adapter compensate [s]
     #: (``--link-delay``; 0: none).
@@ -251,10 +256,14 @@ class StackConfig:
             plan += ["--duration", f"{self.duration:g}"]
         if self.hover_s is not None:
             plan += ["--hover-s", f"{self.hover_s:g}"]
+        if self.trajectory is not None:
+            plan.append(f"--trajectory={self.trajectory}")
+            if self.trajectory_sha256 is not None:
+                plan += ["--trajectory-sha256", self.trajectory_sha256]
         if tuple(self.origin) != (0.0, 0.0):
             plan.append(f"--origin={self.origin[0]:g},{self.origin[1]:g}")  # may start with "-"
         own: list[str] = []
-        if service in ("sim", "controller", "recorder", "foxglove"):  # the latter two draw it
+        if service in ("sim", "controller"):
             own += plan
         if service == "foxglove":
             own += ["--port", str(self.foxglove_port)]

@@ -138,6 +138,7 @@ QOS: Mapping[str, QoS] = MappingProxyType(
         "imu": QoS(zenoh.Priority.INTERACTIVE_HIGH, _DROP, False),
         "state": QoS(zenoh.Priority.REAL_TIME, _DROP, False),
         "setpoint": QoS(zenoh.Priority.REAL_TIME, _DROP, False),
+        "reference": QoS(zenoh.Priority.DATA, _DROP, False),
         "model": QoS(zenoh.Priority.DATA_HIGH, _DROP, False),
         "residual": QoS(zenoh.Priority.DATA, _DROP, False),
         "event": QoS(zenoh.Priority.DATA, _BLOCK, False),

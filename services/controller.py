@@ -1,7 +1,8 @@
 """Controller service: uncertainty-modulated MPC (Sec. IV) on the latest state and model.
 
 Subscribes ``state`` and ``model``; publishes ``setpoint`` (tagged with the ``seq`` and
-``stamp`` of the state it answers) and ``event``.
+``stamp`` of the state it answers), after it the ``reference`` it tracked at that instant
+(same stamp), and ``event``.
 
 Per state: one step of the in-process closed loop's controller
 (``arcade_control.step.make_controller_step`` with the learning left to the
@@ -84,7 +85,7 @@ from arcade_control.hover import HOVER_THRUST_STEPS, level_hover
 from arcade_core import frames
 from arcade_io.traced import load_or_trace
 from services import options, runtime
-from services.messages import MAX_STAMP_S, Model, Setpoint, State
+from services.messages import MAX_STAMP_S, Model, Reference, Setpoint, State
 
 #: Shortest interval between two log lines about failing control steps [s].
 STEP_ERROR_LOG_S = 5.0
@@ -242,6 +243,9 @@ class Controller(runtime.Service):
         self._state_sub = bus.subscribe("state", self.on_state)
         self._react_s = runtime.LatencySamples(skip=1)  # state received -> setpoint put
         self.pub = bus.publisher("setpoint")
+        self.pub_ref = bus.publisher("reference")
+        self._x_ref = np.asarray(self.x_ref_all, dtype=float)
+        self._u_ref = np.asarray(self.u_ref_all, dtype=float)
 
     def warmup(self) -> None:
         x = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
@@ -340,6 +344,24 @@ class Controller(runtime.Service):
             except Exception as err2:  # the loop must go on: the next state may be fine
                 self.stats["fallback_errors"] += 1
                 self._log_step_error(err2)
+        try:  # after the setpoint: what it tracked, for the recorder and the tools
+            k = self._instant(s)
+            ref = Reference(
+                x=self._x_ref[k],
+                u=self._u_ref[min(k, len(self._u_ref) - 1)],
+                t=k * self.ref_dt,
+                stamp=self._last_stamp,
+            )
+            self.pub_ref.put(ref)
+        except Exception as err:
+            self.stats["fallback_errors"] += 1
+            self._log_step_error(err)
+
+    def _instant(self, s: State) -> int:
+        """Index of ``s``'s instant in the reference (mission time; the start reference
+        until the mission clock starts in realtime)."""
+        t = 0.0 if self.t0 is None else s.stamp - self.t0
+        return min(max(round(t / self.ref_dt), 0), self.n_ref - 1)
 
     def _log_step_error(self, err: Exception) -> None:
         """The first failure with its traceback, then a count at most every
@@ -449,9 +471,7 @@ class Controller(runtime.Service):
             self.publish(s, self.hover(s), "hover", 0.0)
             return
         m = self.model_for(s)
-        # Realtime: the start reference until the mission clock starts (``start`` command).
-        t = 0.0 if self.t0 is None else s.stamp - self.t0
-        k = min(max(round(t / self.ref_dt), 0), self.n_ref - 1)
+        k = self._instant(s)
         t0 = time.perf_counter()
         if m is None:
             if self.learner0 is not None:

@@ -103,6 +103,7 @@ __all__ = [
     "Mocap",
     "Model",
     "Reason",
+    "Reference",
     "Residual",
     "Setpoint",
     "State",
@@ -489,6 +490,28 @@ class Model(Message):
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
+class Reference(Message):
+    """The flight plan's reference the controller tracks at one control instant.
+
+    Attributes:
+        x: ``(13,)`` reference state ``[p, v, q (w first), omega]`` (flat, nominal model).
+        u: ``(4,)`` reference input ``[collective thrust N, body rates rad/s]`` of the
+            nominal model.
+        t: mission time of the reference [s] (with a link delay: that much after the
+            state's instant).
+    """
+
+    SCHEMA: ClassVar[str] = "arcade.Reference"
+    TOPIC: ClassVar[str] = "reference"
+
+    x: np.ndarray = field(metadata=array_meta((13,), _X_LO, _X_HI, unit=(6, 10)))
+    u: np.ndarray = field(
+        metadata=array_meta((4,), (0.0, -_R, -_R, -_R), (MAX_THRUST_N, _R, _R, _R))
+    )
+    t: float = field(metadata=spec_meta(FloatSpec(0.0, MAX_STAMP_S)))
+
+
+@dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
 class Event(Message):
     """Something operators and other services should know (changepoint, failsafe, ...).
 
@@ -528,7 +551,17 @@ class Command(Message):
     args: Mapping[str, Any] = field(default_factory=dict, metadata=spec_meta(ScalarsSpec()))
 
 
-_TYPES: tuple[type[Message], ...] = (Mocap, Imu, State, Setpoint, Residual, Model, Event, Command)
+_TYPES: tuple[type[Message], ...] = (
+    Mocap,
+    Imu,
+    State,
+    Setpoint,
+    Reference,
+    Residual,
+    Model,
+    Event,
+    Command,
+)
 #: Topic name -> record type.
 MESSAGE_TYPES: Mapping[str, type[Message]] = types.MappingProxyType({t.TOPIC: t for t in _TYPES})
 #: Every topic, in data-flow order.

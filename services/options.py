@@ -241,6 +241,21 @@ def add_plan_arguments(p: argparse.ArgumentParser) -> None:
         help="horizontal offset of the whole plan [m] (one per vehicle on a bus)",
     )
 
+    p.add_argument(
+        "--trajectory",
+        default=None,
+        metavar="SPEC",
+        help="fly this after the hover instead of the figure-eight: a built-in "
+        "(circle, lissajous, hover, with :KEY=VALUE,...) or a fitted path file (.npz) "
+        "that arcade up writes into the run folder",
+    )
+    p.add_argument(
+        "--trajectory-sha256",
+        default=None,
+        metavar="HEX",
+        help="the SHA-256 the --trajectory file must have",
+    )
+
 
 def _xy(text: str) -> tuple[float, float]:
     x, y = (float(v) for v in text.split(","))
@@ -248,18 +263,42 @@ def _xy(text: str) -> tuple[float, float]:
 
 
 def scenario(args: argparse.Namespace) -> Any:
-    """The closed-loop scenario (take-off, hover, figure-eight) of the plan options."""
+    """The closed-loop scenario (take-off, hover, figure-eight or ``--trajectory``) of the
+    plan options."""
     # Imported here: it loads JAX, which the services without a model (the recorder)
     # then do not import at start-up.
-    from arcade_control.scenario import Scenario
+    from arcade_control.scenario import Scenario, planned
 
-    ox, oy = getattr(args, "origin", (0.0, 0.0))
-    base = Scenario()
-    return Scenario(
-        payload_g=float(args.payload_g),
-        speed_mps=float(args.speed),
-        release_fraction=float(args.release),
-        hover_s=float(getattr(args, "hover_s", base.hover_s)),
-        start=(base.start[0] + ox, base.start[1] + oy, base.start[2]),
-        center=(base.center[0] + ox, base.center[1] + oy, base.center[2]),
+    return planned(
+        payload_g=args.payload_g,
+        speed_mps=args.speed,
+        release_fraction=args.release,
+        hover_s=getattr(args, "hover_s", None),
+        origin=getattr(args, "origin", (0.0, 0.0)),
+        trajectory=trajectory(
+            getattr(args, "trajectory", None),
+            getattr(args, "trajectory_sha256", None),
+            Scenario().center,
+            float(args.speed),
+        ),
     )
+
+
+def trajectory(value: str | None, sha256: str | None, center: Any, speed: float) -> Any:
+    """The :class:`arcade_control.trajectory.Trajectory` of ``--trajectory``: a fitted
+    path file (``.npz``, its ``--trajectory-sha256`` checked) or a built-in spec; None
+    without one or for the figure-eight. ``ValueError`` (one line) otherwise."""
+    if value is None:
+        return None
+    from arcade_control import trajectory as traj
+
+    if value.endswith(".npz"):
+        from arcade_core.trajectories import PiecewisePolynomial
+        from arcade_io.trajectory_file import load_fitted
+
+        if not sha256:
+            raise ValueError(f"--trajectory {value}: needs --trajectory-sha256")
+        name, breaks, coeffs, yaw = load_fitted(value, sha256)
+        heading = None if yaw is None else PiecewisePolynomial(*yaw)
+        return traj.sampled(name, PiecewisePolynomial(breaks, coeffs), heading)
+    return traj.builtin(value, center, speed)

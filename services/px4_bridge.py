@@ -12,6 +12,9 @@ any MAVSDK URL: ``udpin://0.0.0.0:14540`` for SITL or a telemetry radio bridge,
 - ``mocap`` -> PX4 ``ODOMETRY`` (MAVSDK mocap plugin): position NED, attitude FRD-to-NED, in
   a ``LOCAL_FRD`` world frame (the mocap frame need not face north), estimator type vision,
   so that PX4's EKF2 has the external-vision position it needs to hold or land by itself.
+- ``--forward URL`` (repeatable): every MAVLink message between PX4 and the bridge's
+  link is also passed to and from URL (MAVSDK's forwarding connections), e.g.
+  ``udpout://127.0.0.1:14550`` for QGroundControl beside the stack.
 - PX4 telemetry -> bus: ``imu`` at the control rate (PX4's body rates, FLU; each sample is
   a control instant for the estimator, as the simulator's are), ``event`` on every arming,
   flight-mode, offboard and health change, and a ``vehicle_status`` event (severity
@@ -105,12 +108,13 @@ class Px4Bridge(OffboardControl, runtime.Service):
             engagements=0,
             mode_changes=0,
             connect=a.connect,
+            forward=list(a.forward),
         )
         self._fwd = runtime.LatencySamples()
 
     def _connect(self) -> None:
         # MAVSDK (gRPC, protobuf) loads here, not at import: start-up cost.
-        from mavsdk import ComponentType, Configuration, ConnectionResult, Mavsdk
+        from mavsdk import ComponentType, Configuration, ConnectionResult, ForwardingOption, Mavsdk
         from mavsdk.plugins import mocap as mc
         from mavsdk.plugins.action import Action
         from mavsdk.plugins.offboard import Offboard
@@ -119,11 +123,17 @@ class Px4Bridge(OffboardControl, runtime.Service):
         a = self.args
         # A ground station (system id 245): PX4's data-link-loss checks watch its heartbeat.
         self.mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
-        result = self.mavsdk.add_any_connection(a.connect)
-        if result != ConnectionResult.SUCCESS:
-            raise RuntimeError(
-                f"cannot open the MAVLink connection {a.connect!r}: {ConnectionResult(result).name}"
-            )
+        # With --forward, MAVSDK passes what arrives on one forwarding connection to the
+        # others: PX4's messages reach the ground station and the station's reach PX4.
+        forwarding = ForwardingOption.ON if a.forward else ForwardingOption.OFF
+        for url in [a.connect, *a.forward]:
+            result = self.mavsdk.add_any_connection_with_forwarding(url, forwarding)
+            if result != ConnectionResult.SUCCESS:
+                raise RuntimeError(
+                    f"cannot open the MAVLink connection {url!r}: {ConnectionResult(result).name}"
+                )
+        if a.forward:
+            self.log.info("forwarding MAVLink between %s and %s", a.connect, ", ".join(a.forward))
         self.log.info(
             "waiting up to %.0f s for a PX4 autopilot on %s", a.connect_timeout, a.connect
         )

@@ -7,8 +7,24 @@ import argparse
 from services import options
 
 DEFAULT_URL = "udpin://0.0.0.0:14540"
-#: The allowed box (``--geofence``), ENU metres.
+#: The allowed box, ENU metres: also what a ``--trajectory`` is checked against in the
+#: sim profile.
 DEFAULT_GEOFENCE = "-5,5,-5,5,-0.5,4"
+
+
+#: The connection kinds of a MAVSDK URL.
+URL_SCHEMES = ("udpin", "udpout", "tcpin", "tcpout", "serial")
+
+
+def mavlink_url(text: str) -> str:
+    """argparse ``type=``: a MAVSDK connection URL (``udpout://HOST:PORT``, ...)."""
+    scheme, sep, rest = text.partition("://")
+    if not sep or scheme not in URL_SCHEMES or not rest:
+        raise argparse.ArgumentTypeError(
+            f"not a MAVSDK URL: {text!r} (e.g. udpout://127.0.0.1:14550; kinds: "
+            f"{', '.join(URL_SCHEMES)})"
+        )
+    return text
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -17,6 +33,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--connect",
         default=DEFAULT_URL,
         help="MAVSDK connection URL, e.g. udpin://0.0.0.0:14540 or serial:///dev/ttyACM0:921600",
+    )
+    p.add_argument(
+        "--forward",
+        action="append",
+        type=mavlink_url,
+        default=[],
+        metavar="URL",
+        help="also pass every MAVLink message between PX4 and this MAVSDK URL, both ways "
+        "(repeatable), so that a ground station watches the vehicle while the stack flies "
+        "it, e.g. udpout://127.0.0.1:14550 for QGroundControl on this machine "
+        "(default: none)",
     )
     p.add_argument(
         "--vehicle-file",

@@ -10,9 +10,8 @@ state the vehicle's ``foxglove.FrameTransform`` (world -> ``<vehicle>/body``),
 ``foxglove.PoseInFrame`` and ``foxglove.SceneUpdate``, and every second the reference path
 and the geofence, on ``arcade/<vehicle>/foxglove/<name>``
 (:mod:`arcade_io.foxglove_scene`, the conversion the live ``foxglove`` service serves too),
-so that Foxglove's 3D panel shows the flight without set-up. The planned path is sampled
-from the plan options with JAX, once, in a thread (about 1 s of CPU at start, off the
-recording path; :func:`services.foxglove_live.scene_for`).
+so that Foxglove's 3D panel shows the flight without set-up. The reference path is the
+controller's ``reference`` records so far.
 
 ``<out>/flight_log.csv``: the design §5 flight log, one row per setpoint: the estimated
 state it answers and the setpoint (``t, px, ..., wz, u0..u3``; ``t`` relative to the first
@@ -139,7 +138,7 @@ class Recorder(runtime.Service):
         from arcade_io.foxglove_scene import CHANNELS
         from services.foxglove_live import scene_for
 
-        self.scene = scene_for(self.args, self.log)
+        self.scene = scene_for(self.args)
         self._fg_channels: dict[str, int] = {}
         for name, cls in CHANNELS.items():
             schema = cls.get_schema()

@@ -20,6 +20,7 @@ from services.messages import (
     Mocap,
     Model,
     Reason,
+    Reference,
     Residual,
     Setpoint,
     State,
@@ -164,6 +165,13 @@ def _setpoint(draw: st.DrawFn) -> Setpoint:
     )
 
 
+@st.composite
+def _reference(draw: st.DrawFn) -> Reference:
+    x = draw(_state()).x
+    u = np.concatenate([draw(_vec(1, 0.0, 1e3)), draw(_vec(3, -100.0, 100.0))])
+    return draw(st.builds(Reference, x=st.just(x), u=st.just(u), t=_floats(0.0, 1e6), **_header()))
+
+
 STRATEGIES: dict[type, st.SearchStrategy] = {
     Mocap: _mocap(),
     Imu: st.builds(
@@ -171,6 +179,7 @@ STRATEGIES: dict[type, st.SearchStrategy] = {
     ),
     State: _state(),
     Setpoint: _setpoint(),
+    Reference: _reference(),
     Residual: _residual(),
     Model: _model(),
     Event: st.builds(
@@ -203,6 +212,12 @@ def sample(cls: type) -> wm.Message:
         Imu: lambda: Imu(gyro=[0.1, -0.2, 0.3], accel=[0.0, 0.0, 9.81], **head),
         State: lambda: State(x=np.r_[1.0, 2, 3, 0.1, 0.2, 0.3, q, 0.5, -0.5, 0.1], **head),
         Setpoint: lambda: Setpoint(u=[5.4, 0.1, -0.1, 0.0], state_seq=6, **head),
+        Reference: lambda: Reference(
+            x=np.r_[1.0, 2, 3, 0.1, 0.2, 0.3, q, 0.5, -0.5, 0.1],
+            u=[5.4, 0.1, -0.1, 0.0],
+            t=4.25,
+            **head,
+        ),
         Residual: lambda: Residual(
             delta=np.arange(d) * 0.1,
             mean=np.ones(d),

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
+from deploy import trajectories
 from services.options import METHOD_HELP
 
 HELP = (
@@ -40,8 +41,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=number(0.0, low_open=True),
         default=None,
-        help=f"figure-eight mean speed [m/s] (default: {SPEED:g})",
+        help="mean speed of the figure-eight, of a built-in --trajectory and of waypoints "
+        f"without times [m/s] (default: {SPEED:g})",
     )
+    p.add_argument("--trajectory", default=None, metavar="FILE|NAME", help=trajectories.HELP)
     p.add_argument("--seed", type=count(0), default=0, help="trial seed (default: %(default)s)")
     p.add_argument(
         "--weights",
@@ -93,6 +96,7 @@ def run_cartpole(args: argparse.Namespace) -> int:
             ("--method", args.method is not None),
             ("--compare", args.compare),
             ("--ros2", args.ros2),
+            ("--trajectory", args.trajectory is not None),
         )
         if given
     ]
@@ -151,6 +155,8 @@ def run(args: argparse.Namespace) -> int:
         return run_cartpole(args)
     if args.compare and args.method is not None:
         return _error("--method: not with --compare (it flies l1, ours and arcade)")
+    if args.compare and args.trajectory is not None:
+        return _error("--trajectory: not with --compare (it flies the figure-eight)")
     from arcade.commands.up import out_problem, weights_problem
     from arcade_io import jaxsetup
     from arcade_io.runs import new_run_dir
@@ -168,12 +174,20 @@ def run(args: argparse.Namespace) -> int:
 
     payload_g = PAYLOAD_G if args.payload_g is None else args.payload_g
     speed = SPEED if args.speed is None else args.speed
+    planned = None
+    if args.trajectory is not None:
+        from deploy.trajectories import option_problem
+
+        trajectory, problem = option_problem(args.trajectory, speed=speed, payload_g=payload_g)
+        if problem is not None:
+            return _error(problem)
+        planned = (args.trajectory, trajectory)
     out = Path(args.out or new_run_dir("demo")).absolute()
-    print(
-        f"ARCADE stack demo: {payload_g:g} g payload, {speed:g} m/s figure-eight, "
-        "released before the second lap (lockstep)",
-        flush=True,
-    )
+    if planned is None:
+        plan = f"{speed:g} m/s figure-eight, released before the second lap"
+    else:
+        plan = f"trajectory {args.trajectory}, released at 95 % of its first lap"
+    print(f"ARCADE stack demo: {payload_g:g} g payload, {plan} (lockstep)", flush=True)
     if args.foxglove is not None:
         from arcade.commands.up import foxglove_line
 
@@ -193,6 +207,7 @@ def run(args: argparse.Namespace) -> int:
             method=args.method or DEFAULT_STACK_METHOD,
             ros2=args.ros2,
             foxglove_port=args.foxglove,
+            trajectory=planned,
         )
     except (StackError, ValueError, OSError) as err:
         return _error(f"{err} (run folder: {out})", 1)

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
+from deploy import trajectories
 from services.options import METHOD_HELP
 
 HELP = "launch the service stack as processes over Zenoh (profile sim or px4)"
@@ -25,8 +26,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "  arcade up --profile px4 --connect serial:///dev/ttyACM0:921600\n"
         "                                              a real PX4 (asks before arming)\n"
         "  arcade up --profile px4 --simulate --arm   the same chain against a simulated PX4\n"
+        "  arcade up --profile px4 --forward udpout://127.0.0.1:14550\n"
+        "                                              QGroundControl watches the vehicle\n"
         "  arcade up --profile px4 --service-arg estimator:--mocap-noise=1e-4\n"
         "                                              your motion capture's noise [m]\n"
+        "  arcade up --lockstep --trajectory my_path.csv\n"
+        "                                              your own path (docs/trajectories.md)\n"
         "  arcade up --lockstep --bus-configs deploy/my-router\n"
         "                                              every process a client of a router\n"
         "The run folder gets logs/<service>.log, stats/, events.jsonl, truth.csv,\n"
@@ -75,7 +80,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=number(0.0, low_open=True),
         default=2.5,
-        help="figure-eight mean speed [m/s] (default: %(default)s)",
+        help="mean speed of the figure-eight, of a built-in --trajectory and of "
+        "waypoints without times [m/s] (default: %(default)s)",
+    )
+    p.add_argument(
+        "--trajectory",
+        default=None,
+        metavar="FILE|NAME",
+        help=trajectories.HELP,
     )
     p.add_argument(
         "--rate",
@@ -240,6 +252,7 @@ PX4_OPTIONS = {
     "arm": False,
     "takeoff_m": None,
     "on_ground": False,
+    "forward": [],
     "bridge_arg": [],
 }
 
@@ -270,7 +283,7 @@ def usage_problem(args: argparse.Namespace) -> str | None:
         return "--on-ground is for the simulated PX4: add --simulate"
     if args.takeoff_m is not None and not (math.isfinite(args.takeoff_m) and args.takeoff_m > 0):
         return f"--takeoff-m must be a positive number, got {args.takeoff_m:g}"
-    return bridge_args_problem(args.bridge_arg)
+    return bridge_args_problem([*(f"--forward={url}" for url in args.forward), *args.bridge_arg])
 
 
 def hub_problem(hub: str | None) -> str | None:
@@ -333,6 +346,26 @@ def bridge_args_problem(bridge_args: list[str]) -> str | None:
     except ValueError as err:
         return f"--bridge-arg: {err}"
     return None
+
+
+def trajectory_problem(args: argparse.Namespace):
+    """``--trajectory`` resolved and checked against the vehicle (the shipped one, or the
+    bridge's ``--vehicle-file``) and the geofence (the bridge's ``--geofence``): (the
+    trajectory or None, why it is refused or None)."""
+    if args.trajectory is None:
+        return None, None
+    from arcade_io import jaxsetup
+    from deploy.trajectories import option_problem
+
+    jaxsetup.configure(x64=args.x64)  # the check computes the flat reference
+    bridge = parse_bridge_args(args.bridge_arg) if args.profile == "px4" else None
+    return option_problem(
+        args.trajectory,
+        speed=args.speed,
+        payload_g=args.payload_g,
+        vehicle_file=bridge.vehicle_file if bridge else None,
+        geofence=bridge.geofence if bridge else None,
+    )
 
 
 def payload_problem(args: argparse.Namespace) -> str | None:
@@ -423,6 +456,9 @@ def options_given(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
 #: Options the launcher sets that ``--service-arg`` may still set for one service (the
 #: service's own value comes last and wins).
 OVERRIDABLE = frozenset({"--log-level"})
+#: Options only the launcher sets, given to it or not (one process alone must not fly
+#: another path).
+LAUNCHER_ONLY = frozenset({"--trajectory", "--trajectory-sha256"})
 
 
 def service_args_problem(cfg) -> str | None:
@@ -440,7 +476,8 @@ def service_args_problem(cfg) -> str | None:
             given = options_given(parser, argv)
         except ValueError as err:
             return f"--service-arg {name}:{' '.join(argv)}: {err}"
-        clash = sorted((given & options_given(parser, own.args(name))) - OVERRIDABLE)
+        launcher = options_given(parser, own.args(name)) | (given & LAUNCHER_ONLY)
+        clash = sorted((given & launcher) - OVERRIDABLE)
         if clash:
             return (
                 f"--service-arg {name}: {', '.join(clash)} set by the launcher (from "
@@ -523,6 +560,10 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         say(f"error: {problem}")
         return 2
+    trajectory, problem = trajectory_problem(args)
+    if problem is not None:
+        say(f"error: {problem}")
+        return 2
     configs: dict[str, Path] = {}
     if args.bus_configs is not None:
         from deploy.launcher import SERVICES
@@ -568,6 +609,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = stack_config(args, args.out or new_run_dir("up"), configs, grouped)
     if args.foxglove is not None:
         say(foxglove_line(args.foxglove))
+    if args.trajectory is not None:
+        from deploy.trajectories import stage
+
+        cfg.trajectory, cfg.trajectory_sha256 = stage(cfg.out, args.trajectory, trajectory)
 
     last = [-1.0]
 

@@ -56,6 +56,7 @@ class FakePx4:
         self.commands: list[tuple[float, int, tuple]] = []
         self.odometry: list = []
         self.modes: list[tuple[float, int, int]] = []
+        self.systems: set[int] = set()  # MAVLink system ids heard from
         self.stop = threading.Event()
         self.threads = [
             threading.Thread(target=self._rx, daemon=True),
@@ -117,6 +118,10 @@ class FakePx4:
             except (TimeoutError, OSError):
                 continue
             for msg in parser.parse_buffer(data) or []:
+                if msg.get_srcSystem() not in self.systems:
+                    with self.lock:
+                        self.systems.add(msg.get_srcSystem())
+                        self.lock.notify_all()
                 self._handle(msg)
 
     def _handle(self, msg) -> None:
@@ -165,6 +170,39 @@ class FakePx4:
         self.stop.set()
         for t in self.threads:
             t.join(2.0)
+        self.sock.close()
+
+
+class GroundStation:
+    """A ground station's UDP port (QGroundControl's 14550): the bridge forwards to it."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.port = self.sock.getsockname()[1]
+        self.mav = mav.MAVLink(self, srcSystem=255, srcComponent=190)  # QGroundControl's ids
+        self.peer: tuple[str, int] | None = None
+
+    def write(self, buf: bytes) -> None:  # pymavlink's file interface
+        if self.peer is not None:
+            self.sock.sendto(buf, self.peer)
+
+    def heartbeat_from(self, system: int, timeout: float):
+        """The first HEARTBEAT of ``system`` that arrives within ``timeout`` s, or None."""
+        parser = mav.MAVLink(None)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                data, self.peer = self.sock.recvfrom(65535)
+            except TimeoutError:
+                continue
+            for msg in parser.parse_buffer(data) or []:
+                if msg.get_type() == "HEARTBEAT" and msg.get_srcSystem() == system:
+                    return msg
+        return None
+
+    def close(self) -> None:
         self.sock.close()
 
 
@@ -240,6 +278,7 @@ class SetpointStream:
 def rig(tmp_path):
     port, hub = _free_port(), f"tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"
     px4 = FakePx4(port)
+    gcs = GroundStation()
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     cmd = [
         sys.executable,
@@ -261,6 +300,8 @@ def rig(tmp_path):
         "0.8",
         "--status-rate",
         "5",
+        "--forward",
+        f"udpout://127.0.0.1:{gcs.port}",
     ]
     log = (tmp_path / "bridge.out").open("w")
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
@@ -274,7 +315,7 @@ def rig(tmp_path):
             assert time.monotonic() < deadline, "bridge not ready after 60 s"
             with contextlib.suppress(TimeoutError):
                 bus.wait_alive(["bridge"], timeout=0.5)
-        yield px4, proc, bus, events, tmp_path
+        yield px4, proc, bus, events, gcs
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)
@@ -284,6 +325,7 @@ def rig(tmp_path):
                 proc.kill()
         bus.close()
         px4.close()
+        gcs.close()
         log.close()
 
 
@@ -306,7 +348,13 @@ def _arm(bus: Bus, events: Events) -> None:
 
 @pytest.mark.realtime
 def test_bridge_against_fake_px4(rig):
-    px4, proc, bus, events, _ = rig
+    px4, proc, bus, events, gcs = rig
+
+    # --forward: a ground station hears PX4 through the bridge, and PX4 hears it.
+    heartbeat = gcs.heartbeat_from(1, 10.0)
+    assert heartbeat is not None and heartbeat.autopilot == mav.MAV_AUTOPILOT_PX4
+    gcs.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    assert px4.wait(lambda: 255 in px4.systems, 5.0)
 
     # Telemetry reaches the bus: imu at the control rate (PX4 rates FRD -> FLU).
     imu: list = []

@@ -369,18 +369,56 @@ def test_long_mocap_dropout_lands_and_arming_waits_for_tracking(tmp_path):
     assert px4["mocap_faults"]["dropout"] > 0
 
 
+class _GroundStation:
+    """A UDP port a ground station would listen on: the MAVLink systems heard there."""
+
+    def __init__(self) -> None:
+        from pymavlink.dialects.v20 import common as mav
+
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.url = f"udpout://127.0.0.1:{self.sock.getsockname()[1]}"
+        self.heartbeats: set[int] = set()  # system ids
+        self._parser = mav.MAVLink(None)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(65535)
+            except TimeoutError:
+                continue
+            for msg in self._parser.parse_buffer(data) or []:
+                if msg.get_type() == "HEARTBEAT":
+                    self.heartbeats.add(msg.get_srcSystem())
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()
+
+
 def test_geofence_breach_leaves_offboard_and_px4_holds_inside_reach(tmp_path):
     # A 2 m x 2 m fence around the centre of the 4 m x 2 m figure-eight: the vehicle
     # crosses it on the first lap; the bridge leaves offboard to Hold, PX4 holds where it
-    # is (not a crash, although the plan's reference moves on), learning pauses.
+    # is (not a crash, although the plan's reference moves on), learning pauses. A ground
+    # station beside the bridge (--forward) hears the simulated PX4 meanwhile.
+    gcs = _GroundStation()
     cfg = _px4_config(
         tmp_path,
         speed=1.0,
         duration=14.0,  # the reference ends more than 2 m from the hold point
         hover_s=None,  # the scenario's: the figure-eight
-        bridge_args=["--geofence=-1,1,-1,1,0,3"],
+        bridge_args=["--geofence=-1,1,-1,1,0,3", f"--forward={gcs.url}"],
     )
-    result = _fly_armed(cfg)
+    try:
+        result = _fly_armed(cfg)
+    finally:
+        gcs.close()
+    assert 1 in gcs.heartbeats, gcs.heartbeats  # PX4's system id, forwarded
     fences = [r for r in result["events"] if _from("bridge", "failsafe")(r)]
     assert fences and fences[0]["data"]["reason"] == "geofence", fences
     assert "outside the geofence" in fences[0]["text"]

@@ -41,6 +41,23 @@ def test_a_state_becomes_the_transform_pose_and_vehicle_and_every_second_the_sta
     assert lengths == [2.0] * 4 + [3.0] * 4 + [4.0] * 4  # twelve axis-aligned edges
 
 
+def test_the_reference_path_is_the_controllers_reference_flown_so_far():
+    from arcade_io.foxglove_scene import PATH_DT, FoxgloveScene
+    from services.messages import Reference
+
+    scene = FoxgloveScene("quad1")
+    assert "reference" not in dict(scene.messages("state", _state(0.0).to_wire()))
+    x = np.r_[0.0, 0.0, 1.5, np.zeros(3), 1.0, np.zeros(6)]
+    for k in range(30):  # 20 ms apart: a point every PATH_DT is kept
+        p = x + np.r_[0.01 * k, np.zeros(12)]
+        ref = Reference(x=p, u=[9.0, 0, 0, 0], t=0.02 * k, stamp=0.02 * k)
+        assert scene.messages("reference", ref.to_wire()) == []
+    assert "reference" in dict(scene.messages("state", _state(1.0).to_wire()))
+    points = scene.reference  # what that scene draws
+    assert points.shape == (int(0.02 * 29 / PATH_DT) + 1, 3)
+    assert tuple(points[0]) == (0.0, 0.0, 1.5) and points[-1, 0] == pytest.approx(0.25)
+
+
 class _Bus:
     """What the recorder and the live server need of a bus: subscriptions kept."""
 
@@ -172,9 +189,9 @@ def test_the_live_server_sends_the_channels_to_a_websocket_client():
     assert live.stats["messages"]["transform"] >= 1
 
 
-def test_the_stack_starts_the_live_service_with_the_plan_and_the_bridges_geofence(tmp_path):
-    """``arcade up --foxglove PORT``: one more process, given the port and the plan (the
-    recorder gets the plan too); in the px4 profile both draw the bridge's geofence."""
+def test_the_stack_starts_the_live_service_with_the_bridges_geofence(tmp_path):
+    """``arcade up --foxglove PORT``: one more process, given the port; in the px4 profile
+    it and the recorder draw the bridge's geofence."""
     from deploy.launcher import StackConfig
     from deploy.px4_profile import Px4StackConfig
 
@@ -182,8 +199,9 @@ def test_the_stack_starts_the_live_service_with_the_plan_and_the_bridges_geofenc
     cfg = StackConfig(out=tmp_path, foxglove_port=0, speed=1.5)
     assert cfg.services()[-2:] == ("foxglove", "sim")  # before the vehicle: it sees it all
     args = cfg.args("foxglove")
-    assert args[args.index("--port") + 1] == "0" and args[args.index("--speed") + 1] == "1.5"
-    assert "--speed" in cfg.args("recorder")
+    assert args[args.index("--port") + 1] == "0"
+    # The path drawn is the controller's reference records: no plan to compute.
+    assert "--speed" not in args and "--speed" not in cfg.args("recorder")
     px4 = Px4StackConfig(out=tmp_path, foxglove_port=8765, bridge_args=["--geofence=-3,3,-3,3,0,3"])
     assert "foxglove" in px4.services()
     for name in ("recorder", "foxglove"):

@@ -86,6 +86,7 @@ def test_message_type_lookup():
         "imu",
         "state",
         "setpoint",
+        "reference",
         "residual",
         "model",
         "event",
