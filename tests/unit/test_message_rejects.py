@@ -22,6 +22,7 @@ from services.messages import (
     Mocap,
     Model,
     Reason,
+    Reference,
     Residual,
     Setpoint,
     State,
@@ -299,6 +300,14 @@ OUT_OF_RANGE = {
         {"mode": "dance"},
         {"solve_ms": -1.0},
         {"state_seq": -1},
+        {"failsafe": "x" * 65},
+    ],
+    Reference: [
+        {"x": [0.0] * 6 + _q(1.1) + [0.0] * 3},
+        {"x": [2e4] + [0.0] * 5 + _q(1.0) + [0.0] * 3},
+        {"u": [-0.1, 0.0, 0.0, 0.0]},
+        {"u": [5.0, 0.0, 150.0, 0.0]},
+        {"t": -1.0},
     ],
     Residual: [
         {"cp_prob": 1.5},
