@@ -68,10 +68,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "seed and plan; writes their x, y, z errors around the release side by side "
         "(compare.png), a metrics table (compare.json) and each flight's run folder",
     )
-    from arcade.commands.up import add_ros2_argument
+    from arcade.commands.service_options import add_ros2_argument
 
     add_ros2_argument(p)
-    from arcade.commands.up import add_foxglove_argument
+    from arcade.commands.service_options import add_foxglove_argument
 
     add_foxglove_argument(p)
     p.add_argument(
@@ -189,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
         plan = f"trajectory {args.trajectory}, released at 95 % of its first lap"
     print(f"ARCADE stack demo: {payload_g:g} g payload, {plan} (lockstep)", flush=True)
     if args.foxglove is not None:
-        from arcade.commands.up import foxglove_line
+        from arcade.commands.service_options import foxglove_line
 
         print(foxglove_line(args.foxglove), flush=True)
     from deploy.launcher import StackError

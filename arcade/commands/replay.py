@@ -169,7 +169,7 @@ def announced_argv(records: list[tuple[str, Any]], service: str) -> list[str]:
 
 def service_args(name: str, argv: list[str], out: Path, knobs: list[str]) -> argparse.Namespace:
     """The options of service ``name`` as it ran, in ``out``, with ``knobs`` added."""
-    from arcade.commands.up import service_parser
+    from arcade.commands.service_options import service_parser
 
     parser = service_parser(name)
     extra = [f"--knob={k}" for k in knobs] if name == "adapter" else []

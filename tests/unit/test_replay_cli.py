@@ -122,7 +122,7 @@ def test_lockstep_replay_puts_each_state_after_the_setpoint_of_the_one_before():
 def test_a_knob_found_by_replay_goes_to_the_stack_adapter_through_service_arg():
     """``arcade up --service-arg adapter:--knob=NAME=VALUE`` is checked by the adapter's
     parser before anything starts (an appending option, told apart from the launcher's)."""
-    from arcade.commands.up import options_given, service_parser
+    from arcade.commands.service_options import options_given, service_parser
 
     parser = service_parser("adapter")
     assert options_given(parser, ["--knob=arcade_lambda=0.95"]) == {"--knob"}

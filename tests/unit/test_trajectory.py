@@ -363,7 +363,7 @@ def test_an_infeasible_plan_is_refused_before_take_off(tmp_path, capsys):
 
 
 def test_one_process_alone_cannot_be_given_another_path(tmp_path):
-    from arcade.commands.up import service_args_problem
+    from arcade.commands.service_options import service_args_problem
 
     cfg = StackConfig(out=tmp_path, extra={"controller": ["--trajectory=circle"]})
     assert service_args_problem(cfg) == (
