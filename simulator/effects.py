@@ -26,8 +26,9 @@ the airframe:
     mass (airframe + electromagnet, what the nominal model uses), so ``d`` is the
     acceleration coefficient at the hover rotor speed [1/s], and ``n_sum / n_hover`` the
     sum of the rotor speeds relative to hover: ``mean_i sqrt(f_i / (m g / 4))`` over the
-    motors' thrusts ``f_i`` (thrust grows with the square of the rotor speed). Both drag terms act at the centre of mass of the
-    rigid vehicle (airframe, electromagnet, rigid payload): a pure force, no moment.
+    motors' thrusts ``f_i`` (thrust grows with the square of the rotor speed). Both drag
+    terms act at the centre of mass of the rigid vehicle (airframe, electromagnet, rigid
+    payload): a pure force, no moment.
 ``quadratic_drag``
     Bluff-body drag per body axis: ``F_body,i = -c_i * |v_b,i| * v_b,i`` with
     ``v_b = R^T v_rel``; ``c_i = rho * C_d * A_i / 2`` [kg/m].

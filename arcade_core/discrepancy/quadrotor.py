@@ -41,9 +41,9 @@ of mass) accelerates by ``-R (omegadot x r + omega x (omega x r))`` more (``com_
 signals.
 
 Parameter vector ``theta`` (internal coordinates, :data:`GROUPS`): ``d (3), c (3), R^2,
-scale, motor tau, delay, filter tau, r (3), wind (3), k_c, k_h, sag r``. The vertical centre-of-mass offset
-``r_z`` makes no thrust torque, so identification leaves it at the model file's value
-(only ``r_x, r_y`` form the ``com_offset`` group).
+scale, motor tau, delay, filter tau, r (3), wind (3), k_c, k_h, sag r``. The vertical
+centre-of-mass offset ``r_z`` makes no thrust torque, so identification leaves it at the
+model file's value (only ``r_x, r_y`` form the ``com_offset`` group).
 """
 
 from __future__ import annotations

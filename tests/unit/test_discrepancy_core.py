@@ -180,23 +180,23 @@ def test_aerodynamic_and_battery_effects_follow_their_formulas():
     def at(tables, v, thrust, t=0.0):
         th = qm.theta_from_effects(model, tables)
         p = jnp.array([0.0, 0.0, 1.0])
-        T, a = qm._accel(model, th, p, jnp.asarray(v), level, zero, zero, thrust, t)
-        return float(T), np.asarray(a)
+        thrust_, a = qm._accel(model, th, p, jnp.asarray(v), level, zero, zero, thrust, t)
+        return float(thrust_), np.asarray(a)
 
     # Rotor drag at 1.44 x hover thrust: the rotors turn 1.2 x as fast.
-    T, a = at({"rotor_drag": {"d": [0.4, 0.0, 0.3]}}, [2.0, 0.0, 1.0], 1.44 * m * g)
+    f, a = at({"rotor_drag": {"d": [0.4, 0.0, 0.3]}}, [2.0, 0.0, 1.0], 1.44 * m * g)
     np.testing.assert_allclose(a, [-0.4 * 1.2 * 2.0, 0.0, -0.3 * 1.2 * 1.0], rtol=1e-12)
-    assert T == pytest.approx(1.44 * m * g, rel=1e-12)
+    assert f == pytest.approx(1.44 * m * g, rel=1e-12)
     # Induced inflow: 2 m/s climb and 3 m/s air speed; flying with the wind: none.
     inflow = {"climb_loss": 0.05, "airspeed_loss": 0.01}
-    T, a = at({"induced_inflow": inflow}, [3.0, 0.0, 2.0], m * g)
-    assert T == pytest.approx((1.0 - 0.1 - 0.09) * m * g, rel=1e-12)
+    f, a = at({"induced_inflow": inflow}, [3.0, 0.0, 2.0], m * g)
+    assert f == pytest.approx((1.0 - 0.1 - 0.09) * m * g, rel=1e-12)
     np.testing.assert_allclose(a, 0.0, atol=1e-15)
     tables = {"induced_inflow": inflow, "wind": {"velocity_mps": [3.0, 0.0, 2.0]}}
     assert at(tables, [3.0, 0.0, 2.0], m * g)[0] == pytest.approx(m * g, rel=1e-12)
     # Battery sag: a minute into the log, 6 % less thrust.
-    T, _ = at({"battery_sag": {"loss_per_min": 0.06}}, [0.0, 0.0, 0.0], m * g, t=60.0)
-    assert T == pytest.approx(0.94 * m * g, rel=1e-12)
+    f, _ = at({"battery_sag": {"loss_per_min": 0.06}}, [0.0, 0.0, 0.0], m * g, t=60.0)
+    assert f == pytest.approx(0.94 * m * g, rel=1e-12)
 
 
 def test_cartpole_model_with_the_papers_effects_is_the_papers_true_system():
