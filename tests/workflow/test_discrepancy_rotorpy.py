@@ -15,8 +15,8 @@ slower and not more accurate at this step.
 
 With RotorPy's aerodynamics on, the workflow must name a drag effect, add it, and lower
 the held-out one-step RMSE of the components it acts on by at least 30 %; with them off
-it must name no drag effect. Flights are generated once per module, nothing is cached
-outside ``tmp``.
+it must name no drag effect. The first flight goes through the library function, the
+second through ``arcade discrepancy`` (CSV log and vehicle file); each is flown once.
 """
 
 from __future__ import annotations
@@ -117,19 +117,15 @@ def fly_rotorpy(aero: bool, seed: int):
 
 
 @pytest.fixture(scope="module")
-def flights():
-    """Per aerodynamics on/off: (log, workflow result)."""
-    veh = rotorpy_vehicle()
-    out = {}
-    for aero in (True, False):
-        log = fly_rotorpy(aero, seed=int(aero))
-        assert np.max(np.linalg.norm(log.X[:, 3:6], axis=1)) > 2.5  # the path is flown
-        out[aero] = (log, run_workflow(log, "quadrotor", vehicle=veh).result)
-    return out
+def with_aero():
+    """RotorPy's flight with its aerodynamics on and the workflow's result (library)."""
+    log = fly_rotorpy(aero=True, seed=1)
+    assert np.max(np.linalg.norm(log.X[:, 3:6], axis=1)) > 2.5  # the path is flown
+    return log, run_workflow(log, "quadrotor", vehicle=rotorpy_vehicle()).result
 
 
-def test_rotorpy_drag_is_named_added_and_lowers_the_heldout_gap(flights):
-    _, result = flights[True]
+def test_rotorpy_drag_is_named_added_and_lowers_the_heldout_gap(with_aero):
+    _, result = with_aero
     added = [e for e in result["effects"] if e["added"]]
     drag = [e for e in added if e["name"] in DRAG_EFFECTS]
     assert drag, result["summary"]
@@ -144,13 +140,6 @@ def test_rotorpy_drag_is_named_added_and_lowers_the_heldout_gap(flights):
     if rotor is not None:
         d_true = qp["k_d"] * hover_sum / qp["mass"]
         np.testing.assert_allclose(rotor["params"]["d"][:2], d_true, rtol=0.2)
-
-
-def test_without_rotorpy_aerodynamics_no_drag_is_named(flights):
-    _, result = flights[False]
-    named = {e["name"] for e in result["effects"] if e["added"]}
-    assert not named & DRAG_EFFECTS, result["summary"]
-    assert result["heldout_rmse_after"] <= result["heldout_rmse_before"]
 
 
 def _toml(tables: dict) -> str:
@@ -170,17 +159,17 @@ def _toml(tables: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def test_the_command_line_gives_the_same_answer(flights, tmp_path, capsys):
-    log, result = flights[True]
+def test_without_rotorpy_aerodynamics_no_drag_is_named(tmp_path, capsys):
+    """Through the command line: the CSV log and a vehicle file, as a user runs it."""
+    log = fly_rotorpy(aero=False, seed=0)
     csv, vehicle = tmp_path / "rotorpy.csv", tmp_path / "hummingbird.toml"
     write_log(csv, log)
     vehicle.write_text(_toml(rotorpy_vehicle()))
     out = tmp_path / "out"
     argv = ["discrepancy", str(csv), "--vehicle", str(vehicle), "--json", "--out", str(out)]
     assert cli.main(argv) == 0
-    answer = json.loads(capsys.readouterr().out)
-    assert [(e["name"], e["added"]) for e in answer["effects"]] == [
-        (e["name"], e["added"]) for e in result["effects"]
-    ]
-    assert answer["heldout_rmse_after"] == pytest.approx(result["heldout_rmse_after"], rel=1e-6)
-    assert answer["heldout_rmse_after"] <= answer["heldout_rmse_before"]
+    result = json.loads(capsys.readouterr().out)
+    named = {e["name"] for e in result["effects"] if e["added"]}
+    assert not named & DRAG_EFFECTS, result["summary"]
+    assert result["heldout_rmse_after"] <= result["heldout_rmse_before"]
+    assert (out / "report.md").stat().st_size > 0
