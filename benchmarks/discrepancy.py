@@ -85,6 +85,15 @@ SWEEP_CASES: dict[str, list[dict]] = {
         {"velocity_mps": [-3.0, 2.0, 0.0]}, {"velocity_mps": [7.0, -5.0, 1.0]},
         {"velocity_mps": [-15.0, 0.0, 0.0]}, {"velocity_mps": [10.0, 10.0, -2.0]},
     ],
+    "induced_inflow": [
+        {"climb_loss": 0.02, "airspeed_loss": 0.0}, {"climb_loss": 0.1, "airspeed_loss": 0.0},
+        {"climb_loss": 0.0, "airspeed_loss": 0.005}, {"climb_loss": 0.0, "airspeed_loss": -0.01},
+        {"climb_loss": 0.2, "airspeed_loss": 0.02}, {"climb_loss": 0.05, "airspeed_loss": -0.02},
+    ],
+    "battery_sag": [
+        {"loss_per_min": 0.005}, {"loss_per_min": 0.02}, {"loss_per_min": 0.05},
+        {"loss_per_min": 0.1},
+    ],
 }
 # fmt: on
 
@@ -154,6 +163,13 @@ LIMIT_DIRECTIONS = {
     ],
     "com_offset": [lambda m: {"offset_m": [m / 2**0.5, -m / 2**0.5, 0.0]}],
     "wind": [lambda m: {"velocity_mps": [m / 2**0.5, -m / 2**0.5, 0.0]}],
+    # Induced inflow: magnitude |k_c| + 9 |k_h| (1 m/s climb, 3 m/s air speed).
+    "induced_inflow": [
+        lambda m: {"climb_loss": m, "airspeed_loss": 0.0},
+        lambda m: {"climb_loss": 0.0, "airspeed_loss": m / 9.0},
+        lambda m: {"climb_loss": 0.0, "airspeed_loss": -m / 9.0},
+    ],
+    "battery_sag": [lambda m: {"loss_per_min": m}],
 }
 
 
@@ -215,7 +231,9 @@ def detection_limits(
             if (name == "wind") != wind or (effects and name not in effects):
                 continue
             hi = max(max(abs(p.low), abs(p.high)) for p in spec.params.values())
-            hi = {"thrust_scale": 0.5, "motor_lag": 0.2 - 0.025}.get(name, hi)
+            hi = {"thrust_scale": 0.5, "motor_lag": 0.2 - 0.025, "induced_inflow": 0.18}.get(
+                name, hi
+            )
             out[name] = max(_limit(ctx, name, d, hi) for d in LIMIT_DIRECTIONS[name])
     return {"machine": machine(), "duration_s": duration, "seed": seed, "limits": out}
 

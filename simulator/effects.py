@@ -20,11 +20,15 @@ Physical forms, world ENU / body FLU, ``v_rel = v - wind`` the air-relative velo
 the airframe:
 
 ``rotor_drag``
-    Linear rotor (blade-flapping / induced) drag, Faessler et al. form with constant
-    coefficients: ``F_body = -m * diag(d) @ R^T v_rel``, where ``m`` is the vehicle mass
-    (airframe + electromagnet, what the nominal model uses), so ``d`` is directly the
-    acceleration coefficient [1/s]. Both drag terms act at the centre of mass of the
-    rigid vehicle (airframe, electromagnet, rigid payload): a pure force, no moment.
+    Rotor (blade-flapping / induced) drag, the Faessler et al. form with coefficients
+    proportional to the rotor speeds (as RotorPy models it, per rotor ``-k omega_i v``):
+    ``F_body = -m * diag(d) * (n_sum / n_hover) @ R^T v_rel``, where ``m`` is the vehicle
+    mass (airframe + electromagnet, what the nominal model uses), so ``d`` is the
+    acceleration coefficient at the hover rotor speed [1/s], and ``n_sum / n_hover`` the
+    sum of the rotor speeds relative to hover: ``mean_i sqrt(f_i / (m g / 4))`` over the
+    motors' thrusts ``f_i`` (thrust grows with the square of the rotor speed). Both drag
+    terms act at the centre of mass of the rigid vehicle (airframe, electromagnet, rigid
+    payload): a pure force, no moment.
 ``quadratic_drag``
     Bluff-body drag per body axis: ``F_body,i = -c_i * |v_b,i| * v_b,i`` with
     ``v_b = R^T v_rel``; ``c_i = rho * C_d * A_i / 2`` [kg/m].
@@ -48,13 +52,22 @@ the airframe:
     motion-capture rigid-body origin).
 ``wind``
     Constant wind velocity in the world frame. It acts only through the drag terms
-    (``rotor_drag`` and/or ``quadratic_drag`` use ``v_rel = v - wind``); an effects set
-    with wind but no drag term is rejected because the wind would do nothing. The payload
-    feels no aerodynamic force.
+    (``rotor_drag`` and/or ``quadratic_drag`` use ``v_rel = v - wind``) and the induced
+    inflow; an effects set with wind but no drag term is rejected because the wind would
+    do (almost) nothing. The payload feels no aerodynamic force.
+``induced_inflow``
+    The rotors' thrust changes with their inflow: every rotor makes
+    ``1 - climb_loss * v_b,z - airspeed_loss * (v_b,x^2 + v_b,y^2)`` times its thrust,
+    ``v_b = R^T v_rel`` (climbing through the air loses thrust; a negative
+    ``airspeed_loss`` is translational lift).
+``battery_sag``
+    The battery voltage sags over the flight: every rotor makes ``1 - loss_per_min * t /
+    60`` times its thrust, ``t`` the simulation time [s] since the reset.
 """
 
 from __future__ import annotations
 
+import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -156,16 +169,40 @@ def load_effects(source: str | Path | Mapping[str, Any] | Effects | None) -> Eff
 # --- force / gain terms used by the simulator (numpy, body FLU, world ENU) ---
 
 
-def drag_force_body(effects: Effects, v_rel_body: np.ndarray, vehicle_mass: float) -> np.ndarray:
-    """Total drag force in the body frame [N] from ``rotor_drag`` and ``quadratic_drag``."""
+def rotor_speed_ratio(thrusts, hover_thrust_per_rotor: float) -> float:
+    """Sum of the rotor speeds relative to hover, ``mean_i sqrt(f_i / f_hover)`` (thrust
+    grows with the square of the rotor speed)."""
+    return sum(math.sqrt(max(f, 0.0) / hover_thrust_per_rotor) for f in thrusts) / len(thrusts)
+
+
+def drag_force_body(
+    effects: Effects, v_rel_body: np.ndarray, vehicle_mass: float, speed_ratio: float = 1.0
+) -> np.ndarray:
+    """Total drag force in the body frame [N] from ``rotor_drag`` (at ``speed_ratio``
+    times the hover rotor speeds, :func:`rotor_speed_ratio`) and ``quadratic_drag``."""
     f = np.zeros(3)
     d = effects.get("rotor_drag", "d")
     if d is not None:
-        f -= vehicle_mass * d * v_rel_body
+        f -= vehicle_mass * speed_ratio * d * v_rel_body
     c = effects.get("quadratic_drag", "c")
     if c is not None:
         f -= c * np.abs(v_rel_body) * v_rel_body
     return f
+
+
+def inflow_gain(effects: Effects, v_rel_body: np.ndarray) -> float:
+    """Thrust ratio of ``induced_inflow`` at the air-relative body velocity (1 without it)."""
+    if "induced_inflow" not in effects:
+        return 1.0
+    k_c = effects.get("induced_inflow", "climb_loss")
+    k_h = effects.get("induced_inflow", "airspeed_loss")
+    vx, vy, vz = (float(x) for x in v_rel_body)
+    return 1.0 - k_c * vz - k_h * (vx * vx + vy * vy)
+
+
+def battery_gain(effects: Effects, t: float) -> float:
+    """Thrust ratio of ``battery_sag`` at ``t`` [s] since the reset (1 without it)."""
+    return 1.0 - effects.get("battery_sag", "loss_per_min", 0.0) * t / 60.0
 
 
 def ground_effect_gain(height_m: np.ndarray, rotor_radius_m: float) -> np.ndarray:

@@ -37,7 +37,15 @@ import numpy as np
 
 from arcade_core import frames
 from arcade_io.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG, load_vehicle
-from simulator.effects import Effects, drag_force_body, ground_effect_gain, load_effects
+from simulator.effects import (
+    Effects,
+    battery_gain,
+    drag_force_body,
+    ground_effect_gain,
+    inflow_gain,
+    load_effects,
+    rotor_speed_ratio,
+)
 from simulator.mjcf import (
     PAYLOAD_RADIUS,
     RELEASE_EQUALITY,
@@ -165,6 +173,9 @@ class QuadrotorSim:
         self._thrust_gain = float(self.effects.get("thrust_scale", "scale", 1.0))
         self._ge_radius = self.effects.get("ground_effect", "rotor_radius_m")
         self._drag = "rotor_drag" in self.effects or "quadratic_drag" in self.effects
+        self._air = self._drag or "induced_inflow" in self.effects
+        self._sag = "battery_sag" in self.effects
+        self._hover_per_rotor = self.vehicle_mass * self.gravity / 4.0
         wind = self.effects.get("wind", "velocity_mps")
         self._wind = np.zeros(3) if wind is None else np.asarray(wind, dtype=float)
 
@@ -304,6 +315,12 @@ class QuadrotorSim:
         # (the arithmetic is elementwise, so the results are those of the vector form).
         a, gain = self._motor_alpha, self._thrust_gain
         self._thrust = thrust = [f + a * (c - f) for f, c in zip(self._thrust, self._thrust_cmd)]
+        if self._sag:
+            gain *= battery_gain(self.effects, self._k * self.dt)
+        if self._air:
+            rot = d.xmat[self._airframe].reshape(3, 3)
+            v_rel_b = rot.T @ (d.qvel[0:3] - self._wind)
+            gain *= inflow_gain(self.effects, v_rel_b)
         force = [f * gain for f in thrust]
         if self._ge_radius is not None:
             force = np.array(force) * ground_effect_gain(
@@ -311,9 +328,8 @@ class QuadrotorSim:
             )
         d.ctrl[:] = force
         if self._drag:
-            rot = d.xmat[self._airframe].reshape(3, 3)
-            v_rel_b = rot.T @ (d.qvel[0:3] - self._wind)
-            f_w = rot @ drag_force_body(self.effects, v_rel_b, self.vehicle_mass)
+            speed = rotor_speed_ratio(thrust, self._hover_per_rotor)
+            f_w = rot @ drag_force_body(self.effects, v_rel_b, self.vehicle_mass, speed)
             # xfrc_applied acts at the airframe body's own CoM; the moment term moves the
             # force to the CoM of airframe + electromagnet (+ rigid payload): pure force.
             a = d.subtree_com[self._airframe] - d.xipos[self._airframe]

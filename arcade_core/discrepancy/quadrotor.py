@@ -26,19 +26,24 @@ Thrust. The rotors' collective thrust ``T`` lags the command with the vehicle fi
 time constant (``motor_lag`` replaces it), times ``thrust_scale`` (which also scales the
 loop's torque authority), times the mean Cheeseman-Bennett gain ``1 / (1 - R^2 /
 (16 h_i^2))`` over the rotor heights ``h_i`` (``ground_effect``, clamped at ``h = R/2``,
-parameterised by ``R^2`` so that it is linear at ``R = 0``).
+parameterised by ``R^2`` so that it is linear at ``R = 0``), times the induced-inflow
+factor ``1 - k_c v_b,z - k_h (v_b,x^2 + v_b,y^2)`` (``induced_inflow``, air-relative body
+velocity ``v_b``) and the battery factor ``1 - r t / 60`` (``battery_sag``, ``t`` [s] since
+the log's first sample).
 
 Forces (world ENU, body FLU, ``m`` the nominal mass): ``a += R F_b / m`` with
-``F_b = -m d * v_b - c * |v_b| * v_b`` and ``v_b = R^T (v - wind)`` (``rotor_drag``,
-``quadratic_drag``, ``wind``); the logged position (the geometric centre, not the centre
+``F_b = -m d * n * v_b - c * |v_b| * v_b`` and ``v_b = R^T (v - wind)`` (``rotor_drag``,
+``quadratic_drag``, ``wind``). ``n = sqrt(T / (m g))`` is the sum of the rotor speeds
+relative to hover (rotor thrust grows with the square of its speed; the collective command
+``T`` split evenly over the rotors); the logged position (the geometric centre, not the centre
 of mass) accelerates by ``-R (omegadot x r + omega x (omega x r))`` more (``com_offset``).
 ``p, v, q`` are integrated by classical RK4 (Appendix D) on the exact rate and thrust
 signals.
 
 Parameter vector ``theta`` (internal coordinates, :data:`GROUPS`): ``d (3), c (3), R^2,
-scale, motor tau, delay, filter tau, r (3), wind (3)``. The vertical centre-of-mass offset
-``r_z`` makes no thrust torque, so identification leaves it at the model file's value
-(only ``r_x, r_y`` form the ``com_offset`` group).
+scale, motor tau, delay, filter tau, r (3), wind (3), k_c, k_h, sag r``. The vertical
+centre-of-mass offset ``r_z`` makes no thrust torque, so identification leaves it at the
+model file's value (only ``r_x, r_y`` form the ``com_offset`` group).
 """
 
 from __future__ import annotations
@@ -64,11 +69,18 @@ GROUPS: tuple[tuple[str, tuple[int, ...]], ...] = (
     ("rate_lag", (9, 10)),
     ("com_offset", (11, 12)),
     ("wind", (14, 15, 16)),
+    ("induced_inflow", (17, 18)),
+    ("battery_sag", (19,)),
 )
-N_THETA = 17
+N_THETA = 20
 #: Internal bounds of ``theta`` (the library's plausible ranges; ``R^2`` from 0).
-THETA_LOW = (0.0,) * 6 + (0.0, 0.5, 0.002, 0.0, 0.0) + (-0.015,) * 3 + (-15.0,) * 3
-THETA_HIGH = (2.0,) * 3 + (0.2,) * 3 + (0.04, 1.5, 0.2, 0.1, 0.3) + (0.015,) * 3 + (15.0,) * 3
+THETA_LOW = (
+    (0.0,) * 6 + (0.0, 0.5, 0.002, 0.0, 0.0) + (-0.015,) * 3 + (-15.0,) * 3 + (0.0, -0.02, 0.0)
+)
+THETA_HIGH = (
+    (2.0,) * 3 + (0.2,) * 3 + (0.04, 1.5, 0.2, 0.1, 0.3) + (0.015,) * 3 + (15.0,) * 3
+    + (0.2, 0.02, 0.1)
+)  # fmt: skip
 _TINY_TAU = 1e-7
 #: Per-axis linear state: front filter (1), loop filter (4), com filter (4), omega (1).
 _NF = 9
@@ -259,15 +271,25 @@ def filter_states(model: QuadModel, theta: Array, U: Array, dt: float) -> Filter
 # --------------------------------------------------------------------------- dynamics
 
 
-def _accel(model: QuadModel, theta: Array, p, v, q, w, wdot, T) -> tuple[Array, Array]:
-    """Thrust the rotors make and the effect accelerations (world) at one instant."""
+def rotor_speed_ratio(T, mass, gravity):
+    """Sum of the rotor speeds relative to hover for the collective thrust ``T`` split
+    evenly over the rotors (thrust grows with the square of the rotor speed)."""
+    return jnp.sqrt(jnp.maximum(T, 1e-9) / (mass * gravity))
+
+
+def _accel(model: QuadModel, theta: Array, p, v, q, w, wdot, T, t) -> tuple[Array, Array]:
+    """Thrust the rotors make and the effect accelerations (world) at one instant ``t``
+    [s since the log's first sample]."""
     m = model.params.mass
     R = quat.to_rotation_matrix(q)
     h = p[2] + (model.rotors @ R.T)[:, 2]
     ratio = jnp.minimum(theta[6] / (16.0 * jnp.maximum(h, 1e-3) ** 2), 0.25)
-    thrust = theta[7] * jnp.mean(1.0 / (1.0 - ratio)) * T
     vb = R.T @ (v - theta[14:17])
-    f_b = -m * theta[0:3] * vb - theta[3:6] * jnp.abs(vb) * vb
+    inflow = 1.0 - theta[17] * vb[2] - theta[18] * (vb[0] ** 2 + vb[1] ** 2)
+    sag = 1.0 - theta[19] * t / 60.0
+    thrust = theta[7] * jnp.mean(1.0 / (1.0 - ratio)) * inflow * sag * T
+    n = rotor_speed_ratio(T, m, model.params.gravity)
+    f_b = -m * theta[0:3] * n * vb - theta[3:6] * jnp.abs(vb) * vb
     r = theta[11:14]
     a_com = -R @ (jnp.cross(wdot, r) + jnp.cross(w, jnp.cross(w, r)))
     return thrust, R @ f_b / m + a_com
@@ -294,7 +316,7 @@ def _step(model, theta, tr: _Transitions, a_m, x, T0, F0, U, k, dt):
     def deriv(y, i):
         (w, wdot), T = sig[i]
         p, v, q = y[0:3], y[3:6], y[6:10]
-        thrust, a_eff = _accel(model, theta, p, v, q, w, wdot, T)
+        thrust, a_eff = _accel(model, theta, p, v, q, w, wdot, T, (k + 0.5 * i) * dt)
         xd = quadrotor_deriv(jnp.concatenate([p, v, q, w]), jnp.concatenate([thrust[None], w]), par)
         return jnp.concatenate([xd[0:3], xd[3:6] + a_eff, xd[6:10]])
 
@@ -355,6 +377,11 @@ def theta_from_effects(model: QuadModel, tables) -> Array:
             th = th.at[11:14].set(jnp.asarray(t["offset_m"], float))
         elif name == "wind":
             th = th.at[14:17].set(jnp.asarray(t["velocity_mps"], float))
+        elif name == "induced_inflow":
+            th = th.at[17].set(float(t.get("climb_loss", 0.0)))
+            th = th.at[18].set(float(t.get("airspeed_loss", 0.0)))
+        elif name == "battery_sag":
+            th = th.at[19].set(float(t["loss_per_min"]))
         else:
             raise ValueError(f"unknown quadrotor effect {name!r}")
     return th
@@ -379,4 +406,8 @@ def effect_params(theta, name: str) -> dict[str, float | list[float]]:
         return {"offset_m": th[11:14]}
     if name == "wind":
         return {"velocity_mps": th[14:17]}
+    if name == "induced_inflow":
+        return {"climb_loss": th[17], "airspeed_loss": th[18]}
+    if name == "battery_sag":
+        return {"loss_per_min": th[19]}
     raise ValueError(f"unknown quadrotor effect {name!r}")

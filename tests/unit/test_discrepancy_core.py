@@ -32,6 +32,8 @@ from simulator import EFFECTS as SIM_EFFECTS
 
 QUAD_NAMES = {
     "rotor_drag",
+    "induced_inflow",
+    "battery_sag",
     "quadratic_drag",
     "ground_effect",
     "thrust_scale",
@@ -98,6 +100,8 @@ def test_effect_tables_round_trip_through_theta():
         "rate_lag": {"delay_s": 0.02, "time_constant_s": 0.03},
         "com_offset": {"offset_m": [0.01, -0.01, 0.0]},
         "wind": {"velocity_mps": [1.0, -2.0, 0.0]},
+        "induced_inflow": {"climb_loss": 0.05, "airspeed_loss": -0.01},
+        "battery_sag": {"loss_per_min": 0.03},
     }
     theta = qm.theta_from_effects(model, tables)
     for name, table in tables.items():
@@ -165,6 +169,34 @@ def test_hover_is_an_equilibrium_and_rates_follow_setpoints():
     assert pred[-1, 12] == pytest.approx(0.4, abs=2e-3)
     assert abs(pred[99, 12]) < 1e-9  # pred[k] is the state at sample k + 1
     assert 0.05 < pred[102, 12] < 0.3  # ... with the loop's lag (about 50 ms)
+
+
+def test_aerodynamic_and_battery_effects_follow_their_formulas():
+    """The thrust and the effect acceleration each effect makes at one instant (level)."""
+    model = quad_model_from_vehicle(load_vehicle())
+    m, g = float(model.params.mass), float(model.params.gravity)
+    level, zero = jnp.array([1.0, 0.0, 0.0, 0.0]), jnp.zeros(3)
+
+    def at(tables, v, thrust, t=0.0):
+        th = qm.theta_from_effects(model, tables)
+        p = jnp.array([0.0, 0.0, 1.0])
+        thrust_, a = qm._accel(model, th, p, jnp.asarray(v), level, zero, zero, thrust, t)
+        return float(thrust_), np.asarray(a)
+
+    # Rotor drag at 1.44 x hover thrust: the rotors turn 1.2 x as fast.
+    f, a = at({"rotor_drag": {"d": [0.4, 0.0, 0.3]}}, [2.0, 0.0, 1.0], 1.44 * m * g)
+    np.testing.assert_allclose(a, [-0.4 * 1.2 * 2.0, 0.0, -0.3 * 1.2 * 1.0], rtol=1e-12)
+    assert f == pytest.approx(1.44 * m * g, rel=1e-12)
+    # Induced inflow: 2 m/s climb and 3 m/s air speed; flying with the wind: none.
+    inflow = {"climb_loss": 0.05, "airspeed_loss": 0.01}
+    f, a = at({"induced_inflow": inflow}, [3.0, 0.0, 2.0], m * g)
+    assert f == pytest.approx((1.0 - 0.1 - 0.09) * m * g, rel=1e-12)
+    np.testing.assert_allclose(a, 0.0, atol=1e-15)
+    tables = {"induced_inflow": inflow, "wind": {"velocity_mps": [3.0, 0.0, 2.0]}}
+    assert at(tables, [3.0, 0.0, 2.0], m * g)[0] == pytest.approx(m * g, rel=1e-12)
+    # Battery sag: a minute into the log, 6 % less thrust.
+    f, _ = at({"battery_sag": {"loss_per_min": 0.06}}, [0.0, 0.0, 0.0], m * g, t=60.0)
+    assert f == pytest.approx(0.94 * m * g, rel=1e-12)
 
 
 def test_cartpole_model_with_the_papers_effects_is_the_papers_true_system():

@@ -34,6 +34,8 @@ def test_effect_table_is_complete_data():
         "rate_lag",
         "com_offset",
         "wind",
+        "induced_inflow",
+        "battery_sag",
     }
     for params in EFFECTS.values():
         for spec in params.values():
@@ -89,6 +91,33 @@ def test_rotor_drag_decelerates_along_each_body_axis():
     # Yawed 90 deg the world x motion is along body -y: the d_y coefficient acts.
     _, x = coast({"rotor_drag": DRAG}, 0.5, velocity=(2.0, 0.0, 0.0), yaw=np.pi / 2)
     assert x[3] == pytest.approx(2.0 * np.exp(-0.1 * 0.5), rel=0.01)
+
+
+def test_rotor_drag_grows_with_the_rotor_speed():
+    # 1.44 x the hover thrust: every rotor turns 1.2 x as fast, the drag is 1.2 x as large.
+    sim = QuadrotorSim(effects={"rotor_drag": DRAG}, gyro=QUIET_GYRO)
+    sim.reset(velocity=(2.0, 0.0, 0.0))
+    sim.set_setpoint([1.44 * sim.hover_thrust(), 0.0, 0.0, 0.0])
+    x = sim.step(0.5)
+    assert x[3] == pytest.approx(2.0 * np.exp(-0.4 * 1.2 * 0.5), rel=0.01)
+
+
+def test_induced_inflow_loses_thrust_climbing_and_with_air_speed():
+    eff = {"induced_inflow": {"climb_loss": 0.1, "airspeed_loss": 0.0}}
+    sim, _ = coast(eff, 0.02, velocity=(0.0, 0.0, 2.0))
+    np.testing.assert_allclose(sim.rotor_thrusts().sum(), 0.8 * sim.hover_thrust(), rtol=0.01)
+    eff = {"induced_inflow": {"climb_loss": 0.0, "airspeed_loss": 0.01}}
+    sim, _ = coast(eff, 0.02, velocity=(3.0, 0.0, 0.0))
+    np.testing.assert_allclose(sim.rotor_thrusts().sum(), 0.91 * sim.hover_thrust(), rtol=0.01)
+    eff["wind"] = {"velocity_mps": [3.0, 0.0, 0.0]}  # flying with the wind: no air speed
+    eff["rotor_drag"] = DRAG
+    sim, _ = coast(eff, 0.02, velocity=(3.0, 0.0, 0.0))
+    np.testing.assert_allclose(sim.rotor_thrusts().sum(), sim.hover_thrust(), rtol=1e-3)
+
+
+def test_battery_sag_lowers_the_thrust_over_the_flight():
+    sim, _ = coast({"battery_sag": {"loss_per_min": 0.1}}, 3.0)
+    np.testing.assert_allclose(sim.rotor_thrusts().sum(), 0.995 * sim.hover_thrust(), rtol=2e-4)
 
 
 def test_quadratic_drag_decelerates_like_v_squared():
