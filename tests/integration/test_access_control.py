@@ -48,17 +48,29 @@ PASSWORDS = {
     "recorder": "r-pw",
     "launcher": "l-pw",
     "operator": "o-pw",
+    "foxglove": "f-pw",
+    "ros2": "r2-pw",
 }
 #: Who may put what: the table of deploy/zenoh/router-acl.json5 (the writers of both
 #: profiles; the recorder writes nothing).
 WRITERS = {
     "setpoint": {"controller"},
+    "reference": {"controller"},
     "state": {"estimator"},
     "model": {"adapter"},
     "residual": {"adapter"},
     "mocap": {"simulator", "mocap"},
     "imu": {"simulator", "bridge"},
-    "event": {"controller", "estimator", "adapter", "simulator", "bridge", "launcher"},
+    "event": {
+        "controller",
+        "estimator",
+        "adapter",
+        "simulator",
+        "bridge",
+        "launcher",
+        "foxglove",
+        "ros2",
+    },
     "command": {"simulator", "bridge", "operator"},
 }
 
