@@ -569,8 +569,6 @@ def test_the_embedded_bus_keeps_a_rogue_out_and_pins_the_controller(tmp_path: Pa
                 stack.kill("controller")
                 restarted = events.wait(lambda e: e["kind"] == "restart", 60.0, n)
                 assert restarted is not None and restarted["data"]["service"] == "controller"
-                cleared = events.wait(lambda e: e["kind"] == "failsafe_cleared", 60.0, n)
-                assert cleared is not None, "the restarted controller never took over"
             assert stack.wait(timeout=120.0) == 0
         finally:
             outsider.close()
@@ -606,3 +604,10 @@ def test_the_embedded_bus_keeps_a_rogue_out_and_pins_the_controller(tmp_path: Pa
     assert len(applied) > 0 and not np.any(np.all(np.isclose(applied, [0, 3, -3, 0]), axis=1))
     err = np.stack([truth[a] - truth[f"ref_{a}"] for a in ("px", "py", "pz")], axis=1)
     assert np.max(np.linalg.norm(err, axis=1)) < 0.5, np.max(np.linalg.norm(err, axis=1))
+    if profile == "sim":
+        # The restarted controller took over: every instant of the flight's last second
+        # was answered (a miss is a deadline_miss event), and the vehicle flies its
+        # setpoints at the end (a hold the restart's missed answers engaged has ended).
+        end = float(truth["t"][-1])
+        late = [e for e in events.events if e["kind"] == "deadline_miss" and e["stamp"] > end - 1]
+        assert late == [] and truth["failsafe"][-1] == 0.0, late
