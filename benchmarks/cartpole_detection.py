@@ -34,16 +34,23 @@ def _windows(T: int, steps, window: int) -> np.ndarray:
     return near
 
 
+def _within(steps, T: int) -> tuple[int, ...]:
+    """The intervention steps a ``T``-step trajectory reaches."""
+    return tuple(t for t in steps if t < T)
+
+
 def declaration_quality(flags, steps=cd.INTERVENTION_STEPS, window=HIT_WINDOW):
     """Hits, false alarms, precision and delay of detections ``flags (..., n, T)``.
 
     Leading axes are independent settings; every entry of the result has their shape
-    (``()`` for a 2-D ``flags``). Windows must not overlap. ``precision`` and
+    (``()`` for a 2-D ``flags``). Windows must not overlap; intervention steps at or past
+    ``T`` are left out. ``precision`` and
     ``mean_delay_steps`` are NaN without detections resp. hits;
     ``f1 = 2 hits / (detections + interventions)``.
     """
     flags = np.asarray(flags, bool)
     n, T = flags.shape[-2:]
+    steps = _within(steps, T)
     starts = sorted(steps)
     if any(b - a <= window for a, b in itertools.pairwise(starts)):
         raise ValueError("hit windows of the interventions overlap")
@@ -88,6 +95,7 @@ def changepoint_quality(flags: np.ndarray, steps=cd.INTERVENTION_STEPS, window=H
     """:func:`declaration_quality` of ``flags (n, T)`` as plain floats, with the hit rate
     per intervention step and the :func:`random_baseline` at the same flag rate."""
     flags = np.asarray(flags, bool)
+    steps = _within(steps, flags.shape[-1])
     q = declaration_quality(flags, steps, window)
     out = {k: float(v) for k, v in q.items() if k != "hit_rate_per_intervention"}
     out["hit_rate_per_intervention"] = {

@@ -261,8 +261,8 @@ def evaluate(
 
         progress(f"writing figures to {out_dir}")
         out_dir.mkdir(parents=True, exist_ok=True)
-        figs.online_rollout(out_dir / "online_rollout.png", online_data, paper_out, 0)
-        figs.online_rollout(out_dir / "online_rollout_tuned.png", online_data, ours_out, 0)
+        figs.online_rollout(out_dir / "online_rollout.png", online_data, paper_out[:4], 0)
+        figs.online_rollout(out_dir / "online_rollout_tuned.png", online_data, ours_out[:4], 0)
         figs.offline_distribution(out_dir / "offline_crmse.png", per_split)
         figs.latent_comparison(out_dir / "latent_embeddings.png", m, data)
     result["wall_time_s"] = time.perf_counter() - t_start
