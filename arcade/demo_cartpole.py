@@ -1,7 +1,8 @@
 """In-process cartpole adaptation demo: the true cartpole under adaptive MPC.
 
-The true system (Appendix D) goes through the online-adaptation interventions of
-Sec. V-A (pushes and mass reductions at steps 0, 40, 80). Two controllers fly the same
+The testbed's true system (Appendix D, ``arcade_control.cartpole.TRUE_PARAMS``) goes
+through the online-adaptation interventions of Sec. V-A (2 N impulses and mass reductions
+at steps 0, 40, 80). Two controllers fly the same
 seeded scenario: the nominal MPC, and ARCADE's MPC on ``f_nom + theta phi`` with the
 beam-marginal decoder adapted online (Algorithm 1) and Q modulated by sigma_tot (Sec. IV).
 """
@@ -19,7 +20,7 @@ import numpy as np
 from arcade_control import cartpole as cd
 from arcade_core import adaptation, metrics, mpc
 from arcade_core.dynamics.cartpole import cartpole_nominal_step, cartpole_true_step
-from arcade_core.dynamics.params import CARTPOLE_DT, CARTPOLE_TRUE
+from arcade_core.dynamics.params import CARTPOLE_DT
 from arcade_io import atomicfile, jsonout
 
 
@@ -54,7 +55,7 @@ def fly(vld, key, x0, schedule: cd.Schedule, adaptive: bool) -> dict[str, np.nda
             model, s2 = (vld, zero_theta), None
         sol = controller.solve(x, x_ref, u_ref, u_warm, u_prev, model, s2)
         u = sol.u[0]
-        params = CARTPOLE_TRUE._replace(M=CARTPOLE_TRUE.M * s, m=CARTPOLE_TRUE.m * s)
+        params = cd.scaled(cd.TRUE_PARAMS, s)
         x_next = cartpole_true_step(k_key, x, u, params, CARTPOLE_DT, force=f)
         nom = cartpole_nominal_step(x, u)
         z = vld.features(x, u)

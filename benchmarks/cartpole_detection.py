@@ -1,12 +1,24 @@
-"""Changepoint-detection quality in the cartpole evaluation: hits, false alarms, delay.
+"""Changepoint-detection quality on the cartpole: hits, precision, false alarms, delay.
 
-A detection at step ``k`` concerns the transition ``x_k -> x_{k+1}``, the step an
-intervention at ``k`` acts on (``arcade_control.cartpole``); it counts as a hit within
-:data:`~benchmarks.cartpole_settings.HIT_WINDOW` steps after the intervention.
+One metric for the cartpole evaluation (``arcade eval cartpole``) and the declaration
+rule's study (``arcade eval changepoints``, ``benchmarks.changepoints_cartpole``). A
+detection at step ``k`` concerns the transition ``x_k -> x_{k+1}``, the step an
+intervention at ``k`` acts on (``arcade_control.cartpole``); it is a hit for intervention
+``t`` if ``t <= k <= t + HIT_WINDOW``. Each intervention counts at most one hit (delay: the
+offset of its first detection); every other detection is a false alarm; precision = hits /
+detections.
+
+False alarms are given per 100 steps of all steps (``false_alarms_per_100_steps``: every
+detection that is not a hit) and per 100 *eligible* steps
+(``false_alarms_per_100_eligible_steps``: detections outside every hit window over the
+steps outside every hit window, where a detection can only be false). Beside each score,
+``random_baseline``: the expected scores of a detector that flags every step independently
+with the same probability as the scored one (its flag rate), in closed form.
 """
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import numpy as np
@@ -15,36 +27,106 @@ from arcade_control import cartpole as cd
 from benchmarks.cartpole_settings import HIT_WINDOW
 
 
-def changepoint_quality(flags: np.ndarray, steps=cd.INTERVENTION_STEPS, window=HIT_WINDOW):
-    """Hit rate within ``window`` steps after each intervention, false alarms, delay.
-
-    ``flags`` (n, T) are the per-step detections; a detection at step k concerns the
-    transition x_k -> x_{k+1}, the step an intervention at k acts on.
-    """
-    flags = np.asarray(flags, bool)
-    n, T = flags.shape
-    hits, delays = 0, []
+def _windows(T: int, steps, window: int) -> np.ndarray:
     near = np.zeros(T, bool)
     for t in steps:
         near[t : t + window + 1] = True
-        for i in range(n):
-            det = np.flatnonzero(flags[i, t : t + window + 1])
-            if det.size:
-                hits += 1
-                delays.append(int(det[0]))
-    false = flags[:, ~near].sum()
+    return near
+
+
+def _within(steps, T: int) -> tuple[int, ...]:
+    """The intervention steps a ``T``-step trajectory reaches."""
+    return tuple(t for t in steps if t < T)
+
+
+def declaration_quality(flags, steps=cd.INTERVENTION_STEPS, window=HIT_WINDOW):
+    """Hits, false alarms, precision and delay of detections ``flags (..., n, T)``.
+
+    Leading axes are independent settings; every entry of the result has their shape
+    (``()`` for a 2-D ``flags``). Windows must not overlap; intervention steps at or past
+    ``T`` are left out. ``precision`` and
+    ``mean_delay_steps`` are NaN without detections resp. hits;
+    ``f1 = 2 hits / (detections + interventions)``.
+    """
+    flags = np.asarray(flags, bool)
+    n, T = flags.shape[-2:]
+    steps = _within(steps, T)
+    starts = sorted(steps)
+    if any(b - a <= window for a, b in itertools.pairwise(starts)):
+        raise ValueError("hit windows of the interventions overlap")
+    near = [flags[..., t : t + window + 1] for t in steps]
+    hit = np.stack([w.any(-1) for w in near], -1)  # (..., n, S)
+    first = np.stack([w.argmax(-1) for w in near], -1)
+    hits = hit.sum((-2, -1))
+    declared = flags.sum((-2, -1))
+    total = n * len(steps)
+    outside = ~_windows(T, steps, window)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        precision = np.where(declared > 0, hits / declared, np.nan)
+        delay = np.where(hits > 0, np.sum(first * hit, (-2, -1)) / hits, np.nan)
     return {
-        "hit_rate": hits / (n * len(steps)),
-        "false_alarms_per_100_steps": 100.0 * float(false) / (n * T),
-        "mean_delay_steps": float(np.mean(delays)) if delays else float("nan"),
+        "hit_rate": hits / total,
+        "false_alarms_per_100_steps": 100.0 * (declared - hits) / (n * T),
+        "false_alarms_per_100_eligible_steps": 100.0
+        * flags[..., outside].sum((-2, -1))
+        / (n * max(int(outside.sum()), 1)),
+        "precision": precision,
+        "mean_delay_steps": delay,
+        "f1": 2.0 * hits / (declared + total),
+        "hit_rate_per_intervention": hit.mean(-2),
     }
+
+
+def random_baseline(flag_rate: float, T: int, steps=cd.INTERVENTION_STEPS, window=HIT_WINDOW):
+    """Expected scores of a detector flagging each of ``T`` steps independently with
+    probability ``flag_rate``: hit rate ``1 - (1 - r)^(window + 1)``, false alarms per 100
+    eligible steps ``100 r``, precision expected hits over expected flags."""
+    r = float(flag_rate)
+    hit = 1.0 - (1.0 - r) ** (window + 1)
+    return {
+        "flag_rate": r,
+        "hit_rate": hit,
+        "precision": len(steps) * hit / (r * T) if r > 0 else float("nan"),
+        "false_alarms_per_100_eligible_steps": 100.0 * r,
+    }
+
+
+def changepoint_quality(flags: np.ndarray, steps=cd.INTERVENTION_STEPS, window=HIT_WINDOW):
+    """:func:`declaration_quality` of ``flags (n, T)`` as plain floats, with the hit rate
+    per intervention step and the :func:`random_baseline` at the same flag rate."""
+    flags = np.asarray(flags, bool)
+    steps = _within(steps, flags.shape[-1])
+    q = declaration_quality(flags, steps, window)
+    out = {k: float(v) for k, v in q.items() if k != "hit_rate_per_intervention"}
+    out["hit_rate_per_intervention"] = {
+        str(t): float(h) for t, h in zip(steps, q["hit_rate_per_intervention"])
+    }
+    out["random_baseline"] = random_baseline(float(flags.mean()), flags.shape[-1], steps, window)
+    return out
 
 
 def hits_per_intervention(flags: np.ndarray, steps=cd.INTERVENTION_STEPS) -> dict[str, float]:
     """Hit rate of each intervention step alone (``{"40": 0.9, ...}``). The one at step 0
     has no earlier regime: the beam starts from the offline prior, which is already what
     a changepoint at step 0 would restart from, tempered."""
-    return {str(t): changepoint_quality(flags, steps=(t,))["hit_rate"] for t in steps}
+    return changepoint_quality(flags, steps)["hit_rate_per_intervention"]
+
+
+def quality_line(label: str, q: dict[str, Any]) -> str:
+    """One sentence: hit rate, precision, false alarms and the random detector's scores."""
+    rb = q["random_baseline"]
+
+    def pct(v):
+        return "n/a" if v is None or not np.isfinite(v) else f"{v:.0%}"
+
+    return (
+        f"{label}: hit rate within {HIT_WINDOW} steps {q['hit_rate']:.0%} (per intervention "
+        + ", ".join(f"step {k} {v:.0%}" for k, v in q["hit_rate_per_intervention"].items())
+        + f"), precision {pct(q['precision'])}, false alarms "
+        f"{q['false_alarms_per_100_eligible_steps']:.2f} per 100 eligible steps; a random "
+        f"detector at the same flag rate ({rb['flag_rate']:.3f}/step): hit rate "
+        f"{rb['hit_rate']:.0%}, precision {pct(rb['precision'])}."
+    )
 
 
 def detection_summary(d: dict[str, Any] | None) -> str:
@@ -55,7 +137,8 @@ def detection_summary(d: dict[str, Any] | None) -> str:
     if d["chosen"] is None:
         return f"Detection-tuned Ours: no (beta, pi, tau^2) setting of the grid detects {goal}."
     c, q = d["chosen"], d["changepoints"]
-    per = d.get("hit_rate_per_intervention", {})
+    per = q.get("hit_rate_per_intervention", d.get("hit_rate_per_intervention", {}))
+    precision = q.get("precision")
     return (
         f"Detection-tuned Ours (lowest tuning CRMSE among the settings that detect {goal}): "
         f"beta = {c['beta']:g}, pi = {c['pi']:g}"
@@ -63,6 +146,7 @@ def detection_summary(d: dict[str, Any] | None) -> str:
         + "; on the evaluation trajectories hit rate "
         f"{q['hit_rate']:.0%}"
         + (" (" + ", ".join(f"step {k} {v:.0%}" for k, v in per.items()) + ")" if per else "")
+        + (f", precision {precision:.0%}" if precision is not None else "")
         + f", false alarms {q['false_alarms_per_100_steps']:.2f} per 100 steps, mean delay "
         f"{q['mean_delay_steps']:.2f} steps; its CRMSE is the `ours_detection_tuned` row."
     )

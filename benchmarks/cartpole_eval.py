@@ -4,38 +4,46 @@
 2. Offline validation: 10 random 80/20 splits; one-step-ahead CRMSE on the 20 test
    trajectories for Ours (VLD), the deterministic (MAP) encoder, MLP, GP and SysID.
 3. Online adaptation: disturbed trajectories of 120 steps with interventions at steps 0, 40
-   and 80 (see ``arcade_control.cartpole``); every method starts from the same offline training
-   (split 0) and is updated online after each step; one-step-ahead CRMSE per trajectory.
-4. Changepoint detection quality of Ours, ablations over K, beta, pi and the encoder's
-   latent dimension l (:func:`latent_ablation`), and the figures.
+   and 80 (the testbed as the paper writes it, ``arcade_control.cartpole``; its reading is
+   ``EvalSettings``); every method starts from the same offline training (split 0) and is
+   updated online after each step.
+4. Changepoint detection quality of Ours (``benchmarks.cartpole_detection``: hits,
+   precision, false alarms per eligible step, a random detector at the same flag rate),
+   ablations over K, beta, pi and the encoder's latent dimension l (:func:`latent_ablation`),
+   the sensitivity to the readings the paper leaves open (``benchmarks.cartpole_sensitivity``)
+   and the figures.
 
 Prediction protocol: at step k each method predicts x_{k+1} from (x_k, u_k) with what it
 knew after step k-1, then sees x_{k+1} and updates. CRMSE is the paper's footnote metric
-summed over the trajectory (``arcade_core.metrics.crmse``).
+(``arcade_core.metrics.crmse``) in two readings: one step ahead, summed over the 120 steps
+(``online``; the footnote sums one error per control step ``k = 1..T`` of the trajectory,
+the reading it most plausibly means), and over the MPC horizon (``online_horizon``: at
+each step the model as known then rolled open loop over the recorded inputs of the next
+``horizon`` steps, the CRMSE of that prediction averaged over the start steps).
 
-Tuning: every adaptive method's own online hyperparameters are chosen from grids on
-separate tuning trajectories (never the evaluation trajectories) by mean CRMSE — for Ours
-the tempering beta, the changepoint prior pi and the prior variance tau^2, one after the
-other until none changes (:func:`ours_tuning`); for Ours w/o CP the prior variance tau^2
-on the same grid (with one hypothesis its predictions depend on tau^2 / sigma^2 only, so
-that is its one knob); for the MLP the online learning rate; the GP's hyperparameters are
-fitted by marginal likelihood on the offline data (Appendix D). Detection quality is not a
-tuning criterion. The paper's own settings (Appendix D: beta = 0.9, tau^2 = 0.1; MLP rate
-1e-6) are reported beside the tuned ones, as are an oracle that knows the true model (the
-noise floor) and Ours with the true changepoints (:func:`run_known_changepoints`, its beta
-and tau^2 tuned the same way): what a detector that never misses and never false-alarms
-would buy.
-
-Beside them, one more row for a user who needs the detector itself (to log or act on
-changes): ``ours_detection_tuned``, the (beta, pi, tau^2) setting of the grid with the
-lowest tuning CRMSE among those that detect at least :data:`DETECTION_MIN_HIT_RATE` of the
-tuning trajectories' interventions within :data:`HIT_WINDOW` steps (:func:`detection_tuning`).
-It is evaluated on the same trajectories; the ratios stay those of the CRMSE-tuned Ours.
+Headline rows: the paper's five methods at the paper's settings (Appendix D: K 5, beta 0.9,
+pi 0.05, tau^2 0.1, sigma^2 0.1; MLP online rate 1e-6, Appendix E) — ``ours``,
+``ours_no_cp`` (K 1, no changepoints, tau^2 0.1), ``gp``, ``mlp_last_layer``,
+``offline_only`` — whose ratios are ``ratios`` (and ``ratios_horizon``). Tuned rows follow,
+labelled ``*_tuned``: every adaptive method's own online knobs chosen from grids on
+separate tuning trajectories (never the evaluation trajectories) by mean one-step CRMSE —
+for Ours beta, pi and tau^2, one after the other until none changes (:func:`ours_tuning`);
+for Ours w/o CP tau^2 on the same grid (with one hypothesis its predictions depend on
+tau^2 / sigma^2 only); for the MLP the learning rate; the GP's hyperparameters are fitted by
+marginal likelihood on the offline data — with their ratios in ``ratios_tuned``. Detection
+quality is not a tuning criterion. References: an oracle that knows the true model (the
+noise floor of the one-step CRMSE) and Ours with the true changepoints
+(:func:`run_known_changepoints`, its beta and tau^2 tuned): what a detector that never
+misses and never false-alarms would buy; and ``ours_detection_tuned``, the (beta, pi,
+tau^2) setting of the grid with the lowest tuning CRMSE among those that detect at least
+:data:`DETECTION_MIN_HIT_RATE` of the tuning trajectories' interventions within
+:data:`HIT_WINDOW` steps (:func:`detection_tuning`).
 
 This module runs the pipeline and tabulates it; the sizes, grids and thresholds are in
 ``benchmarks.cartpole_settings``, the methods in ``benchmarks.cartpole_methods``, the
 tuning in ``benchmarks.cartpole_tuning``, the detection scoring in
-``benchmarks.cartpole_detection`` and the data in ``arcade_control.cartpole``.
+``benchmarks.cartpole_detection``, the sensitivity study in
+``benchmarks.cartpole_sensitivity`` and the data in ``arcade_control.cartpole``.
 """
 
 from __future__ import annotations
@@ -54,21 +62,28 @@ from arcade_core import adaptation, encoder
 from benchmarks.cartpole_detection import (
     changepoint_quality,
     detection_summary,
-    hits_per_intervention,
+    quality_line,
 )
 from benchmarks.cartpole_methods import (
     beam_batch,
     crmse_batch,
     no_cp_runner,
     offline_predictors,
-    run_gp,
     run_known_changepoints,
     run_mlp,
     run_offline_only,
-    run_oracle,
     train_all,
     train_vld,
     trajectory_crmse,
+)
+from benchmarks.cartpole_rows import (
+    TUNED_RATIOS,
+    headline_runs,
+    offline_data,
+    pair,
+    ratios,
+    score,
+    stat,
 )
 from benchmarks.cartpole_settings import (
     LATENT_DIMS,
@@ -86,13 +101,25 @@ from benchmarks.cartpole_tuning import (
     tuned_config,
 )
 
-
-def _stat(v) -> dict[str, float]:
-    v = np.asarray(v, float)
-    return {"mean": float(v.mean()), "std": float(v.std())}
-
-
 # --------------------------------------------------------------------------- pipeline
+
+
+def testbed(s: EvalSettings) -> dict[str, Any]:
+    """The testbed's reading, with what the paper leaves open marked as assumed."""
+    p = s.true_params()
+    return {
+        "dt_s": cd.CARTPOLE_DT,
+        "impulse_N": cd.PUSH_N,
+        "pulse_steps": s.pulse_steps,
+        "impulse_Ns": None if s.pulse_steps is None else cd.PUSH_N * s.pulse_steps * cd.CARTPOLE_DT,
+        "mass_factor_per_intervention": cd.MASS_FACTOR,
+        "noise_reading": s.noise,
+        "disturbance_mean_N": float(p.dist_mean),
+        "disturbance_std_N": float(p.dist_std),
+        "x0_bounds": [float(b) for b in cd.X0_BOUNDS],
+        "horizon_steps": s.horizon,
+        "assumed": ["dt_s", "pulse_steps", "x0_bounds", "horizon_steps"],
+    }
 
 
 def evaluate(
@@ -104,11 +131,10 @@ def evaluate(
     t_start = time.perf_counter()
     key = jax.random.PRNGKey(s.seed)
     k_data, k_split, k_train, k_online, k_tune = jax.random.split(key, 5)
+    params, sched = s.true_params(), s.schedule()
 
     progress(f"simulating {s.n_traj} trajectories of the true cartpole under nominal MPC")
-    data = cd.simulate(
-        k_data, cd.sample_initial_states(k_data, s.n_traj), cd.stationary_schedule(s.T_data)
-    )
+    data = offline_data(s, k_data)
 
     # ---- offline validation over random splits
     offline: dict[str, list[float]] = {}
@@ -137,19 +163,23 @@ def evaluate(
 
     # ---- online adaptation with interventions (same initial models for every method)
     m = models0
-    sched = cd.intervention_schedule(s.T_online)
     progress(f"simulating {s.trials} disturbed trajectories")
-    online_data = cd.simulate(k_online, cd.sample_initial_states(k_online, s.trials), sched)
-    tune_data = cd.simulate(k_tune, cd.sample_initial_states(k_tune, s.tuning_trials), sched)
+    online_data = cd.simulate(k_online, cd.sample_initial_states(k_online, s.trials), sched, params)
+    tune_data = cd.simulate(
+        k_tune, cd.sample_initial_states(k_tune, s.tuning_trials), sched, params
+    )
     X, U = jnp.asarray(online_data.X), jnp.asarray(online_data.U)
-
     tx, tu = jnp.asarray(tune_data.X), jnp.asarray(tune_data.U)
     cfg = adaptation.cartpole_config()
+    H = s.horizon
+
+    progress("online: the paper's methods at the paper's settings")
+    runs, paper_out = headline_runs(m, cfg, sched, params, X, U, H)
 
     no_cp_fn = no_cp_runner(m.vld, cfg.sigma2)
 
-    def mlp_fn(lr):
-        return lambda X, U: run_mlp(m.mlp, lr, X, U)
+    def mlp_fn(lr, horizon=0):
+        return lambda X, U: run_mlp(m.mlp, lr, X, U, horizon)
 
     def known_fn(beta, tau2):
         return lambda X, U: run_known_changepoints(m.vld, cfg._replace(beta=beta, tau2=tau2), X, U)
@@ -166,44 +196,38 @@ def evaluate(
     ours_cfg = tuned_config(cfg, tuned)
     detection = detection_tuning(grid)
 
-    progress("online: running all methods")
-    vm = lambda f: jax.jit(jax.vmap(f))(X, U)  # noqa: E731
-    ours_out = beam_batch(m.vld, ours_cfg, X, U)
-    paper_out = beam_batch(m.vld, cfg, X, U)
-    runs = {
-        "ours": ours_out[0],
-        "ours_no_cp": vm(no_cp_fn(tuned["ours_no_cp"]["chosen"])),
-        "gp": vm(lambda X, U: run_gp(m.gp, X, U)),
-        "mlp_last_layer": vm(mlp_fn(tuned["mlp_last_layer"]["chosen"])),
-        "offline_only": vm(lambda X, U: run_offline_only(m.vld, X, U)),
-        # Reference rows: the paper's own settings, and the irreducible-noise floor.
-        "ours_paper_config": paper_out[0],
-        "ours_no_cp_paper_config": vm(no_cp_fn(cfg.tau2)),
-        "mlp_last_layer_paper_lr": vm(mlp_fn(PAPER_MLP_LR)),
-        "oracle_true_model": vm(lambda X, U: run_oracle(sched, X, U)),
-        "ours_known_changepoints": vm(
-            known_fn(
-                tuned["ours_known_changepoints"]["chosen"],
-                tuned["ours_known_changepoints"]["tau2"]["chosen"],
-            )
-        ),
-    }
+    progress("online: the tuned rows")
+    vm = lambda f: pair(jax.jit(jax.vmap(f))(X, U), H)  # noqa: E731
+    ours_out = beam_batch(m.vld, ours_cfg, X, U, H)
+    runs["ours_tuned"] = (ours_out[0], ours_out[4] if H else None)
+    no_cp_h = no_cp_runner(m.vld, cfg.sigma2, H)
+    runs["ours_no_cp_tuned"] = vm(no_cp_h(tuned["ours_no_cp"]["chosen"]))
+    runs["mlp_last_layer_tuned"] = vm(mlp_fn(tuned["mlp_last_layer"]["chosen"], H))
+    k = tuned["ours_known_changepoints"]
+    runs["ours_known_changepoints"] = (
+        jax.jit(jax.vmap(known_fn(k["chosen"], k["tau2"]["chosen"])))(X, U),
+        None,
+    )
     det = detection["chosen"]
     if det is not None:
         det_out = beam_batch(m.vld, cfg._replace(**det), X, U)
-        runs["ours_detection_tuned"] = det_out[0]
+        runs["ours_detection_tuned"] = (det_out[0], None)
         detection["changepoints"] = changepoint_quality(np.asarray(det_out[2]))
-        detection["hit_rate_per_intervention"] = hits_per_intervention(np.asarray(det_out[2]))
-    online_crmse = {name: crmse_batch(xhat, online_data.X) for name, xhat in runs.items()}
+    one, hor = score(runs, online_data.X)
 
     result: dict[str, Any] = {
-        "online": {k: _stat(v) for k, v in online_crmse.items()},
-        "offline": {k: _stat(v) for k, v in offline.items()},
-        "changepoints": changepoint_quality(np.asarray(ours_out[2])),
-        "changepoints_paper_config": changepoint_quality(np.asarray(paper_out[2])),
-        "hit_rate_per_intervention": hits_per_intervention(np.asarray(ours_out[2])),
+        "testbed": testbed(s),
+        "online": {k: stat(v) for k, v in one.items()},
+        "online_horizon": {k: stat(v) for k, v in hor.items()},
+        "offline": {k: stat(v) for k, v in offline.items()},
+        "ratios": ratios(one),
+        "ratios_horizon": ratios(hor) if hor else {},
+        "ratios_tuned": ratios(one, "ours_tuned", TUNED_RATIOS),
+        "changepoints": changepoint_quality(np.asarray(paper_out[2])),
+        "changepoints_tuned": changepoint_quality(np.asarray(ours_out[2])),
         "tuning": tuned,
         "detection_tuning": detection,
+        "paper_config": {"K": cfg.K, "beta": cfg.beta, "pi": cfg.pi, "tau2": cfg.tau2},
         "ours_config": {
             "K": ours_cfg.K,
             "beta": ours_cfg.beta,
@@ -213,11 +237,8 @@ def evaluate(
         "mlp_learning_rate": {"chosen": tuned["mlp_last_layer"]["chosen"], "paper": PAPER_MLP_LR},
         "settings": s.__dict__,
     }
-    o = result["online"]
-    result["ratios"] = {
-        f"ours/{k}": o["ours"]["mean"] / o[k]["mean"]
-        for k in ("ours_no_cp", "gp", "mlp_last_layer", "offline_only")
-    }
+    if H:
+        result["ratios_horizon_tuned"] = ratios(hor, "ours_tuned", TUNED_RATIOS)
 
     if s.ablations:
         # Around the tuned configuration: at the paper's beta = 0.9 hardly anything is
@@ -229,6 +250,10 @@ def evaluate(
         result["latent_ablation"] = latent_ablation(
             vld_key, train0, m.vld, cfg, s, tune_data, online_data
         )
+    if s.sensitivity:
+        from benchmarks.cartpole_sensitivity import sensitivity
+
+        result["sensitivity"] = sensitivity(s, m, progress)
 
     if out_dir is not None:
         # Imported here: matplotlib's start-up cost only when figures are written.
@@ -236,8 +261,8 @@ def evaluate(
 
         progress(f"writing figures to {out_dir}")
         out_dir.mkdir(parents=True, exist_ok=True)
-        figs.online_rollout(out_dir / "online_rollout.png", online_data, ours_out, 0)
-        figs.online_rollout(out_dir / "online_rollout_paper_config.png", online_data, paper_out, 0)
+        figs.online_rollout(out_dir / "online_rollout.png", online_data, paper_out[:4], 0)
+        figs.online_rollout(out_dir / "online_rollout_tuned.png", online_data, ours_out[:4], 0)
         figs.offline_distribution(out_dir / "offline_crmse.png", per_split)
         figs.latent_comparison(out_dir / "latent_embeddings.png", m, data)
     result["wall_time_s"] = time.perf_counter() - t_start
@@ -316,9 +341,9 @@ def latent_ablation(
                 "pi": float(c.pi),
                 "ours_tau2": float(c.tau2),
                 "tau2": tau2,
-                "ours": _stat(ours),
-                "ours_no_cp": _stat(no_cp),
-                "offline_only": _stat(offline),
+                "ours": stat(ours),
+                "ours_no_cp": stat(no_cp),
+                "offline_only": stat(offline),
                 "ratio_ours_no_cp": float(ours.mean() / no_cp.mean()),
                 "hit_rate": q["hit_rate"],
                 "false_alarms_per_100_steps": q["false_alarms_per_100_steps"],
@@ -329,18 +354,23 @@ def latent_ablation(
 
 def format_table(result: dict[str, Any]) -> str:
     """Human-readable summary of :func:`evaluate`."""
-    lines = ["Online adaptation (CRMSE, mean ± std over trajectories):"]
+    hor = result.get("online_horizon", {})
+    H = result["testbed"]["horizon_steps"]
+    lines = [
+        "Online adaptation (CRMSE, mean ± std over trajectories; one step ahead"
+        + (f" | over the {H}-step horizon):" if hor else "):")
+    ]
     for k, v in result["online"].items():
-        lines.append(f"  {k:26s} {v['mean']:8.3f} ± {v['std']:.3f}")
+        h = hor.get(k)
+        lines.append(
+            f"  {k:26s} {v['mean']:8.3f} ± {v['std']:.3f}"
+            + (f"   | {h['mean']:8.3f} ± {h['std']:.3f}" if h else "")
+        )
     lines.append("Offline validation (CRMSE, mean ± std over splits):")
     for k, v in result["offline"].items():
         lines.append(f"  {k:26s} {v['mean']:8.3f} ± {v['std']:.3f}")
-    cp = result["changepoints"]
-    lines.append(
-        f"Changepoints: hit rate {cp['hit_rate']:.0%}, false alarms "
-        f"{cp['false_alarms_per_100_steps']:.2f}/100 steps, mean delay "
-        f"{cp['mean_delay_steps']:.2f} steps"
-    )
+    lines.append(quality_line("Changepoints (paper settings)", result["changepoints"]))
+    lines.append(quality_line("Changepoints (tuned)", result["changepoints_tuned"]))
     lines.append(detection_summary(result.get("detection_tuning")))
     for row in result.get("latent_ablation", []):
         lines.append(
@@ -349,5 +379,7 @@ def format_table(result: dict[str, Any]) -> str:
             f"offline_only {row['offline_only']['mean']:.3f}, "
             f"ours/ours_no_cp {row['ratio_ours_no_cp']:.2f}"
         )
-    lines.append("Ratios: " + ", ".join(f"{k} = {v:.2f}" for k, v in result["ratios"].items()))
+    for name in ("ratios", "ratios_horizon", "ratios_tuned", "ratios_horizon_tuned"):
+        if result.get(name):
+            lines.append(f"{name}: " + ", ".join(f"{k} = {v:.2f}" for k, v in result[name].items()))
     return "\n".join(lines)

@@ -14,11 +14,13 @@ same seed-derived offline data, the VLD of split 0 (trained exactly as ``train_a
 the same disturbed evaluation trajectories and the same separate tuning trajectories,
 features ``model.features(x, u)`` and normalised residuals of ``x_{k+1} - f_nom(x_k, u_k)``.
 
-Scoring (:func:`declaration_quality`): a declaration at step ``k`` concerns the transition
-``x_k -> x_{k+1}``; it is a hit if ``t <= k <= t + HIT_WINDOW`` for an intervention step
-``t``; each intervention counts at most one hit (its first declaration in the window, whose
-offset is the delay), every other declaration is a false alarm; precision = hits /
-declarations.
+Scoring: :func:`benchmarks.cartpole_detection.declaration_quality`, the metric the cartpole
+evaluation uses too: a declaration at step ``k`` concerns the transition ``x_k -> x_{k+1}``;
+it is a hit if ``t <= k <= t + HIT_WINDOW`` for an intervention step ``t``; each
+intervention counts at most one hit (its first declaration in the window, whose offset is
+the delay), every other declaration is a false alarm; precision = hits / declarations;
+false alarms also per eligible step (outside every hit window), and a random detector at
+the same flag rate beside each score.
 
 Knobs are chosen on the tuning trajectories only, by the F1 score of the declarations,
 ``2 hits / (declarations + interventions)`` (harmonic mean of the hit rate and the
@@ -31,8 +33,8 @@ on :data:`BEAM_GRID`, all in one compiled program. A grid edge on which a best s
 (chosen or tied with it) is extended by the value in :data:`EXTENSIONS` and the tuning
 redone, at most once per edge; ``knobs["still_on_edge"]`` lists the knobs whose best value
 is still on an edge.
-``map_flags_paper_settings`` is the current metric (MAP flags, score ``"algorithm1"``,
-paper config) with the precision added.
+``map_flags_paper_settings`` scores the evaluation's MAP-path flags (score
+``"algorithm1"``, paper config) the same way.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ import numpy as np
 
 from arcade_control import cartpole as cd
 from arcade_core import adaptation
-from benchmarks.cartpole_detection import changepoint_quality
+from benchmarks.cartpole_detection import changepoint_quality, declaration_quality
 from benchmarks.cartpole_methods import beam_batch, f_nom, train_vld
 from benchmarks.cartpole_settings import HIT_WINDOW, EvalSettings
 
@@ -74,40 +76,6 @@ EXTENSIONS = {
     "threshold": (0.15, 0.97),
     "refractory": (1, 8),
 }
-
-
-def declaration_quality(flags, steps=cd.INTERVENTION_STEPS, window=HIT_WINDOW):
-    """Hits, false alarms, precision and delay of declarations ``flags (..., n, T)``.
-
-    Leading axes are independent settings; every entry of the result has their shape
-    (``()`` for a 2-D ``flags``). A declaration at step ``k`` is a hit for intervention
-    ``t`` if ``t <= k <= t + window``; each intervention counts at most one hit (delay:
-    offset of its first declaration), every other declaration is a false alarm. Windows
-    must not overlap. ``precision`` and ``mean_delay_steps`` are NaN without declarations
-    resp. hits; ``f1 = 2 hits / (declarations + interventions)``.
-    """
-    flags = np.asarray(flags, bool)
-    n, T = flags.shape[-2:]
-    starts = sorted(steps)
-    if any(b - a <= window for a, b in itertools.pairwise(starts)):
-        raise ValueError("hit windows of the interventions overlap")
-    near = [flags[..., t : t + window + 1] for t in steps]
-    hit = np.stack([w.any(-1) for w in near], -1)  # (..., n, S)
-    first = np.stack([w.argmax(-1) for w in near], -1)
-    hits = hit.sum((-2, -1))
-    declared = flags.sum((-2, -1))
-    total = n * len(steps)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        precision = np.where(declared > 0, hits / declared, np.nan)
-        delay = np.where(hits > 0, np.sum(first * hit, (-2, -1)) / hits, np.nan)
-    return {
-        "hit_rate": hits / total,
-        "false_alarms_per_100_steps": 100.0 * (declared - hits) / (n * T),
-        "precision": precision,
-        "mean_delay_steps": delay,
-        "f1": 2.0 * hits / (declared + total),
-        "hit_rate_per_intervention": hit.mean(-2),
-    }
 
 
 def _probabilities(model, cfg, X, U, ms):
@@ -204,6 +172,11 @@ def _summary(q: dict[str, np.ndarray], idx=()) -> dict[str, Any]:
     return out
 
 
+def _scored(flags) -> dict[str, Any]:
+    """:func:`changepoint_quality` of the declarations ``flags (n, T)``."""
+    return changepoint_quality(np.asarray(flags).reshape(-1, np.shape(flags)[-1]))
+
+
 def tune_and_evaluate(model, base, tune, evaluation, grid, progress) -> dict[str, Any]:
     """Choose the knobs of ``grid`` on ``tune`` (``(X, U)``) by :func:`_best`, extending
     each grid edge at most once where a best setting lies on it (:func:`_edges`), and
@@ -230,7 +203,7 @@ def tune_and_evaluate(model, base, tune, evaluation, grid, progress) -> dict[str
             extended[k] = sorted(extended.get(k, []) + v)
     single = {k: (v,) for k, v in knobs.items()}
     flags = grid_flags(model, base, *evaluation, single).reshape(evaluation[1].shape[:2])
-    result = _summary(declaration_quality(flags))
+    result = _scored(flags)
     result["knobs"] = {
         "K": int(base.K),
         "score": base.score,
@@ -249,8 +222,12 @@ def _setup(s: EvalSettings, progress):
     key = jax.random.PRNGKey(s.seed)
     k_data, k_split, k_train, k_online, k_tune = jax.random.split(key, 5)
     progress(f"simulating {s.n_traj} offline trajectories")
+    params = s.true_params()
     data = cd.simulate(
-        k_data, cd.sample_initial_states(k_data, s.n_traj), cd.stationary_schedule(s.T_data)
+        k_data,
+        cd.sample_initial_states(k_data, s.n_traj),
+        cd.stationary_schedule(s.T_data),
+        params,
     )
     rng = np.random.default_rng(int(jax.random.randint(k_split, (), 0, 2**31 - 1)))
     train = rng.permutation(s.n_traj)[s.n_test :]
@@ -258,10 +235,10 @@ def _setup(s: EvalSettings, progress):
     progress("training the VLD (split 0)")
     vld_key = jax.random.split(jax.random.fold_in(k_train, 0), 6)[0]  # as train_all
     vld = train_vld(vld_key, x, u, xn, variational=True, epochs=s.epochs)
-    sched = cd.intervention_schedule(s.T_online)
+    sched = s.schedule()
     progress(f"simulating {s.trials} evaluation and {s.tuning_trials} tuning trajectories")
-    online = cd.simulate(k_online, cd.sample_initial_states(k_online, s.trials), sched)
-    tuning = cd.simulate(k_tune, cd.sample_initial_states(k_tune, s.tuning_trials), sched)
+    online = cd.simulate(k_online, cd.sample_initial_states(k_online, s.trials), sched, params)
+    tuning = cd.simulate(k_tune, cd.sample_initial_states(k_tune, s.tuning_trials), sched, params)
     return vld, online, tuning
 
 
@@ -285,12 +262,8 @@ def cartpole_detection(quick: bool = False, progress=lambda msg: None) -> dict[s
 
     progress("MAP flags (score algorithm1, paper config)")
     flags = np.asarray(beam_batch(vld, paper, *ev)[2])
-    strict = _summary(declaration_quality(flags))
     map_res = {
-        **changepoint_quality(flags),
-        "precision": strict["precision"],
-        "false_alarms_per_100_steps_strict": strict["false_alarms_per_100_steps"],
-        "hit_rate_per_intervention": strict["hit_rate_per_intervention"],
+        **_scored(flags),
         "knobs": {"K": paper.K, "score": paper.score, **{k: getattr(paper, k) for k in BEAM_GRID}},
     }
     return {

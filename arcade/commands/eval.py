@@ -12,7 +12,8 @@ from arcade_io import atomicfile, jsonout
 
 HELP = (
     "reproduce the paper's evaluations, all methods in one run (cartpole: Table I, Fig. 3, "
-    "App. E, ~2 min on 2 cores; quadrotor: Tables II, III, V, Figs. 4-5, ~25 min on 2 cores; "
+    "App. E and the sensitivity to the readings the paper leaves open, minutes on 2 cores; "
+    "quadrotor: Tables II, III, V, Figs. 4-5, ~25 min on 2 cores; "
     "changepoints: detection quality on both systems, ~1 h, --quick ~6 min)"
 )
 

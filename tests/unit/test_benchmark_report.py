@@ -180,15 +180,82 @@ def test_cartpole_section_renders_the_reference_rows_and_the_latent_ablation(tmp
         ],
     }
     text = "\n".join(report_cartpole.cartpole_section(r, tmp_path))
-    assert "| ours_known_changepoints | 5.250 ± 0.480 | — |" in text
+    assert "| ours_known_changepoints | 5.250 ± 0.480 | — | — |" in text
     assert "`ours_known_changepoints` is Ours with one hypothesis" in text
     assert "beta = 0.2, tau^2 = 10 tuned the same way" in text
     assert "Ours beta = 0.7 (paper 0.9), pi = 0.2 (paper 0.05), tau^2 = 3 (paper 0.1; " in text
     row = "| 4 | 3.981 ± 0.300 | 90% | 9.00 | 5.871 ± 0.800 | 7.141 | 0.68 | 0.7, 0.1, 3; 100 |"
     assert row in text
+    assert "Testbed" not in text and "Sensitivity" not in text
     del r["latent_ablation"], r["tuning"]["ours_known_changepoints"]
     text = "\n".join(report_cartpole.cartpole_section(r, tmp_path))
     assert "latent dimension" not in text and "shows the noise floor." in text
+
+
+def test_cartpole_section_renders_the_testbed_both_crmse_readings_and_the_sensitivity(tmp_path):
+    stat = {"mean": 4.0, "std": 0.2}
+    choice = lambda v: {"chosen": v, "tuning_crmse": {}}  # noqa: E731
+    ratio = {
+        "ours/ours_no_cp": 0.9,
+        "ours/gp": 0.8,
+        "ours/mlp_last_layer": 0.7,
+        "ours/offline_only": 0.6,
+    }
+    cp = {
+        "hit_rate": 0.5,
+        "precision": 0.25,
+        "false_alarms_per_100_eligible_steps": 3.0,
+        "false_alarms_per_100_steps": 3.1,
+        "mean_delay_steps": 1.0,
+        "hit_rate_per_intervention": {"0": 0.0, "40": 0.5, "80": 1.0},
+        "random_baseline": {"flag_rate": 0.05, "hit_rate": 0.19, "precision": 0.09},
+    }
+    row = {
+        "online": {"ours": stat},
+        "ratios": ratio,
+        "ratios_horizon_1": ratio,
+        "ratios_horizon_25": {**ratio, "ours/gp": 0.55},
+        "changepoints": cp,
+    }
+    r = {
+        "testbed": {
+            "pulse_steps": 1,
+            "impulse_Ns": 0.1,
+            "mass_factor_per_intervention": 0.9,
+            "disturbance_mean_N": -0.5,
+            "disturbance_std_N": 0.5,
+            "dt_s": 0.05,
+            "x0_bounds": [1.0, 1.0, 0.6, 1.0],
+            "horizon_steps": 25,
+        },
+        "settings": {"trials": 10, "n_splits": 10},
+        "online": {"ours": stat, "ours_tuned": {"mean": 3.5, "std": 0.1}},
+        "online_horizon": {"ours": {"mean": 30.0, "std": 2.0}},
+        "offline": {"ours": stat},
+        "ratios": ratio,
+        "ratios_horizon": {**ratio, "ours/gp": 0.45},
+        "tuning": {
+            "ours": choice(0.7),
+            "ours_no_cp": choice(100.0),
+            "mlp_last_layer": choice(0.1),
+        },
+        "changepoints": cp,
+        "changepoints_tuned": cp,
+        "sensitivity": {
+            "horizons": [1, 25],
+            "pulse_steps": {"1": row, "held": row},
+            "noise": {"std": row},
+        },
+    }
+    text = "\n".join(report_cartpole.cartpole_section(r, tmp_path))
+    assert "2 N impulse as a 1-step pulse (0.1 N s)" in text
+    assert "| ours | 4.000 ± 0.200 | 30.000 ± 2.000 | 5.83 |" in text
+    assert "| ours_tuned | 3.500 ± 0.100 | — | — |" in text
+    assert "| ratio | ratios | ratios_horizon |" in text
+    assert "| ours/gp | 0.80 | 0.45 |" in text
+    assert "Changepoint detection (paper settings): hit rate within 3 steps 50% " in text
+    assert "precision 25%" in text and "random detector at the same flag rate" in text
+    assert "| pulse_steps = held | 4.00 | 0.90 (0.90/0.90) | 0.80 (0.80/0.55) |" in text
 
 
 def test_variants_section_keeps_the_run_s_method_order_and_marks_the_best(tmp_path):

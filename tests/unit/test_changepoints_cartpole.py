@@ -1,4 +1,5 @@
-"""Scoring of declared changepoints (``benchmarks.changepoints_cartpole``) on hand-made flags.
+"""Scoring of declared changepoints (``benchmarks.cartpole_detection``, shared by the cartpole
+evaluation and ``benchmarks.changepoints_cartpole``) on hand-made flags.
 
 Interventions at steps 0, 40, 80 of 120-step trajectories and a hit window of 3 steps: a
 declaration at step ``k`` is a hit for intervention ``t`` if ``t <= k <= t + 3``.
@@ -11,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from benchmarks.changepoints_cartpole import declaration_quality
+from benchmarks.cartpole_detection import declaration_quality
 
 T = 120
 STEPS = (0, 40, 80)
