@@ -244,6 +244,16 @@ def test_link_delay_must_be_shorter_than_the_control_period(capsys):
 # ------------------------------------------------------------------ changepoint events
 
 
+def fly_lockstep(svc: mod.Adapter, n: int) -> list[Event]:
+    """``n`` lockstep instants 0.05 s apart from 1.0 s, each answered by a setpoint; the
+    changepoint events the adapter raised."""
+    svc.on_command(start(1.0))
+    for k in range(n):
+        svc.on_setpoint(setpoint(1.0 + 0.05 * k, 5.0, seq=k + 1))
+        svc.on_state(state(1.0 + 0.05 * k, k + 1))
+    return svc.bus.events("changepoint")
+
+
 def test_a_declared_changepoint_is_reported_with_its_date():
     """Events follow the detector's declarations, not the learner's flag: a declaration
     dated to a step is reported with that step's stamp and probability; the learner's
@@ -268,11 +278,7 @@ def test_a_declared_changepoint_is_reported_with_its_date():
         )
 
     svc._adapt, svc._detect = adapt, detect
-    svc.on_command(start(1.0))
-    for k in range(7):
-        svc.on_setpoint(setpoint(1.0 + 0.05 * k, 5.0, seq=k + 1))
-        svc.on_state(state(1.0 + 0.05 * k, k + 1))
-    reported = svc.bus.events("changepoint")
+    reported = fly_lockstep(svc, 7)
     assert [e.data["changepoint_step"] for e in reported] == [2, 5]
     # Step j is the transition into state j + 1 (stamp 1.0 + 0.05 j).
     assert [e.data["changepoint_stamp"] for e in reported] == pytest.approx([1.1, 1.25])
@@ -304,11 +310,7 @@ def test_a_learner_with_its_own_detector_declares_the_events():
         return learner, z, Prediction(z, z, z, z, z), 0.7, cp, svc.theta, z[:, None, None], z, -1
 
     svc._adapt, svc._detect = adapt, None
-    svc.on_command(start(1.0))
-    for k in range(5):
-        svc.on_setpoint(setpoint(1.0 + 0.05 * k, 5.0, seq=k + 1))
-        svc.on_state(state(1.0 + 0.05 * k, k + 1))
-    reported = svc.bus.events("changepoint")
+    reported = fly_lockstep(svc, 5)
     assert [e.data["changepoint_step"] for e in reported] == [1, 4]
     assert [e.data["step"] for e in reported] == [2, 4]
     assert [e.data["cp_prob"] for e in reported] == pytest.approx([0.7, 0.7])
