@@ -69,6 +69,8 @@ def test_four_vehicles_share_one_bus_without_cross_talk(tmp_path):
         with (out / "bus.mcap").open("rb") as f:
             for _, channel, message in make_reader(f).iter_messages():
                 assert channel.topic.startswith(f"arcade/{name}/"), (name, channel.topic)
+                if channel.message_encoding != "json":  # the Foxglove drawing beside
+                    continue
                 topic = channel.topic.rsplit("/", 1)[-1]
                 srcs.setdefault(topic, set()).add(json.loads(message.data)["src"])
         for topic in ("mocap", "imu", "state", "setpoint", "model", "residual"):

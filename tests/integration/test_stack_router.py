@@ -137,6 +137,8 @@ def recorded(out: Path) -> list[tuple[str, str, dict]]:
     rows = []
     with (out / "bus.mcap").open("rb") as f:
         for _, channel, message in make_reader(f).iter_messages():
+            if channel.message_encoding != "json":  # the Foxglove drawing beside
+                continue
             wire = json.loads(message.data)
             rows.append((channel.topic.rsplit("/", 1)[-1], USERS[wire["src"].split("/")[0]], wire))
     return rows
