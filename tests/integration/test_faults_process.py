@@ -36,6 +36,7 @@ from services.bus import Bus, peer_config
 
 RATE = 20.0
 FAILSAFE_S = 0.3
+CHECKPOINT_EVERY = 20  # the adapter's default --checkpoint-every
 WAIT = 180.0  # upper bound on any wait (restarts compile on a loaded machine), never a sleep
 
 
@@ -49,13 +50,20 @@ class Monitor:
         self.setpoints: list[tuple[float, float]] = []  # (arrival wall time, stamp)
         self.modes: list[tuple[float, str]] = []  # (arrival wall time, setpoint mode)
         self.events: list[tuple[float, Any]] = []  # (arrival wall time, event)
+        self.model_step = -1  # the newest model's learning step
         self.bus.subscribe("state", self._on_state, check_order=False)
+        self.bus.subscribe("model", self._on_model, check_order=False)
         self.bus.subscribe("setpoint", self._on_setpoint, check_order=False)
         self.bus.subscribe("event", self._on_event, check_order=False)
 
     def _on_state(self, s: Any) -> None:
         with self.cond:
             self.stamp = max(self.stamp, s.stamp)
+            self.cond.notify_all()
+
+    def _on_model(self, m: Any) -> None:
+        with self.cond:
+            self.model_step = max(self.model_step, m.step)
             self.cond.notify_all()
 
     def _on_setpoint(self, sp: Any) -> None:
@@ -195,6 +203,9 @@ def test_realtime_adapter_and_controller_killed(tmp_path):
         try:
             stack.wait_ready()
             mon.wait("a second of flight", lambda: len(mon.setpoints) > 2 * RATE)
+            # A learned posterior in the checkpoint (written every CHECKPOINT_EVERY steps):
+            # how long the flight takes to get there depends on the host.
+            mon.wait("a checkpoint", lambda: mon.model_step >= 2 * CHECKPOINT_EVERY)
             # Adapter: the controller keeps the last model, flags it, then goes nominal.
             n = len(mon.events)
             stack.kill("adapter")
