@@ -34,6 +34,7 @@ import json
 import socket
 import threading
 import time
+from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -53,6 +54,8 @@ PLAN = {"speed": 1.0, "duration": 14.0, "release": 0.3, "seed": 0, "rate": 20.0,
 FLIGHTS = 3
 COM_OF_LOSS_T = 1.0
 HEARTBEAT_S = 1.0
+#: The simulated PX4's MAVLink system id (simulator.px4.mavlink_vehicle, as PX4's).
+PX4_SYSTEM_ID = 1
 
 
 def _udp_url() -> str:
@@ -386,7 +389,7 @@ class _GroundStation:
         self.sock.bind(("127.0.0.1", 0))
         self.sock.settimeout(0.2)
         self.url = f"udpout://127.0.0.1:{self.sock.getsockname()[1]}"
-        self.heartbeats: set[int] = set()  # system ids
+        self.heartbeats: Counter[int] = Counter()  # heartbeats heard per system id
         self._parser = mav.MAVLink(None)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -400,7 +403,7 @@ class _GroundStation:
                 continue
             for msg in self._parser.parse_buffer(data) or []:
                 if msg.get_type() == "HEARTBEAT":
-                    self.heartbeats.add(msg.get_srcSystem())
+                    self.heartbeats[msg.get_srcSystem()] += 1
 
     def close(self) -> None:
         self._stop.set()
@@ -414,10 +417,11 @@ def test_geofence_breach_leaves_offboard_and_px4_holds_inside_reach(tmp_path):
     # is (not a crash, although the plan's reference moves on), learning pauses. A ground
     # station beside the bridge (--forward) hears the simulated PX4 meanwhile.
     gcs = _GroundStation()
+    duration = 14.0  # the reference ends more than 2 m from the hold point
     cfg = _px4_config(
         tmp_path,
         speed=1.0,
-        duration=14.0,  # the reference ends more than 2 m from the hold point
+        duration=duration,
         hover_s=None,  # the scenario's: the figure-eight
         bridge_args=["--geofence=-1,1,-1,1,0,3", f"--forward={gcs.url}"],
     )
@@ -425,7 +429,8 @@ def test_geofence_breach_leaves_offboard_and_px4_holds_inside_reach(tmp_path):
         result = _fly_armed(cfg)
     finally:
         gcs.close()
-    assert 1 in gcs.heartbeats, gcs.heartbeats  # PX4's system id, forwarded
+    # PX4's heartbeats (one a second) forwarded to the station all through the flight.
+    assert gcs.heartbeats[PX4_SYSTEM_ID] >= duration / (2 * HEARTBEAT_S), gcs.heartbeats
     fences = [r for r in result["events"] if _from("bridge", "failsafe")(r)]
     assert fences and fences[0]["data"]["reason"] == "geofence", fences
     assert "outside the geofence" in fences[0]["text"]
