@@ -25,8 +25,10 @@ Per ``mocap`` frame of the payload (body ``payload``; stamped with its capture t
 - ``payload``: ``foxglove.SceneUpdate``, entity ``payload`` in the world frame: a sphere of
   the payload's size (:data:`~arcade_io.vehicle.PAYLOAD_RADIUS_M`) at its pose and, until
   the release, the cable: a line from the vehicle's frame of the same capture (body
-  ``vehicle``; :data:`ANCHOR_AGE_S`) to the payload. The release is the ``event`` whose data holds
-  ``payload="released"`` (the simulator's); from then on the entity has no line.
+  ``vehicle``; :data:`ANCHOR_AGE_S`) to the payload. The release is the ``event`` whose
+  data holds ``payload="released"`` (the simulator's, stamped on the frames' clock): frames
+  captured from its stamp on have no line; those captured before keep it, also when they
+  arrive after the event (which travels at a lower priority than the frames).
 """
 
 from __future__ import annotations
@@ -214,8 +216,8 @@ class FoxgloveScene:
         self._static_at = -np.inf  # stamp of the last static scenes
         self._trail_at = -np.inf  # stamp of the newest reference point kept
         self._vehicle_at: tuple[float, list[float]] | None = None  # newest vehicle frame
-        #: Whether the payload was released (the cable is no longer drawn).
-        self.released = False
+        #: Stamp of the payload's release (the cable is drawn for frames captured before).
+        self.released_at = np.inf
 
     def set_reference(self, reference: np.ndarray | None) -> None:
         """The reference path ``(n, 3)`` [m] (None: none); drawn from the next static
@@ -247,7 +249,8 @@ class FoxgloveScene:
         if kind == "mocap":
             return self.mocap(wire)
         if kind == "event":
-            self.released |= (wire.get("data") or {}).get("payload") == "released"
+            if (wire.get("data") or {}).get("payload") == "released":
+                self.released_at = min(self.released_at, float(wire["stamp"]))
             return []
         if kind != "state":
             return []
@@ -285,7 +288,7 @@ class FoxgloveScene:
             return []
         q = wire["quaternion"]
         v = self._vehicle_at
-        hangs = v is not None and abs(v[0] - stamp) <= ANCHOR_AGE_S and not self.released
+        hangs = v is not None and abs(v[0] - stamp) <= ANCHOR_AGE_S and stamp < self.released_at
         anchor = v[1] if hangs else None
         tf = fm.FrameTransform(
             timestamp=timestamp(stamp),

@@ -85,8 +85,10 @@ class FoxgloveLive(runtime.Service):
         self.log.info("Foxglove WebSocket server on ws://%s:%d", a.host, self.server.port)
         bus.subscribe("state", self.on_record)
         bus.subscribe("reference", self.on_record)
-        bus.subscribe("mocap", self.on_record)  # the payload's frames (and the vehicle's)
-        # Events come from several publishers, each with its own clock: no order check.
+        # The payload's frames (and the vehicle's), drawn as they come like the recorder
+        # does (a jumped mocap clock is the estimator's to judge); events come from several
+        # publishers, each with its own clock: no order check on either.
+        bus.subscribe("mocap", self.on_record, check_order=False)
         bus.subscribe("event", self.on_record, check_order=False)
 
     def ready(self) -> None:

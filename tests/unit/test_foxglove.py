@@ -73,11 +73,12 @@ def test_the_payload_is_a_sphere_with_its_cable_from_the_vehicle_until_the_relea
     np.testing.assert_allclose(ends, [vehicle.position, payload.position])
     other = dataclasses.replace(payload, body="wand")
     assert scene.messages("mocap", other.to_wire()) == []  # a body drawn nowhere
-    assert scene.messages("event", RELEASED.to_wire()) == [] and scene.released
-    for frame in _capture(9.1):
-        got = dict(scene.messages("mocap", frame.to_wire()))
-    (entity,) = _decoded_msg(got["payload"]).entities
-    assert len(entity.spheres) == 1 and not entity.lines  # the cable is gone
+    assert scene.messages("event", RELEASED.to_wire()) == [] and scene.released_at == 9.0
+    for t, cables in ((8.99, 1), (9.0, 0), (9.1, 0)):  # a frame of before, arriving late
+        for frame in _capture(t):
+            got = dict(scene.messages("mocap", frame.to_wire()))
+        (entity,) = _decoded_msg(got["payload"]).entities
+        assert len(entity.spheres) == 1 and len(entity.lines) == cables, t  # then it is gone
 
 
 def test_a_state_becomes_the_transform_pose_and_vehicle_and_every_second_the_static_scenes():
@@ -151,8 +152,8 @@ def test_the_recorder_writes_foxglove_channels_that_decode_to_the_state(tmp_path
     rec.scene.set_reference(PATH)
     for k in range(30):
         rec.record("state", _state(5.0 + 0.05 * k))
-        if k == 20:
-            rec.record("event", RELEASED)
+        if k == 19:  # the release at 6.0 s, recorded before the frame captured at 5.95 s
+            rec.record("event", RELEASED.replace(stamp=6.0))
         for frame in _capture(5.0 + 0.05 * k):
             rec.record("mocap", frame)
     rec.teardown()
