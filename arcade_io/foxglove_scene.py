@@ -19,7 +19,16 @@ Every :data:`STATIC_EVERY_S` seconds of state stamps (from the first state on):
 a line strip, world frame) and ``geofence`` (the box's twelve edges), so that a player that
 seeks into the log shows them too.
 
-The payload is not on the bus (no record carries its position): it is not drawn.
+Per ``mocap`` frame of the payload (body ``payload``; stamped with its capture time):
+
+- ``payload_transform``: ``foxglove.FrameTransform`` world -> ``<vehicle>/payload``;
+- ``payload``: ``foxglove.SceneUpdate``, entity ``payload`` in the world frame: a sphere of
+  the payload's size (:data:`~arcade_io.vehicle.PAYLOAD_RADIUS_M`) at its pose and, until
+  the release, the cable: a line from the vehicle's frame of the same capture (body
+  ``vehicle``; :data:`ANCHOR_AGE_S`) to the payload. The release is the ``event`` whose
+  data holds ``payload="released"`` (the simulator's, stamped on the frames' clock): frames
+  captured from its stamp on have no line; those captured before keep it, also when they
+  arrive after the event (which travels at a lower priority than the frames).
 """
 
 from __future__ import annotations
@@ -30,6 +39,8 @@ from typing import Any
 import numpy as np
 from foxglove import messages as fm
 
+from arcade_io.vehicle import PAYLOAD_RADIUS_M
+
 #: Channel name -> Foxglove message type (the topic is ``arcade/<vehicle>/foxglove/<name>``).
 CHANNELS: Mapping[str, Any] = {
     "transform": fm.FrameTransform,
@@ -37,7 +48,14 @@ CHANNELS: Mapping[str, Any] = {
     "vehicle": fm.SceneUpdate,
     "reference": fm.SceneUpdate,
     "geofence": fm.SceneUpdate,
+    "payload_transform": fm.FrameTransform,
+    "payload": fm.SceneUpdate,
 }
+#: Rigid bodies of the ``mocap`` topic drawn here (those of :mod:`services.messages`).
+VEHICLE_BODY, PAYLOAD_BODY = "vehicle", "payload"
+#: The cable hangs from the vehicle's frame captured at most this long from the payload's
+#: [s] (a mocap system sends both of one capture with the same stamp).
+ANCHOR_AGE_S = 0.05
 #: The world frame's id (ENU).
 WORLD = "world"
 #: The static scenes (reference path, geofence) are sent again this often [s of stamps].
@@ -57,6 +75,11 @@ def topic(vehicle: str, name: str) -> str:
 def body_frame(vehicle: str) -> str:
     """The vehicle's body frame id (FLU)."""
     return f"{vehicle}/body"
+
+
+def payload_frame(vehicle: str) -> str:
+    """The frame id of the vehicle's payload."""
+    return f"{vehicle}/payload"
 
 
 def timestamp(stamp: float) -> fm.Timestamp:
@@ -122,6 +145,33 @@ def vehicle_scene(vehicle: str, stamp: float) -> fm.SceneUpdate:
     return fm.SceneUpdate(entities=[entity])
 
 
+def payload_scene(
+    stamp: float, position: Sequence[float], q_wxyz: Sequence[float], anchor: Any | None
+) -> fm.SceneUpdate:
+    """The payload as a sphere at its pose (world frame) and, with an ``anchor`` (where the
+    cable hangs from, m), the cable from there to the payload."""
+    amber, d = _color(0.95, 0.65, 0.1), 2.0 * PAYLOAD_RADIUS_M
+    sphere = fm.SpherePrimitive(
+        pose=_pose(position, q_wxyz), size=fm.Vector3(x=d, y=d, z=d), color=amber
+    )
+    cable = []
+    if anchor is not None:
+        cable = [
+            fm.LinePrimitive(
+                type=fm.LinePrimitiveLineType.LineStrip,
+                pose=_pose(),
+                thickness=1.5,
+                scale_invariant=True,
+                points=_points(np.array([anchor, position], dtype=float)),
+                color=_color(0.2, 0.2, 0.2),
+            )
+        ]
+    entity = fm.SceneEntity(
+        timestamp=timestamp(stamp), frame_id=WORLD, id="payload", spheres=[sphere], lines=cable
+    )
+    return fm.SceneUpdate(entities=[entity])
+
+
 def line_scene(
     stamp: float, entity_id: str, points: np.ndarray, line_type: Any, color: fm.Color
 ) -> fm.SceneUpdate:
@@ -165,6 +215,9 @@ class FoxgloveScene:
         self.geofence = geofence
         self._static_at = -np.inf  # stamp of the last static scenes
         self._trail_at = -np.inf  # stamp of the newest reference point kept
+        self._vehicle_at: tuple[float, list[float]] | None = None  # newest vehicle frame
+        #: Stamp of the payload's release (the cable is drawn for frames captured before).
+        self.released_at = np.inf
 
     def set_reference(self, reference: np.ndarray | None) -> None:
         """The reference path ``(n, 3)`` [m] (None: none); drawn from the next static
@@ -193,6 +246,12 @@ class FoxgloveScene:
         if kind == "reference":
             self.add_reference(float(wire["stamp"]), wire["x"])
             return []
+        if kind == "mocap":
+            return self.mocap(wire)
+        if kind == "event":
+            if (wire.get("data") or {}).get("payload") == "released":
+                self.released_at = min(self.released_at, float(wire["stamp"]))
+            return []
         if kind != "state":
             return []
         stamp = float(wire["stamp"])
@@ -217,6 +276,28 @@ class FoxgloveScene:
             self._static_at = stamp
             out += self.static(stamp)
         return out
+
+    def mocap(self, wire: Mapping[str, Any]) -> list[tuple[str, Any]]:
+        """A ``mocap`` frame: the payload's is drawn, the vehicle's kept as the cable's
+        anchor for the payload's frame of the same capture."""
+        stamp, p = float(wire["capture_stamp"]), wire["position"]
+        if wire["body"] == VEHICLE_BODY:
+            self._vehicle_at = (stamp, p)
+            return []
+        if wire["body"] != PAYLOAD_BODY:
+            return []
+        q = wire["quaternion"]
+        v = self._vehicle_at
+        hangs = v is not None and abs(v[0] - stamp) <= ANCHOR_AGE_S and stamp < self.released_at
+        anchor = v[1] if hangs else None
+        tf = fm.FrameTransform(
+            timestamp=timestamp(stamp),
+            parent_frame_id=WORLD,
+            child_frame_id=payload_frame(self.vehicle),
+            translation=_vec(p),
+            rotation=_quat(q),
+        )
+        return [("payload_transform", tf), ("payload", payload_scene(stamp, p, q, anchor))]
 
     def static(self, stamp: float) -> list[tuple[str, Any]]:
         """The reference path and the geofence at ``stamp`` (those that are known)."""

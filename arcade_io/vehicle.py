@@ -20,6 +20,8 @@ REQUIRED = {
 #: defaults: it always carries the electromagnet, and the nominal model counts it).
 DEFAULT_CABLE_MASS_KG = 0.002
 DEFAULT_ELECTROMAGNET_MASS_KG = 0.02
+#: Radius of the payload sphere [m] (the simulator's, and the one Foxglove draws).
+PAYLOAD_RADIUS_M = 0.02
 
 
 def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:

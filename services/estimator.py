@@ -1,6 +1,9 @@
 """Estimator service: mocap + gyro -> 13-state at the control rate.
 
-Subscribes ``mocap`` and ``imu``; publishes ``state``. The filter is
+Subscribes ``mocap`` and ``imu``; publishes ``state``. Only the vehicle's frames (body
+:data:`~services.messages.VEHICLE_BODY`) are fused; frames of other rigid bodies on the
+stream (the simulator's payload) are counted per body (``other_bodies``), nothing else:
+they are no fault, no frame of the vehicle, no gap. The filter is
 :mod:`arcade_core.estimation` (constant-acceleration Kalman filter on position, gyro-
 propagated attitude, outlier gating, prediction through dropouts, latency compensation).
 
@@ -49,10 +52,12 @@ from typing import Any
 import numpy as np
 
 from services import options, runtime
-from services.messages import MAX_VARIANCE, Imu, MessageError, Mocap, State
+from services.messages import MAX_VARIANCE, VEHICLE_BODY, Imu, MessageError, Mocap, State
 
 #: Frames kept while waiting for the next ``imu`` sample (~2 s of 120 Hz mocap).
 MAX_PENDING = 256
+#: Other rigid bodies whose frames are counted (``other_bodies``), by name.
+MAX_OTHER_BODIES = 16
 
 
 def _packed_step(filt, frames, t, gyro, config):
@@ -132,6 +137,7 @@ class Estimator(runtime.Service):
             restamped_frames=0,
             pending_dropped=0,
             filter_resets=0,
+            other_bodies={},
         )
         # One ordered stream: the frames of a period arrive before its imu sample.
         self._subs = runtime.subscribe_ordered(
@@ -149,6 +155,9 @@ class Estimator(runtime.Service):
             self._step(self.filter, frames, 0.0, np.zeros(3), self.config)
 
     def on_mocap(self, m: Mocap) -> None:
+        if not m.of_vehicle:  # another rigid body on the stream (e.g. the payload)
+            self._other_body(m.body)
+            return
         with self._lock:
             if len(self._pending) >= MAX_PENDING:  # no imu for a while: keep the newest
                 del self._pending[0]
@@ -158,6 +167,19 @@ class Estimator(runtime.Service):
                         "no imu sample for %d mocap frames: dropping the oldest", MAX_PENDING
                     )
             self._pending.append(m)
+
+    def _other_body(self, body: str) -> None:
+        """Count a frame of a body that is not the vehicle's; say so once per body."""
+        seen = self.stats["other_bodies"]
+        if body not in seen and len(seen) >= MAX_OTHER_BODIES:
+            return
+        if body not in seen:
+            self.log.info(
+                "mocap body %r is not the vehicle's (%r): its frames are not fused",
+                body,
+                VEHICLE_BODY,
+            )
+        seen[body] = seen.get(body, 0) + 1
 
     def _frames(self, batch: list[Mocap]) -> Any:
         est = self.est

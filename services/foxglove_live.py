@@ -1,10 +1,11 @@
 """Foxglove service: the live flight over the Foxglove WebSocket protocol.
 
-Subscribes ``state`` and ``reference`` and serves what
+Subscribes ``state``, ``reference``, ``mocap`` and ``event`` and serves what
 :class:`arcade_io.foxglove_scene.FoxgloveScene` makes of them (the same conversion the
 recorder writes into ``bus.mcap``): the vehicle's ``foxglove.FrameTransform``,
-``foxglove.PoseInFrame`` and ``foxglove.SceneUpdate``, the
-reference path and the geofence, on ``arcade/<vehicle>/foxglove/<name>``. Foxglove opens
+``foxglove.PoseInFrame`` and ``foxglove.SceneUpdate``, the payload (its transform, a sphere
+and the cable until the release), the reference path and the geofence, on
+``arcade/<vehicle>/foxglove/<name>``. Foxglove opens
 it as a "Foxglove WebSocket" connection to ``ws://HOST:PORT``. It listens on loopback
 unless ``--host`` says otherwise (the server has no authentication: anyone who reaches the
 port sees the flight). The server is ``foxglove-sdk``'s; messages go out as they arrive,
@@ -82,8 +83,13 @@ class FoxgloveLive(runtime.Service):
         }
         self.stats.update(port=self.server.port, messages=dict.fromkeys(CHANNELS, 0))
         self.log.info("Foxglove WebSocket server on ws://%s:%d", a.host, self.server.port)
-        bus.subscribe("state", self.on_state)
-        bus.subscribe("reference", self.on_reference)
+        bus.subscribe("state", self.on_record)
+        bus.subscribe("reference", self.on_record)
+        # The payload's frames (and the vehicle's), drawn as they come like the recorder
+        # does (a jumped mocap clock is the estimator's to judge); events come from several
+        # publishers, each with its own clock: no order check on either.
+        bus.subscribe("mocap", self.on_record, check_order=False)
+        bus.subscribe("event", self.on_record, check_order=False)
 
     def ready(self) -> None:
         self.event(
@@ -92,15 +98,13 @@ class FoxgloveLive(runtime.Service):
             port=self.server.port,
         )
 
-    def on_state(self, s) -> None:
+    def on_record(self, m) -> None:
+        """A ``state``, ``reference``, ``mocap`` or ``event`` record: what the scene draws
+        of it (of a reference or an event nothing at once: the path and the cable change)."""
         with self._lock:
-            for name, msg in self.scene.messages("state", s.to_wire()):
+            for name, msg in self.scene.messages(m.TOPIC, m.to_wire()):
                 self.channels[name].log(msg.encode(), log_time=time.time_ns())
                 self.stats["messages"][name] += 1
-
-    def on_reference(self, r) -> None:
-        with self._lock:
-            self.scene.messages("reference", r.to_wire())  # the path drawn: nothing to send
 
     def teardown(self) -> None:
         self.server.stop()

@@ -92,9 +92,11 @@ __all__ = [
     "MAX_VARIANCE",
     "MESSAGE_TYPES",
     "MODES",
+    "PAYLOAD_BODY",
     "QUAT_NORM_TOL",
     "SEVERITIES",
     "TOPICS",
+    "VEHICLE_BODY",
     "Command",
     "Event",
     "Imu",
@@ -212,6 +214,11 @@ _X_LO = (-_P,) * 3 + (-_V,) * 3 + (-_Q,) * 4 + (-_R,) * 3
 _X_HI = (_P,) * 3 + (_V,) * 3 + (_Q,) * 4 + (_R,) * 3
 
 
+#: Rigid bodies on the ``mocap`` topic: the vehicle (the only frames its estimator and the
+#: PX4 bridge take) and the simulator's swinging payload (drawn in Foxglove).
+VEHICLE_BODY, PAYLOAD_BODY = "vehicle", "payload"
+
+
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
 class Mocap(Message):
     """One motion-capture sample of a rigid body (world ENU, body FLU, SI).
@@ -219,7 +226,8 @@ class Mocap(Message):
     Attributes:
         position: ``(3,)`` m.
         quaternion: ``(4,)`` unit, ``w`` first, body-to-world.
-        body: rigid-body name in the mocap system.
+        body: rigid-body name in the mocap system (one stream may carry several bodies:
+            :data:`VEHICLE_BODY` is the vehicle).
         frame: world frame id.
         capture_stamp: time the frame was captured (same clock as ``stamp``).
     """
@@ -229,7 +237,7 @@ class Mocap(Message):
 
     position: np.ndarray = field(metadata=array_meta((3,), -_P, _P))
     quaternion: np.ndarray = field(metadata=array_meta((4,), -_Q, _Q, unit=(0, 4)))
-    body: str = field(default="vehicle", metadata=spec_meta(StrSpec(pattern=IDENT)))
+    body: str = field(default=VEHICLE_BODY, metadata=spec_meta(StrSpec(pattern=IDENT)))
     frame: str = field(default="world", metadata=spec_meta(StrSpec(pattern=IDENT)))
     capture_stamp: float = field(metadata=spec_meta(FloatSpec(0.0, MAX_STAMP_S)))
 
@@ -240,6 +248,11 @@ class Mocap(Message):
                 f"capture_stamp {self.capture_stamp} after stamp {self.stamp}",
                 field="capture_stamp",
             )
+
+    @property
+    def of_vehicle(self) -> bool:
+        """Whether this frame is the vehicle's (its body is :data:`VEHICLE_BODY`)."""
+        return self.body == VEHICLE_BODY
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)

@@ -7,8 +7,9 @@ the receive time (``time.time_ns()``), ``publish_time`` the message ``stamp`` in
 
 The same file also holds the flight in Foxglove's well-known schemas (protobuf): per
 state the vehicle's ``foxglove.FrameTransform`` (world -> ``<vehicle>/body``),
-``foxglove.PoseInFrame`` and ``foxglove.SceneUpdate``, and every second the reference path
-and the geofence, on ``arcade/<vehicle>/foxglove/<name>``
+``foxglove.PoseInFrame`` and ``foxglove.SceneUpdate``, per payload ``mocap`` frame the
+payload (its transform, a sphere and the cable until the release), and every second the
+reference path and the geofence, on ``arcade/<vehicle>/foxglove/<name>``
 (:mod:`arcade_io.foxglove_scene`, the conversion the live ``foxglove`` service serves too),
 so that Foxglove's 3D panel shows the flight without set-up. The reference path is the
 controller's ``reference`` records so far.

@@ -1,14 +1,15 @@
 """Simulator service: the MuJoCo quadrotor impersonating the vehicle and the mocap system.
 
-Publishes ``mocap`` (frames with the emulated latency, noise and drops of
-:class:`simulator.MocapConfig`; ``capture_stamp`` = capture time, ``stamp`` = arrival
-time) and, once per control period, one ``imu`` sample (the latest gyro reading) that marks
-the control instant; accepts ``setpoint``; emits ``event`` (payload release, timeouts,
-crash). Flies the scenario of the plan options (take-off, hover, two figure-eight laps) and
-releases the payload at ``--release`` of the first lap (jittered per seed like the
-in-process evaluation) or on a ``release_payload`` command: at the first control instant
-whose stamp is at or after the command's stamp (a command stamped in the future releases
-at that time; lockstep stamps are simulated time).
+Publishes ``mocap`` (frames of the vehicle and of a swinging payload with the emulated
+latency, noise and drops of :class:`simulator.MocapConfig`, :mod:`services.sim_mocap`;
+``capture_stamp`` = capture time, ``stamp`` = arrival time) and, once per control period,
+one ``imu`` sample (the latest gyro reading) that marks the control instant; accepts
+``setpoint``; emits ``event`` (payload release, with ``payload="released"`` in its data;
+timeouts, crash). Flies the scenario of the plan options (take-off, hover, two
+figure-eight laps) and releases the payload at ``--release`` of the first lap (jittered
+per seed like the in-process evaluation) or on a ``release_payload`` command: at the first
+control instant whose stamp is at or after the command's stamp (a command stamped in the
+future releases at that time; lockstep stamps are simulated time).
 
 Clock modes (design §3):
 
@@ -63,7 +64,8 @@ Mocap fault injection (``--mocap-fault``, repeatable; times are mission time in 
 ``T`` is repeated with fresh stamps, as a tracker that lost the body does),
 ``outliers@T+D,p=P,m=M`` (each frame jumps by ``M`` m in a random direction with
 probability ``P``), ``clockjump@T[+D],offset=S`` (the mocap clock is off by ``S`` s: both
-stamps of the frames move). Counts go to the statistics (``mocap_faults``).
+stamps of the frames move). Counts go to the statistics (``mocap_faults``);
+:mod:`services.sim_mocap` says which rigid bodies each fault hits.
 
 The vehicle starts at rest on its start pose: the first mocap frame (captured at ``t = 0``)
 is published before the first control instant, so the estimator starts initialised.
@@ -92,9 +94,9 @@ from arcade_io import flightlog, hostcpu
 from arcade_io.traced import load_or_trace
 from services import options, runtime
 from services.csvlog import StreamedCsv
-from services.messages import Command, Event, Imu, Mocap, Setpoint, State
+from services.messages import Command, Event, Imu, Setpoint, State
+from services.sim_mocap import MocapStream
 from services.sim_options import add_sim_arguments as _extra
-from simulator.mocap_faults import MocapFault, MocapFaults
 
 MAX_GYRO = 99.0
 FLIGHT_COLUMNS = flightlog.columns("quadrotor")
@@ -166,10 +168,7 @@ class SimNode(runtime.Service):
         self._hold: np.ndarray | None = None  # hold position while in failsafe
         self._answered_run = 0
         self._mission0 = 0.0 if a.lockstep else math.inf  # sim time of the mission start
-        self.faults = MocapFaults(
-            [f if isinstance(f, MocapFault) else MocapFault.parse(f) for f in a.mocap_fault or []],
-            self.trial.sim_seed,
-        )
+        self.mocap_out = MocapStream(bus, a.mocap_fault or [], self.trial.sim_seed)
         self.stats.update(
             steps=0,
             timeouts=0,
@@ -184,9 +183,8 @@ class SimNode(runtime.Service):
             failsafes=[],
             controller_failsafes=0,
             controller_failsafes_ignored=0,
-            mocap_faults=self.faults.counts,
+            mocap_faults=self.mocap_out.fault_counts,
         )
-        self.pub_mocap = bus.publisher("mocap")
         self.pub_imu = bus.publisher("imu")
         self._sp_sub = bus.subscribe("setpoint", self.on_setpoint, source="controller")
         # Events come from several publishers, each with its own clock: no order check.
@@ -316,17 +314,7 @@ class SimNode(runtime.Service):
         return np.array([np.interp(t, self._ref_t, self._ref_p[:, i]) for i in range(3)])
 
     def _publish_frames(self, frames, to_stamp) -> None:
-        if self.faults.faults:
-            frames = self.faults.apply(frames, lambda t: t - self._mission0)
-        for f in frames:
-            self.pub_mocap.put(
-                Mocap(
-                    position=f.position,
-                    quaternion=f.quaternion,
-                    capture_stamp=to_stamp(f.stamp),
-                    stamp=to_stamp(f.arrival),
-                )
-            )
+        self.mocap_out.publish(frames, to_stamp, lambda t: t - self._mission0)
 
     def _tick(self, stamp: float, gyro_samples, sampled: float | None = None) -> None:
         """Publish the control instant ``stamp``; sense-to-actuate latency counts from
@@ -355,7 +343,14 @@ class SimNode(runtime.Service):
             self._release_at = math.inf
             if self.sim.release_payload():
                 self.stats["released_at"] = self.sim.time
-                self.event("info", "payload released", stamp=stamp, sim_time=self.sim.time, step=k)
+                self.event(
+                    "info",
+                    "payload released",
+                    stamp=stamp,
+                    sim_time=self.sim.time,
+                    step=k,
+                    payload="released",  # what a Foxglove drawing takes (the cable goes)
+                )
 
     def _record(self, u: np.ndarray, t: float | None = None) -> bool:
         """Log ground truth at flight time ``t``; returns False when the flight crashed."""

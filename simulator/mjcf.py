@@ -32,6 +32,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from arcade_io.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG
+from arcade_io.vehicle import PAYLOAD_RADIUS_M as PAYLOAD_RADIUS
 
 #: Name of the equality constraint that holds the cable at the electromagnet.
 RELEASE_EQUALITY = "magnet_lock"
@@ -42,7 +43,6 @@ ROTOR_SITES = ("rotor1", "rotor2", "rotor3", "rotor4")
 MAGNET_RADIUS = 0.012
 MAGNET_HALF_HEIGHT = 0.006
 HOOK_RADIUS = 0.004
-PAYLOAD_RADIUS = 0.02
 # Defaults for vehicle-file keys that older files may lack.
 DEFAULT_ROTOR_HEIGHT = 0.015
 DEFAULT_ROTOR_RADIUS = 0.0381

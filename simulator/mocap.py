@@ -14,13 +14,17 @@ Pose noise: position ``N(0, position_noise_m^2)`` per world axis; attitude
 ``q_meas = q_true (x) exp(delta / 2)`` with ``delta ~ N(0, attitude_noise_rad^2)`` per body
 axis. Latency ``latency_s + N(0, latency_jitter_s^2)`` (clipped at 0; arrivals are kept
 in order, as on one network link). Each frame is dropped independently with
-``drop_probability``. Gyro: ``omega + bias + N(0, noise^2)`` per axis with a constant bias
+``drop_probability``. A capture may also hold a second rigid body, the payload (one packet
+of a lab's mocap stream carries every rigid body of a capture): it shares the frame's
+stamps and drop, with its own pose noise from a stream of its own (so tracking it does not
+change the vehicle's noise). Gyro: ``omega + bias + N(0, noise^2)`` per axis with a constant bias
 drawn once per run from ``N(0, bias_std^2)``.
 """
 
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -76,12 +80,15 @@ def _check_nonneg(cfg, *names: str) -> None:
 
 
 class MocapSample(NamedTuple):
-    """One motion-capture pose: airframe origin position (ENU) and attitude (w, x, y, z)."""
+    """One motion-capture frame: airframe origin position (ENU) and attitude (w, x, y, z),
+    and ``payload``: the payload's ``(position, quaternion)`` in the same capture (``None``:
+    no payload tracked)."""
 
     stamp: float
     arrival: float
     position: np.ndarray
     quaternion: np.ndarray
+    payload: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class GyroSample(NamedTuple):
@@ -135,6 +142,7 @@ class MocapEmulator:
     def __init__(self, config: MocapConfig, rng: np.random.Generator):
         self.config = config
         self.rng = rng
+        self._payload_rng = rng.spawn(1)[0]  # its own stream: the vehicle's noise is unchanged
         self._stream = _Stream(config.rate_hz)
         self.n_captured = 0
         self.n_dropped = 0
@@ -144,8 +152,15 @@ class MocapEmulator:
         self.n_captured = 0
         self.n_dropped = 0
 
-    def observe(self, t: float, position: np.ndarray, quaternion: np.ndarray) -> None:
-        """Offer the true pose at time ``t``; captures it when a frame is due."""
+    def observe(
+        self,
+        t: float,
+        position: np.ndarray,
+        quaternion: np.ndarray,
+        payload: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+    ) -> None:
+        """Offer the true pose at time ``t``; captures it when a frame is due. ``payload``
+        gives the payload's true ``(position, quaternion)`` (asked only for a frame kept)."""
         if not self._stream.due(t):
             return
         c = self.config
@@ -155,12 +170,23 @@ class MocapEmulator:
         if self.rng.random() < c.drop_probability:
             self.n_dropped += 1
             return
+        pos, q = self._noisy(position, quaternion, noise)
+        carried = None
+        if payload is not None:
+            carried = self._noisy(*payload(), self._payload_rng.standard_normal(6))
+        arrival = self._stream.arrival(t, latency)
+        self._stream.pending.append(MocapSample(t, arrival, pos, q, carried))
+
+    def _noisy(
+        self, position: np.ndarray, quaternion: np.ndarray, noise: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The pose measured with the standard normal draws ``noise[:6]`` (module docstring)."""
+        c = self.config
         pos = position + c.position_noise_m * noise[:3]
         q = frames.multiply_np(
             quaternion, frames.from_rotation_vector_np(c.attitude_noise_rad * noise[3:6])
         )
-        q /= np.linalg.norm(q)
-        self._stream.pending.append(MocapSample(t, self._stream.arrival(t, latency), pos, q))
+        return pos, q / np.linalg.norm(q)
 
     def read(self, now: float) -> list[MocapSample]:
         """Samples that have arrived by ``now`` and were not read before, oldest first."""

@@ -141,6 +141,9 @@ class QuadrotorSim:
             self.cable_length = float(m.tendon_range[m.tendon("cable").id, 1])
         else:
             self.cable_length = 0.0
+        #: The motion capture tracks a swinging payload as a rigid body of its own, before
+        #: and after its release (a rigid one is part of the vehicle's body).
+        self._tracked_payload = self._payload_pose if self._swinging else None
         # Airframe + electromagnet (+ rigid payload): the subtree rooted at the airframe.
         self._airframe_subtree_mass = float(m.body_subtreemass[self._airframe])
         self.vehicle_mass = float(self.vehicle["body"]["mass_kg"]) + float(
@@ -231,7 +234,7 @@ class QuadrotorSim:
         self._lag.reset(np.zeros(3))
         self.mocap.reset(0.0)
         self.gyro.reset(0.0)
-        self.mocap.observe(0.0, d.qpos[0:3], d.qpos[3:7])
+        self.mocap.observe(0.0, d.qpos[0:3], d.qpos[3:7], self._tracked_payload)
         self.gyro.observe(0.0, d.qvel[3:6])
         return self.state()
 
@@ -344,7 +347,7 @@ class QuadrotorSim:
         while self._in_flight and self._in_flight[0][0] <= self._k:  # due from now on
             self._setpoint = self._in_flight.popleft()[1]
         t = self._k * self.dt
-        self.mocap.observe(t, d.qpos[0:3], d.qpos[3:7])
+        self.mocap.observe(t, d.qpos[0:3], d.qpos[3:7], self._tracked_payload)
         self.gyro.observe(t, d.qvel[3:6])
 
     # ------------------------------------------------------------------ outputs
@@ -379,6 +382,11 @@ class QuadrotorSim:
         if self._payload_body < 0:
             return None
         return self.data.xpos[self._payload_body].copy()
+
+    def _payload_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """True pose of the swinging payload: position (ENU) and attitude (w first)."""
+        q = self.data.qpos[self._pay_qadr : self._pay_qadr + 7]
+        return q[0:3].copy(), q[3:7].copy()
 
     def carried_mass(self) -> float:
         """Mass the rotors carry [kg]: airframe, electromagnet and attached payload/cable."""

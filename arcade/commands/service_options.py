@@ -65,8 +65,8 @@ def add_foxglove_argument(p: argparse.ArgumentParser) -> None:
         metavar="PORT",
         help="serve the live flight to Foxglove over its WebSocket protocol on "
         "ws://127.0.0.1:PORT (loopback only; PORT default 8765, 0: any free one): the "
-        "vehicle's transform, pose and model, the reference path and the geofence, the "
-        "channels bus.mcap holds too (default: off)",
+        "vehicle's transform, pose and model, the payload with its cable, the reference "
+        "path and the geofence, the channels bus.mcap holds too (default: off)",
     )
 
 

@@ -164,13 +164,14 @@ def test_lockstep_flight_compensating_a_link_delay_matches_in_process_loop(tmp_p
 
 def test_lockstep_flight_with_estimator(tmp_path):
     """Also: the live Foxglove service flies along (``--foxglove``), the recording's
-    Foxglove channels decode to the states, and ``arcade replay`` reproduces the recorded
-    adapter and controller (``tests/foxglove_replay_checks.py``)."""
+    Foxglove channels decode to the states and the payload, the estimator fuses the
+    vehicle's mocap frames only, and ``arcade replay`` reproduces the recorded adapter and
+    controller (``tests/foxglove_replay_checks.py``)."""
     summary = run_demo(
         tmp_path, seed=SEED, x64=True, progress=False, method="ours", foxglove_port=0
     )
     check_clean_run(tmp_path, summary)
-    check_foxglove(tmp_path)
+    bodies = check_foxglove(tmp_path)
     check_replay(tmp_path, "ours_beta=0.2")
     truth = read_truth(tmp_path / "truth.csv")
     est = np.genfromtxt(
@@ -184,3 +185,7 @@ def test_lockstep_flight_with_estimator(tmp_path):
     assert np.sqrt(np.mean(err_v**2)) < 0.06
     stats = json.loads((tmp_path / "stats" / "estimator.json").read_text())
     assert stats["states"] == truth["t"].size
+    # The payload's frames on the mocap stream are not the vehicle's: not fused, no fault.
+    assert stats["frames"] == bodies["vehicle"] and stats["other_bodies"] == {
+        "payload": bodies["payload"]
+    }

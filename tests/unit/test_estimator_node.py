@@ -8,7 +8,7 @@ import pytest
 
 from services import estimator as est_service
 from services.estimator import Estimator
-from services.messages import Imu, Mocap
+from services.messages import PAYLOAD_BODY, Imu, Mocap
 
 T0 = 100.0
 MOCAP_DT = 1.0 / 120.0
@@ -22,16 +22,47 @@ def frame(t: float) -> Mocap:
     )
 
 
-def fly_to(est: Estimator, t_end: float) -> None:
-    """Frames every 1/120 s and control instants every 50 ms up to ``t_end``."""
+def payload_frame(t: float) -> Mocap:
+    """The payload of the same capture: half a metre below and behind the vehicle."""
+    return Mocap(
+        position=[t - 0.3, 0.0, 0.5],
+        quaternion=[0.0, 1.0, 0, 0],
+        body=PAYLOAD_BODY,
+        capture_stamp=T0 + t,
+        stamp=T0 + t,
+    )
+
+
+def fly_to(est: Estimator, t_end: float, payload: bool = False) -> None:
+    """Frames every 1/120 s (``payload``: each followed by the payload's) and control
+    instants every 50 ms up to ``t_end``."""
     captures = iter(np.arange(0.0, t_end, MOCAP_DT))
     c = next(captures)
     for k in range(round(t_end / CONTROL_DT) + 1):
         t = k * CONTROL_DT
         while c is not None and c <= t:
             est.on_mocap(frame(c))
+            if payload:
+                est.on_mocap(payload_frame(c))
             c = next(captures, None)
         est.on_imu(Imu(gyro=np.zeros(3), stamp=T0 + t))
+
+
+def test_frames_of_other_rigid_bodies_are_not_the_vehicles(estimator_factory):
+    """A stream that also carries the payload gives the same states as the vehicle's
+    frames alone: the payload's are counted per body, never fused, frozen or faults."""
+    alone, alone_bus = estimator_factory()
+    fly_to(alone, 1.0)
+    est, bus = estimator_factory()
+    fly_to(est, 1.0, payload=True)
+    assert len(bus.states) == len(alone_bus.states) == 21
+    for s, ref in zip(bus.states, alone_bus.states, strict=True):
+        np.testing.assert_array_equal(s.x, ref.x)
+        assert s.meas_stamp == ref.meas_stamp and not s.mocap_stale
+    assert est.stats["frames"] == alone.stats["frames"] == 120
+    assert est.stats["other_bodies"] == {PAYLOAD_BODY: 120}
+    assert est.stats["frozen_frames"] == est.stats["restamped_frames"] == 0
+    assert not bus.events and int(est.filter.rejected) == 0
 
 
 def test_a_frame_held_back_to_the_next_instant_is_fused_not_frozen(estimator_factory):

@@ -6,12 +6,13 @@ from __future__ import annotations
 import argparse
 import asyncio
 import base64
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
-from services.messages import Event, State
+from services.messages import PAYLOAD_BODY, VEHICLE_BODY, Event, Mocap, State
 
 #: A 30-degree yaw (w first), for a rotation that cannot pass by accident.
 Q_YAW30 = np.array([np.cos(np.pi / 12), 0.0, 0.0, np.sin(np.pi / 12)])
@@ -23,6 +24,61 @@ def _state(t: float) -> State:
     return State.from_parts(
         p=[1.0, -2.0, 1.5 + t], v=[0.1, 0, 0], q=Q_YAW30, omega=[0, 0, 0.2], stamp=t
     )
+
+
+def _capture(t: float) -> tuple[Mocap, Mocap]:
+    """The vehicle's and the payload's mocap frames of the capture at ``t`` (the payload
+    hangs 0.6 m below the vehicle)."""
+    p = np.array([1.0, -2.0, 1.5 + t])
+    one = {"capture_stamp": t, "stamp": t + 0.007}
+    return (
+        Mocap(position=p, quaternion=Q_YAW30, **one),
+        Mocap(position=p - [0, 0, 0.6], quaternion=[1.0, 0, 0, 0], body=PAYLOAD_BODY, **one),
+    )
+
+
+def _decoded_msg(msg):
+    """A Foxglove message as the schemas' own protobuf decoder reads it."""
+    from mcap.records import Schema
+    from mcap_protobuf.decoder import DecoderFactory
+
+    s = type(msg).get_schema()
+    schema = Schema(id=1, name=s.name, encoding=s.encoding, data=s.data)
+    return DecoderFactory().decoder_for("protobuf", schema)(msg.encode())
+
+
+RELEASED = Event(kind="info", text="payload released", data={"payload": "released"}, stamp=9.0)
+
+
+def test_the_payload_is_a_sphere_with_its_cable_from_the_vehicle_until_the_release():
+    from arcade_io import foxglove_scene as fs
+    from arcade_io.vehicle import PAYLOAD_RADIUS_M
+
+    assert (fs.VEHICLE_BODY, fs.PAYLOAD_BODY) == (VEHICLE_BODY, PAYLOAD_BODY)  # the bus's
+    scene = fs.FoxgloveScene("quad1")
+    vehicle, payload = _capture(8.0)
+    assert scene.messages("mocap", vehicle.to_wire()) == []  # the vehicle: its state draws it
+    got = {n: _decoded_msg(m) for n, m in scene.messages("mocap", payload.to_wire())}
+    assert set(got) == {"payload_transform", "payload"}
+    tf = got["payload_transform"]
+    assert (tf.parent_frame_id, tf.child_frame_id) == ("world", "quad1/payload")
+    assert tf.translation.z == pytest.approx(1.5 + 8.0 - 0.6) and tf.timestamp.seconds == 8
+    (entity,) = got["payload"].entities
+    assert entity.id == "payload" and entity.frame_id == "world"
+    (sphere,) = entity.spheres
+    assert sphere.size.x == sphere.size.z == 2 * PAYLOAD_RADIUS_M
+    assert sphere.pose.position.z == pytest.approx(tf.translation.z)
+    (cable,) = entity.lines
+    ends = [[p.x, p.y, p.z] for p in cable.points]
+    np.testing.assert_allclose(ends, [vehicle.position, payload.position])
+    other = dataclasses.replace(payload, body="wand")
+    assert scene.messages("mocap", other.to_wire()) == []  # a body drawn nowhere
+    assert scene.messages("event", RELEASED.to_wire()) == [] and scene.released_at == 9.0
+    for t, cables in ((8.99, 1), (9.0, 0), (9.1, 0)):  # a frame of before, arriving late
+        for frame in _capture(t):
+            got = dict(scene.messages("mocap", frame.to_wire()))
+        (entity,) = _decoded_msg(got["payload"]).entities
+        assert len(entity.spheres) == 1 and len(entity.lines) == cables, t  # then it is gone
 
 
 def test_a_state_becomes_the_transform_pose_and_vehicle_and_every_second_the_static_scenes():
@@ -96,6 +152,10 @@ def test_the_recorder_writes_foxglove_channels_that_decode_to_the_state(tmp_path
     rec.scene.set_reference(PATH)
     for k in range(30):
         rec.record("state", _state(5.0 + 0.05 * k))
+        if k == 19:  # the release at 6.0 s, recorded before the frame captured at 5.95 s
+            rec.record("event", RELEASED.replace(stamp=6.0))
+        for frame in _capture(5.0 + 0.05 * k):
+            rec.record("mocap", frame)
     rec.teardown()
     got = _decoded(tmp_path / "bus.mcap")
     tf = got["arcade/quad1/foxglove/transform"]
@@ -123,7 +183,14 @@ def test_the_recorder_writes_foxglove_channels_that_decode_to_the_state(tmp_path
     assert len(corners) == 24
     np.testing.assert_allclose(corners.min(0), [-5, -4, -0.5])
     np.testing.assert_allclose(corners.max(0), [5, 4, 3])
-    assert rec.stats["foxglove_messages"] == 30 * 3 + 2 * 2
+    payload = got["arcade/quad1/foxglove/payload"]
+    assert len(payload) == len(got["arcade/quad1/foxglove/payload_transform"]) == 30
+    assert {name for name, _ in payload} == {"foxglove.SceneUpdate"}
+    cables = [len(update.entities[0].lines) for _, update in payload]
+    assert cables == [1] * 20 + [0] * 10  # hanging until the release event
+    sphere = payload[0][1].entities[0].spheres[0].pose.position
+    assert sphere.z == pytest.approx(1.5 + 5.0 - 0.6)
+    assert rec.stats["foxglove_messages"] == 30 * 3 + 2 * 2 + 30 * 2
 
 
 def test_the_live_server_sends_the_channels_to_a_websocket_client():
@@ -133,6 +200,7 @@ def test_the_live_server_sends_the_channels_to_a_websocket_client():
     from mcap.records import Schema
     from mcap_protobuf.decoder import DecoderFactory
 
+    from arcade_io.foxglove_scene import CHANNELS
     from services.foxglove_live import FoxgloveLive
 
     args = argparse.Namespace(
@@ -147,18 +215,20 @@ def test_the_live_server_sends_the_channels_to_a_websocket_client():
             url = f"ws://127.0.0.1:{live.server.port}"
             async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"]) as ws:
                 channels = {}
-                while len(channels) < 5:
+                while len(channels) < len(CHANNELS):
                     msg = json.loads(await asyncio.wait_for(ws.recv(), 5))
                     if msg["op"] == "advertise":
                         channels.update({c["topic"]: c for c in msg["channels"]})
-                wanted = ["arcade/quad1/foxglove/transform", "arcade/quad1/foxglove/vehicle"]
+                wanted = [f"arcade/quad1/foxglove/{n}" for n in ("transform", "vehicle", "payload")]
                 subs = [{"id": i, "channelId": channels[t]["id"]} for i, t in enumerate(wanted)]
                 await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
                 got = {}
                 k = 0
-                while len(got) < 2:
+                while len(got) < 3:
                     await asyncio.sleep(0.05)  # the subscription reaches the server
                     bus.subscribed["state"](_state(1.0 + 0.05 * k))
+                    for frame in _capture(1.0 + 0.05 * k):
+                        bus.subscribed["mocap"](frame)
                     k += 1
                     try:
                         while True:
@@ -186,6 +256,8 @@ def test_the_live_server_sends_the_channels_to_a_websocket_client():
     tf = decoded["arcade/quad1/foxglove/transform"]
     assert tf.child_frame_id == "quad1/body" and tf.translation.x == 1.0
     assert decoded["arcade/quad1/foxglove/vehicle"].entities[0].id == "vehicle"
+    payload = decoded["arcade/quad1/foxglove/payload"].entities[0]
+    assert payload.id == "payload" and len(payload.spheres) == len(payload.lines) == 1
     assert live.stats["messages"]["transform"] >= 1
 
 

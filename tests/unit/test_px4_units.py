@@ -468,6 +468,36 @@ def test_mocap_that_cannot_be_forwarded_is_a_fault_event_not_a_log_flood():
     assert b.stats["mocap_forward_errors"] == 200 and b.stats["mocap_forwarded"] == 0
 
 
+def test_only_the_vehicles_mocap_frames_are_forwarded_and_fenced():
+    """Another rigid body on the stream (the payload, here outside the geofence) is not
+    the vehicle: not forwarded to PX4, not checked against the fence, not counted."""
+    from mavsdk.plugins import mocap as mc
+
+    from services.messages import PAYLOAD_BODY, Mocap
+
+    class RecordingMocap:
+        def __init__(self) -> None:
+            self.sent: list = []
+
+        def set_odometry(self, odom) -> None:
+            self.sent.append(odom)
+
+    b = engaged_bridge()
+    b._mc, b.mocap = mc, RecordingMocap()
+    for body, p in (("vehicle", [0.0, 0.0, 1.0]), (PAYLOAD_BODY, [50.0, 0.0, 1.0])):
+        b.on_mocap(
+            Mocap(position=p, quaternion=[1.0, 0, 0, 0], body=body, capture_stamp=5.0, stamp=5.0)
+        )
+    assert b._engaged and not b.bus.events()
+    assert b.stats["mocap_forwarded"] == 1 and len(b.mocap.sent) == 1
+    assert b.mocap.sent[0].position_body.z_m == pytest.approx(-1.0)  # the vehicle's, NED
+    # The vehicle itself outside the fence: offboard is left.
+    b.on_mocap(
+        Mocap(position=[50.0, 0, 1.0], quaternion=[1.0, 0, 0, 0], capture_stamp=5.1, stamp=5.1)
+    )
+    assert not b._engaged and b.bus.events("failsafe")[0].data["reason"] == "geofence"
+
+
 # ------------------------------------------------------------------ px4sim
 
 

@@ -313,8 +313,8 @@ def test_non_finite_physics_is_reported_as_a_crash_not_an_exception(tmp_path):
 
     from services import sim_node
     from services.messages import Setpoint
+    from services.sim_mocap import MocapStream
     from services.sim_node import SimNode
-    from simulator.mocap_faults import MocapFaults
 
     parser = options.common_parser("sim", "test")
     sim_node._extra(parser)
@@ -325,14 +325,13 @@ def test_non_finite_physics_is_reported_as_a_crash_not_an_exception(tmp_path):
     node.n_steps, node.period, node.k_release = 5, 0.05, -1
     node._release_at, node._mission0, node._gyro = np.inf, 0.0, np.zeros(3)
     node._ref_t, node._ref_p = np.array([0.0, 10.0]), np.array([[0.0, 0.0, 1.0]] * 2)
-    node.faults = MocapFaults([], 0)
     node._cond, node._tick_wall, node._answered = threading.Condition(), {}, set()
     node._hold, node._answered_run, node._t_last_sp, node.truth = None, 0, 0.0, None
     node._setpoints = {
         k * 0.05: Setpoint(u=[1.0, 0, 0, 0], state_seq=0, stamp=k * 0.05) for k in range(5)
     }
     node.stats = {"steps": 0, "timeouts": 0, "crashed": False}
-    node.pub_mocap, node.pub_imu = node.bus.publisher("mocap"), node.bus.publisher("imu")
+    node.mocap_out, node.pub_imu = MocapStream(node.bus, [], 0), node.bus.publisher("imu")
     node._lockstep()  # raised MessageError (non-finite position) before
     assert node.stats["crashed"] is True and node.stats["steps"] == 1
     events = session.published["arcade/test/event"]

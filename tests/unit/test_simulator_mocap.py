@@ -114,3 +114,72 @@ def test_sensor_configs_are_validated():
         MocapConfig(rate_hz=0.0)
     with pytest.raises(ValueError):
         GyroConfig(noise_rad_s=-1.0)
+
+
+def test_the_payload_is_a_second_body_of_each_capture_with_its_own_noise():
+    """Tracking the payload leaves the vehicle's samples as they were (same seed, same
+    drops and noise); the payload's pose is measured with the configured noise."""
+    cfg = MocapConfig(rate_hz=200.0, drop_probability=0.1)
+    p0, q0 = np.array([0.3, -1.2, 0.9]), frames.from_rotation_vector_np(np.array([0.1, 0, 0.7]))
+    pay_p, pay_q = p0 - [0.0, 0.0, 0.5], frames.from_rotation_vector_np(np.array([0, 0.3, 0]))
+    alone, tracked = (MocapEmulator(cfg, np.random.default_rng(7)) for _ in range(2))
+    for k in range(10000):
+        alone.observe(k * 1e-3, p0, q0)
+        tracked.observe(k * 1e-3, p0, q0, lambda: (pay_p, pay_q))
+    a, b = alone.read(1e9), tracked.read(1e9)
+    assert len(a) == len(b) > 1700 and all(s.payload is None for s in a)
+    for s, t in zip(a, b, strict=True):
+        assert (s.stamp, s.arrival) == (t.stamp, t.arrival)
+        np.testing.assert_array_equal(s.position, t.position)
+    pos = np.array([t.payload[0] for t in b])
+    np.testing.assert_allclose(pos.mean(axis=0), pay_p, atol=4 * 3e-4 / np.sqrt(len(b)))
+    np.testing.assert_allclose(pos.std(axis=0), 3e-4, rtol=0.1)
+    att = np.array([rotvec_error(pay_q, t.payload[1]) for t in b])
+    np.testing.assert_allclose(att.std(axis=0), np.deg2rad(0.2), rtol=0.1)
+
+
+def test_the_sim_tracks_a_swinging_payload_before_and_after_its_release():
+    sim = QuadrotorSim(payload_mass=0.1, seed=3)
+    sim.step(0.1)
+    hanging = sim.read_mocap()
+    truth = sim.payload_position()
+    assert hanging and all(s.payload is not None for s in hanging)
+    np.testing.assert_allclose(hanging[-1].payload[0], truth, atol=5 * 3e-4)
+    assert hanging[-1].position[2] - truth[2] > sim.cable_length  # below the vehicle
+    sim.release_payload()
+    sim.step(0.2)
+    falling = sim.read_mocap()[-1].payload[0]
+    assert falling[2] < truth[2] - 0.1  # still seen: a tracked object does not vanish
+    assert QuadrotorSim(seed=3).mocap.read(np.inf)[0].payload is None  # no payload: one body
+
+
+def test_the_stream_puts_the_vehicle_then_the_payload_of_each_capture():
+    """One record per body with the capture's stamps; a dropout loses the capture, a
+    clock jump moves both bodies, a freeze holds only the vehicle's pose."""
+    from services.messages import PAYLOAD_BODY, VEHICLE_BODY
+    from services.sim_mocap import MocapStream
+    from simulator.mocap import MocapSample
+
+    class Bus:
+        def __init__(self) -> None:
+            self.put_records: list = []
+
+        def publisher(self, topic):
+            assert topic == "mocap"
+            return type("Pub", (), {"put": lambda _, r: self.put_records.append(r)})()
+
+    def capture(t: float) -> MocapSample:
+        q = np.array([1.0, 0.0, 0.0, 0.0])
+        return MocapSample(t, t + 0.007, np.array([t, 0, 1.0]), q, (np.array([t, 0, 0.5]), q))
+
+    bus = Bus()
+    faults = ["dropout@1+0.5", "clockjump@2+0.5,offset=3", "freeze@3+0.5"]
+    stream = MocapStream(bus, faults, seed=0)
+    stream.publish([capture(t) for t in (0.5, 1.2, 2.2, 2.9, 3.2)], lambda t: 10 + t, float)
+    got = [(r.body, r.capture_stamp, r.stamp, r.position[0]) for r in bus.put_records]
+    assert [g[0] for g in got] == [VEHICLE_BODY, PAYLOAD_BODY] * 4
+    for v, p in zip(got[0::2], got[1::2], strict=True):
+        assert v[1:3] == p[1:3]  # one capture
+    assert [g[1] for g in got[0::2]] == pytest.approx([10.5, 15.2, 12.9, 13.2])
+    assert got[-2][3] == pytest.approx(2.9) and got[-1][3] == pytest.approx(3.2)  # frozen
+    assert stream.fault_counts == {"dropout": 1, "freeze": 1, "outliers": 0, "clockjump": 1}
