@@ -23,12 +23,18 @@ Per ``mocap`` frame of the payload (body ``payload``; stamped with its capture t
 
 - ``payload_transform``: ``foxglove.FrameTransform`` world -> ``<vehicle>/payload``;
 - ``payload``: ``foxglove.SceneUpdate``, entity ``payload`` in the world frame: a sphere of
-  the payload's size (:data:`~arcade_io.vehicle.PAYLOAD_RADIUS_M`) at its pose and, until
-  the release, the cable: a line from the vehicle's frame of the same capture (body
-  ``vehicle``; :data:`ANCHOR_AGE_S`) to the payload. The release is the ``event`` whose
-  data holds ``payload="released"`` (the simulator's, stamped on the frames' clock): frames
-  captured from its stamp on have no line; those captured before keep it, also when they
-  arrive after the event (which travels at a lower priority than the frames).
+  the payload's size (:data:`~arcade_io.vehicle.PAYLOAD_RADIUS_M`) at its pose and, while
+  it hangs, the cable: a line from the vehicle's frame of the same capture (the vehicle's
+  rigid body, default ``vehicle``; :data:`ANCHOR_AGE_S`) to the payload. It hangs while
+
+  - the release was not seen: the release is the ``event`` whose data holds
+    ``payload="released"`` (the simulator's, stamped on the frames' clock); frames captured
+    from its stamp on have no line, those captured before keep it, also when they arrive
+    after the event (which travels at a lower priority than the frames);
+  - and the payload is within the cable's reach of the vehicle's origin (the cable's length
+    plus :data:`REACH_MARGIN_M`): a drawing that starts after the release (a Foxglove
+    server or recorder that joins or restarts late never sees the event) draws no cable to
+    a payload lying on the floor.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ from typing import Any
 import numpy as np
 from foxglove import messages as fm
 
-from arcade_io.vehicle import PAYLOAD_RADIUS_M
+from arcade_io.vehicle import DEFAULT_CABLE_LENGTH_M, PAYLOAD_RADIUS_M
 
 #: Channel name -> Foxglove message type (the topic is ``arcade/<vehicle>/foxglove/<name>``).
 CHANNELS: Mapping[str, Any] = {
@@ -51,11 +57,17 @@ CHANNELS: Mapping[str, Any] = {
     "payload_transform": fm.FrameTransform,
     "payload": fm.SceneUpdate,
 }
-#: Rigid bodies of the ``mocap`` topic drawn here (those of :mod:`services.messages`).
+#: Rigid bodies of the ``mocap`` topic drawn here (those of :mod:`services.messages`; the
+#: vehicle's by default, see :class:`FoxgloveScene`).
 VEHICLE_BODY, PAYLOAD_BODY = "vehicle", "payload"
 #: The cable hangs from the vehicle's frame captured at most this long from the payload's
 #: [s] (a mocap system sends both of one capture with the same stamp).
 ANCHOR_AGE_S = 0.05
+#: How much farther than the cable's length the payload's centre may be from the vehicle's
+#: origin and still hang from it [m]: the electromagnet under the airframe, the payload's
+#: radius, the cable's give (the simulated vehicle's payload hangs 0.55 m from it on a
+#: 0.5 m cable, at most 0.57 m when swung hard).
+REACH_MARGIN_M = 0.15
 #: The world frame's id (ENU).
 WORLD = "world"
 #: The static scenes (reference path, geofence) are sent again this often [s of stamps].
@@ -200,7 +212,9 @@ class FoxgloveScene:
 
     ``reference``: a reference path ``(n, 3)`` [m] to start from (None: the ``reference``
     records draw it as they come); ``geofence``: the
-    box ``(lo, hi)`` [m] (None: not drawn). :meth:`messages` is for one caller at a time.
+    box ``(lo, hi)`` [m] (None: not drawn); ``vehicle_body``: the vehicle's rigid body on
+    the ``mocap`` topic; ``cable_m``: the payload's cable [m]. :meth:`messages` is for one
+    caller at a time.
     """
 
     def __init__(
@@ -208,8 +222,14 @@ class FoxgloveScene:
         vehicle: str,
         reference: np.ndarray | None = None,
         geofence: tuple[Sequence[float], Sequence[float]] | None = None,
+        *,
+        vehicle_body: str = VEHICLE_BODY,
+        cable_m: float = DEFAULT_CABLE_LENGTH_M,
     ):
         self.vehicle = vehicle
+        self.vehicle_body = vehicle_body
+        #: The farthest the payload hangs from the vehicle's origin [m].
+        self.reach = cable_m + REACH_MARGIN_M
         self.reference: np.ndarray | None = None
         self.set_reference(reference)
         self.geofence = geofence
@@ -281,14 +301,19 @@ class FoxgloveScene:
         """A ``mocap`` frame: the payload's is drawn, the vehicle's kept as the cable's
         anchor for the payload's frame of the same capture."""
         stamp, p = float(wire["capture_stamp"]), wire["position"]
-        if wire["body"] == VEHICLE_BODY:
+        if wire["body"] == self.vehicle_body:
             self._vehicle_at = (stamp, p)
             return []
         if wire["body"] != PAYLOAD_BODY:
             return []
         q = wire["quaternion"]
         v = self._vehicle_at
-        hangs = v is not None and abs(v[0] - stamp) <= ANCHOR_AGE_S and stamp < self.released_at
+        hangs = (
+            v is not None
+            and abs(v[0] - stamp) <= ANCHOR_AGE_S
+            and stamp < self.released_at
+            and float(np.linalg.norm(np.subtract(p, v[1]))) <= self.reach
+        )
         anchor = v[1] if hangs else None
         tf = fm.FrameTransform(
             timestamp=timestamp(stamp),

@@ -22,6 +22,14 @@ DEFAULT_CABLE_MASS_KG = 0.002
 DEFAULT_ELECTROMAGNET_MASS_KG = 0.02
 #: Radius of the payload sphere [m] (the simulator's, and the one Foxglove draws).
 PAYLOAD_RADIUS_M = 0.02
+#: Cable length [m] when the vehicle file gives none.
+DEFAULT_CABLE_LENGTH_M = 0.5
+
+
+def cable_length_m(vehicle: dict[str, Any]) -> float:
+    """The payload's cable [m], electromagnet to payload: ``[payload] cable_length_m`` of
+    a vehicle file, else :data:`DEFAULT_CABLE_LENGTH_M`."""
+    return float(vehicle.get("payload", {}).get("cable_length_m", DEFAULT_CABLE_LENGTH_M))
 
 
 def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:

@@ -38,6 +38,9 @@ from deploy.stack_config import CPU_WAKEUP_LATENCY_US, REALTIME_PRIORITY, StackC
 
 #: Start order; stop order: the bridge first (it leaves offboard -> Hold), recorder last.
 PX4_SERVICES = ("recorder", "estimator", "adapter", "controller", "bridge")
+#: The bridge's options (``--bridge-arg``) that the recorder and the live Foxglove server
+#: take too: the geofence they draw, the vehicle file whose cable they draw.
+SCENE_BRIDGE_OPTIONS = ("--geofence", "--vehicle-file")
 PX4_STOP_ORDER = ("bridge", "px4sim", "controller", "adapter", "estimator", "ros2", "recorder")
 
 
@@ -92,17 +95,19 @@ class Px4StackConfig(StackConfig):
             if self.on_ground:
                 own.append("--on-ground")
             return [*own, *self.extra.get("px4sim", [])]
-        if service in ("recorder", "foxglove"):  # they draw the bridge's geofence
-            b, fence = self.bridge_args, []
+        if service in ("recorder", "foxglove"):  # the bridge's geofence and vehicle's cable
+            drawn: dict[str, str] = {}
+            b = self.bridge_args
             for i, a in enumerate(b):
-                if a.startswith("--geofence="):
-                    fence = [a]
-                elif a == "--geofence" and i + 1 < len(b):
-                    fence = [f"--geofence={b[i + 1]}"]
-            return [*super().args(service), *fence]
+                for name in SCENE_BRIDGE_OPTIONS:
+                    if a.startswith(f"{name}="):
+                        drawn[name] = a
+                    elif a == name and i + 1 < len(b):
+                        drawn[name] = f"{name}={b[i + 1]}"
+            return [*super().args(service), *drawn.values()]
         if service != "bridge":
             return super().args(service)
-        common = [*self.base_args(), "--connect", self.connect]
+        common = [*self.base_args(), "--connect", self.connect, "--mocap-body", self.mocap_body]
         if self.simulate:  # the simulator clocks the estimator and the mission itself
             common += ["--imu", "off", "--no-start-mission", "--mocap-source", "px4sim"]
         if not self.lockstep and self.realtime_priority:

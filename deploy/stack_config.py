@@ -26,9 +26,11 @@ from pathlib import Path
 from typing import Any
 
 from arcade_control.knobs import DEFAULT_STACK_METHOD
+from services.messages import VEHICLE_BODY
 
 __all__ = [
     "CPU_WAKEUP_LATENCY_US",
+    "MOCAP_BODY_SERVICES",
     "NICE",
     "PROFILES",
     "REALTIME_PRIORITY",
@@ -48,6 +50,9 @@ REALTIME_PRIORITY = {"sim": 30, "estimator": 25, "controller": 20}
 NICE = {"recorder": 5, "ros2": 5}
 #: ... and idle CPUs that poll instead of sleeping (PM QoS; ``runtime.cpu_wakeup_latency``).
 CPU_WAKEUP_LATENCY_US = 0
+#: The services that take ``--mocap-body`` (the PX4 bridge too, and the simulated PX4 as
+#: ``sim``): one name on all of them.
+MOCAP_BODY_SERVICES = ("sim", "estimator", "recorder", "foxglove")
 
 
 @dataclass
@@ -102,6 +107,9 @@ class StackConfig:
     #: sent on a user's behalf); empty: peers on loopback through ``hub``. Given, it must
     #: name every process and the launcher; ``hub`` is then unused.
     bus_configs: dict[str, Path] = field(default_factory=dict)
+    #: The vehicle's rigid body on the ``mocap`` topic (``--mocap-body`` of every service
+    #: in :data:`MOCAP_BODY_SERVICES`; the bridge's too).
+    mocap_body: str = VEHICLE_BODY
     #: Serve the live flight to Foxglove (the ``foxglove`` service) on this loopback TCP
     #: port (0: any free one); None: no such service.
     foxglove_port: int | None = None
@@ -271,6 +279,8 @@ class StackConfig:
             own += ["--weights", str(self.weights)]
         if service == "adapter":
             own += ["--checkpoint", str(self.checkpoint_path())]
+        if service in MOCAP_BODY_SERVICES:
+            own += ["--mocap-body", self.mocap_body]
         if service == "estimator" and self.mocap_source() is not None:
             own += ["--mocap-source", self.mocap_source()]
         if service in ("adapter", "controller"):  # one value on both, never one alone

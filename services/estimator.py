@@ -1,9 +1,14 @@
 """Estimator service: mocap + gyro -> 13-state at the control rate.
 
 Subscribes ``mocap`` and ``imu``; publishes ``state``. Only the vehicle's frames (body
-:data:`~services.messages.VEHICLE_BODY`) are fused; frames of other rigid bodies on the
-stream (the simulator's payload) are counted per body (``other_bodies``), nothing else:
-they are no fault, no frame of the vehicle, no gap. The filter is
+``--mocap-body``, default :data:`~services.messages.VEHICLE_BODY`) are fused; frames of
+other rigid bodies on the stream (the simulator's payload) are counted per body
+(``other_bodies``), nothing else: they are no fault, no frame of the vehicle, no gap. But
+when frames of other bodies come and none of the vehicle's for :data:`NO_VEHICLE_S` after
+the first frame, the vehicle's body is likely named otherwise: a ``fault`` event
+(``mocap_body_missing``, a warning in the log) names the bodies seen and the option, once
+(an ``info`` event if the vehicle's frames come after all).
+The filter is
 :mod:`arcade_core.estimation` (constant-acceleration Kalman filter on position, gyro-
 propagated attitude, outlier gating, prediction through dropouts, latency compensation).
 
@@ -52,12 +57,15 @@ from typing import Any
 import numpy as np
 
 from services import options, runtime
-from services.messages import MAX_VARIANCE, VEHICLE_BODY, Imu, MessageError, Mocap, State
+from services.messages import MAX_VARIANCE, Imu, MessageError, Mocap, State
 
 #: Frames kept while waiting for the next ``imu`` sample (~2 s of 120 Hz mocap).
 MAX_PENDING = 256
 #: Other rigid bodies whose frames are counted (``other_bodies``), by name.
 MAX_OTHER_BODIES = 16
+#: Frames of other bodies only for this long after the first frame [s of stamps]: the
+#: ``mocap_body_missing`` fault (a mocap system streams every body at tens of Hz).
+NO_VEHICLE_S = 1.0
 
 
 def _packed_step(filt, frames, t, gyro, config):
@@ -139,6 +147,10 @@ class Estimator(runtime.Service):
             filter_resets=0,
             other_bodies={},
         )
+        self.vehicle_body = a.mocap_body
+        self._first_frame_at: float | None = None  # stamp of the first frame, of any body
+        self._vehicle_seen = False
+        self._body_missing_reported = False
         # One ordered stream: the frames of a period arrive before its imu sample.
         self._subs = runtime.subscribe_ordered(
             bus,
@@ -155,9 +167,19 @@ class Estimator(runtime.Service):
             self._step(self.filter, frames, 0.0, np.zeros(3), self.config)
 
     def on_mocap(self, m: Mocap) -> None:
-        if not m.of_vehicle:  # another rigid body on the stream (e.g. the payload)
-            self._other_body(m.body)
+        if self._first_frame_at is None:
+            self._first_frame_at = m.stamp
+        if not m.of_vehicle(self.vehicle_body):  # another rigid body (e.g. the payload)
+            self._other_body(m)
             return
+        if not self._vehicle_seen and self._body_missing_reported:
+            self.event(
+                "info",
+                f"mocap frames of the vehicle's rigid body {self.vehicle_body!r} arrive",
+                stamp=m.stamp,
+                fault="mocap_body_missing",
+            )
+        self._vehicle_seen = True
         with self._lock:
             if len(self._pending) >= MAX_PENDING:  # no imu for a while: keep the newest
                 del self._pending[0]
@@ -168,18 +190,33 @@ class Estimator(runtime.Service):
                     )
             self._pending.append(m)
 
-    def _other_body(self, body: str) -> None:
-        """Count a frame of a body that is not the vehicle's; say so once per body."""
-        seen = self.stats["other_bodies"]
-        if body not in seen and len(seen) >= MAX_OTHER_BODIES:
-            return
-        if body not in seen:
+    def _other_body(self, m: Mocap) -> None:
+        """Count a frame of a body that is not the vehicle's; say so once per body, and
+        once that only such frames come (see the module docstring)."""
+        seen, body = self.stats["other_bodies"], m.body
+        if body not in seen and len(seen) < MAX_OTHER_BODIES:
             self.log.info(
                 "mocap body %r is not the vehicle's (%r): its frames are not fused",
                 body,
-                VEHICLE_BODY,
+                self.vehicle_body,
             )
-        seen[body] = seen.get(body, 0) + 1
+            seen[body] = 0
+        if body in seen:
+            seen[body] += 1
+        after = m.stamp - self._first_frame_at
+        if self._vehicle_seen or self._body_missing_reported or after < NO_VEHICLE_S:
+            return
+        self._body_missing_reported = True
+        self.event(
+            "fault",
+            f"no mocap frame of the vehicle's rigid body {self.vehicle_body!r} in {after:.1f} s, "
+            f"only of {', '.join(map(repr, seen))}: name the vehicle's body with --mocap-body "
+            "NAME (arcade up --mocap-body NAME)",
+            "warning",
+            stamp=m.stamp,
+            fault="mocap_body_missing",
+            mocap_body=self.vehicle_body,
+        )
 
     def _frames(self, batch: list[Mocap]) -> Any:
         est = self.est
@@ -393,6 +430,7 @@ def _extra(p) -> None:
         "have a jumped clock and are re-stamped [s]",
     )
     options.add_mocap_source_argument(p)
+    options.add_mocap_body_argument(p)
 
 
 def main(argv: list[str] | None = None) -> int:

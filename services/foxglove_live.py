@@ -4,7 +4,7 @@ Subscribes ``state``, ``reference``, ``mocap`` and ``event`` and serves what
 :class:`arcade_io.foxglove_scene.FoxgloveScene` makes of them (the same conversion the
 recorder writes into ``bus.mcap``): the vehicle's ``foxglove.FrameTransform``,
 ``foxglove.PoseInFrame`` and ``foxglove.SceneUpdate``, the payload (its transform, a sphere
-and the cable until the release), the reference path and the geofence, on
+and the cable while it hangs), the reference path and the geofence, on
 ``arcade/<vehicle>/foxglove/<name>``. Foxglove opens
 it as a "Foxglove WebSocket" connection to ``ws://HOST:PORT``. It listens on loopback
 unless ``--host`` says otherwise (the server has no authentication: anyone who reaches the
@@ -12,7 +12,8 @@ port sees the flight). The server is ``foxglove-sdk``'s; messages go out as they
 with the receive time as their log time.
 
 The reference path is the controller's reference flown so far (its ``reference`` records);
-the geofence is ``--geofence`` (the PX4 bridge's box by default).
+the geofence is ``--geofence`` (the PX4 bridge's box by default); the cable hangs from the
+vehicle's rigid body ``--mocap-body``, as long as ``--vehicle-file`` says.
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ import threading
 import time
 from typing import Any
 
-from services import runtime
+from services import options, runtime
+from services.messages import VEHICLE_BODY
 from services.px4_bridge_options import DEFAULT_GEOFENCE
 
 #: Foxglove's usual WebSocket port.
@@ -30,7 +32,8 @@ DEFAULT_PORT = 8765
 
 
 def add_scene_arguments(p: argparse.ArgumentParser) -> None:
-    """What the scene draws besides the vehicle and its reference: the geofence."""
+    """What the scene draws besides the vehicle and its reference: the geofence, the
+    payload's cable (from which rigid body, how long)."""
     p.add_argument(
         "--geofence",
         default=DEFAULT_GEOFENCE,
@@ -38,20 +41,35 @@ def add_scene_arguments(p: argparse.ArgumentParser) -> None:
         help="xmin,xmax,ymin,ymax,zmin,zmax of the box drawn as the geofence, ENU metres "
         "('none': not drawn)",
     )
+    options.add_mocap_body_argument(p)
+    p.add_argument(
+        "--vehicle-file",
+        default=None,
+        metavar="FILE",
+        help="the vehicle file whose cable the payload hangs on (the cable is drawn while "
+        "the payload is within its reach) (default: the shipped vehicle)",
+    )
 
 
 def scene_for(args: argparse.Namespace) -> Any:
     """The :class:`~arcade_io.foxglove_scene.FoxgloveScene` of these options (without
-    ``geofence``: no fence)."""
+    ``geofence``: no fence; without ``mocap_body`` and ``vehicle_file``: the defaults)."""
     from arcade_core.px4_command import Geofence
     from arcade_io.foxglove_scene import FoxgloveScene
+    from arcade_io.vehicle import cable_length_m, load_vehicle
 
     fence = None
     box = getattr(args, "geofence", "none")
     if str(box).lower() != "none":
         g = Geofence.parse(box)
         fence = (g.lo, g.hi)
-    return FoxgloveScene(getattr(args, "vehicle", "default"), None, fence)
+    return FoxgloveScene(
+        getattr(args, "vehicle", "default"),
+        None,
+        fence,
+        vehicle_body=getattr(args, "mocap_body", VEHICLE_BODY),
+        cable_m=cable_length_m(load_vehicle(getattr(args, "vehicle_file", None))),
+    )
 
 
 class FoxgloveLive(runtime.Service):

@@ -214,8 +214,9 @@ _X_LO = (-_P,) * 3 + (-_V,) * 3 + (-_Q,) * 4 + (-_R,) * 3
 _X_HI = (_P,) * 3 + (_V,) * 3 + (_Q,) * 4 + (_R,) * 3
 
 
-#: Rigid bodies on the ``mocap`` topic: the vehicle (the only frames its estimator and the
-#: PX4 bridge take) and the simulator's swinging payload (drawn in Foxglove).
+#: Rigid bodies on the ``mocap`` topic: the vehicle's by default (the only frames its
+#: estimator and the PX4 bridge take; a lab names it with ``--mocap-body``) and the
+#: simulator's swinging payload (drawn in Foxglove).
 VEHICLE_BODY, PAYLOAD_BODY = "vehicle", "payload"
 
 
@@ -227,7 +228,7 @@ class Mocap(Message):
         position: ``(3,)`` m.
         quaternion: ``(4,)`` unit, ``w`` first, body-to-world.
         body: rigid-body name in the mocap system (one stream may carry several bodies:
-            :data:`VEHICLE_BODY` is the vehicle).
+            :meth:`of_vehicle` says which is the vehicle's).
         frame: world frame id.
         capture_stamp: time the frame was captured (same clock as ``stamp``).
     """
@@ -249,10 +250,10 @@ class Mocap(Message):
                 field="capture_stamp",
             )
 
-    @property
-    def of_vehicle(self) -> bool:
-        """Whether this frame is the vehicle's (its body is :data:`VEHICLE_BODY`)."""
-        return self.body == VEHICLE_BODY
+    def of_vehicle(self, vehicle_body: str) -> bool:
+        """Whether this frame is the vehicle's, whose rigid body is named ``vehicle_body``
+        (the services' ``--mocap-body``, default :data:`VEHICLE_BODY`)."""
+        return self.body == vehicle_body
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)

@@ -161,6 +161,43 @@ def add_mocap_source_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+def mocap_body(text: str) -> str:
+    """argparse ``type=``: a rigid-body name as a ``mocap`` record's ``body`` carries it
+    (the schema's check of :class:`~services.messages.Mocap`)."""
+    from services.messages import MessageError, Mocap, field_specs
+
+    try:
+        return field_specs(Mocap)["body"].coerce("body", text, {})
+    except MessageError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a mocap rigid-body name (1 to 64 letters, digits, '_', '.', '-')"
+        ) from None
+
+
+#: ``--mocap-body``'s help (the services and ``arcade up``).
+MOCAP_BODY_HELP = (
+    "the name of the vehicle's rigid body in the motion capture (the body of its mocap "
+    "records): the estimator and the PX4 bridge take only its frames, the simulators "
+    "publish the vehicle's under it, Foxglove hangs the payload's cable from it"
+)
+
+
+def add_mocap_body_argument(
+    p: argparse.ArgumentParser, parse: Callable[[str], str] = mocap_body
+) -> None:
+    """``--mocap-body``: the vehicle's rigid body on the ``mocap`` topic (default
+    :data:`~services.messages.VEHICLE_BODY`), checked by ``parse``."""
+    from services.messages import VEHICLE_BODY
+
+    p.add_argument(
+        "--mocap-body",
+        type=parse,
+        default=VEHICLE_BODY,
+        metavar="NAME",
+        help=MOCAP_BODY_HELP,
+    )
+
+
 def add_link_delay_argument(p: argparse.ArgumentParser) -> None:
     """The link's delay, shared by the controller and the adapter (same value on both: the
     controller plans from the state the adapter learns from)."""

@@ -12,8 +12,9 @@ any MAVSDK URL: ``udpin://0.0.0.0:14540`` for SITL or a telemetry radio bridge,
 - ``mocap`` -> PX4 ``ODOMETRY`` (MAVSDK mocap plugin): position NED, attitude FRD-to-NED, in
   a ``LOCAL_FRD`` world frame (the mocap frame need not face north), estimator type vision,
   so that PX4's EKF2 has the external-vision position it needs to hold or land by itself.
-  The vehicle's frames only (body ``vehicle``): other rigid bodies on the stream (a
-  payload) are neither forwarded nor checked against the geofence, nor counted.
+  The vehicle's frames only (body ``--mocap-body``, default ``vehicle``): other rigid
+  bodies on the stream (a payload) are neither forwarded nor checked against the
+  geofence, nor counted (the estimator says when only those come).
 - ``--forward URL`` (repeatable): every MAVLink message between PX4 and the bridge's
   link is also passed to and from URL (MAVSDK's forwarding connections), e.g.
   ``udpout://127.0.0.1:14550`` for QGroundControl beside the stack.
@@ -323,7 +324,7 @@ class Px4Bridge(OffboardControl, runtime.Service):
             self._cond.notify_all()
 
     def on_mocap(self, m: Mocap) -> None:
-        if self._closed or not m.of_vehicle:
+        if self._closed or not m.of_vehicle(self.args.mocap_body):
             return
         mc = self._mc
         self._check_geofence(m.position, "mocap")

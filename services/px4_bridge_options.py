@@ -118,6 +118,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "as mocap-type ODOMETRY, or not at all",
     )
     options.add_mocap_source_argument(p)
+    options.add_mocap_body_argument(p)
     p.add_argument(
         "--vision-frame",
         choices=("local_frd", "mocap_ned"),

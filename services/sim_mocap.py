@@ -1,11 +1,12 @@
 """The simulated motion-capture system on the bus: the simulator services' ``mocap`` records.
 
 One capture of :class:`simulator.mocap.MocapEmulator` becomes one record of the vehicle
-(body :data:`~services.messages.VEHICLE_BODY`) and, while the simulator has a swinging
-payload, one of the payload (body :data:`~services.messages.PAYLOAD_BODY`) with the same
-``capture_stamp`` and ``stamp``, published right after it: a lab's mocap system streams
-every rigid body of a capture in one packet. The payload stays tracked after its release,
-as a mocap system keeps seeing a marked object that fell to the floor.
+(body ``--mocap-body``, default :data:`~services.messages.VEHICLE_BODY`) and, while the
+simulator has a swinging payload, one of the payload (body
+:data:`~services.messages.PAYLOAD_BODY`) with the same ``capture_stamp`` and ``stamp``,
+published right after it: a lab's mocap system streams every rigid body of a capture in
+one packet. The payload stays tracked after its release, as a mocap system keeps seeing a
+marked object that fell to the floor.
 
 Injected faults (``--mocap-fault``, :mod:`simulator.mocap_faults`) act on captures: a
 dropout loses both bodies and a clock jump moves the stamps of both (the stream's fault);
@@ -17,20 +18,28 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 
-from services.messages import PAYLOAD_BODY, Mocap
+from services.messages import PAYLOAD_BODY, VEHICLE_BODY, Mocap
 from simulator.mocap_faults import MocapFault, MocapFaults
 
 
 class MocapStream:
     """The ``mocap`` publisher of a simulator service, with its injected faults.
 
-    ``faults``: :class:`MocapFault` s or their specs; ``seed`` seeds the outliers.
+    ``faults``: :class:`MocapFault` s or their specs; ``seed`` seeds the outliers;
+    ``vehicle_body``: the vehicle's rigid-body name.
     """
 
-    def __init__(self, bus, faults: Iterable[MocapFault | str], seed: int):
+    def __init__(
+        self,
+        bus,
+        faults: Iterable[MocapFault | str],
+        seed: int,
+        vehicle_body: str = VEHICLE_BODY,
+    ):
         self.faults = MocapFaults(
             [f if isinstance(f, MocapFault) else MocapFault.parse(f) for f in faults], seed
         )
+        self.vehicle_body = vehicle_body
         self.pub = bus.publisher("mocap")
 
     @property
@@ -55,6 +64,7 @@ class MocapStream:
                 Mocap(
                     position=f.position,
                     quaternion=f.quaternion,
+                    body=self.vehicle_body,
                     capture_stamp=capture,
                     stamp=arrival,
                 )

@@ -168,7 +168,9 @@ class SimNode(runtime.Service):
         self._hold: np.ndarray | None = None  # hold position while in failsafe
         self._answered_run = 0
         self._mission0 = 0.0 if a.lockstep else math.inf  # sim time of the mission start
-        self.mocap_out = MocapStream(bus, a.mocap_fault or [], self.trial.sim_seed)
+        self.mocap_out = MocapStream(
+            bus, a.mocap_fault or [], self.trial.sim_seed, vehicle_body=a.mocap_body
+        )
         self.stats.update(
             steps=0,
             timeouts=0,

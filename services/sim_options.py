@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 
 from services import options
+from services.messages import PAYLOAD_BODY
 from simulator.mocap_faults import MocapFault
 
 
@@ -74,6 +75,16 @@ def add_sim_arguments(p: argparse.ArgumentParser) -> None:
         help="inject a mocap fault: dropout@T+D, freeze@T+D, "
         "outliers@T+D,p=P,m=M, clockjump@T[+D],offset=S (mission time)",
     )
+    options.add_mocap_body_argument(p, vehicle_body)
+
+
+def vehicle_body(text: str) -> str:
+    """argparse ``type=``: the simulated vehicle's rigid-body name, a ``mocap`` name other
+    than the simulated payload's."""
+    name = options.mocap_body(text)
+    if name == PAYLOAD_BODY:
+        raise argparse.ArgumentTypeError(f"{name!r} is the simulated payload's rigid body")
+    return name
 
 
 def _mocap_fault(spec: str) -> MocapFault:

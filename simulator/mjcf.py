@@ -33,6 +33,7 @@ import numpy as np
 
 from arcade_io.vehicle import DEFAULT_ELECTROMAGNET_MASS_KG
 from arcade_io.vehicle import PAYLOAD_RADIUS_M as PAYLOAD_RADIUS
+from arcade_io.vehicle import cable_length_m as vehicle_cable_length
 
 #: Name of the equality constraint that holds the cable at the electromagnet.
 RELEASE_EQUALITY = "magnet_lock"
@@ -101,7 +102,7 @@ def build_mjcf(
     magnet_mass = float(pay.get("electromagnet_mass_kg", DEFAULT_ELECTROMAGNET_MASS_KG))
     cable_mass = float(pay.get("cable_mass_kg", DEFAULT_CABLE_MASS))
     if cable_length is None:
-        cable_length = float(pay.get("cable_length_m", 0.5))
+        cable_length = vehicle_cable_length(vehicle)
     if payload_mass < 0.0:
         raise ValueError(f"payload_mass must be >= 0, got {payload_mass}")
     if payload_mass > 0.0 and not rigid_payload and (cable_length <= 0.0 or cable_mass <= 0.0):

@@ -101,12 +101,14 @@ class RecordingBus:
         return len(self.states)
 
 
-def lockstep_estimator() -> tuple[Any, RecordingBus]:
-    """The estimator service (lockstep, default screening) set up on a :class:`RecordingBus`."""
+def lockstep_estimator(mocap_body: str | None = None) -> tuple[Any, RecordingBus]:
+    """The estimator service (lockstep, default screening, the vehicle's rigid body
+    ``mocap_body``, else the default) set up on a :class:`RecordingBus`."""
     import argparse
 
     from arcade_core.estimation import FilterConfig
     from services.estimator import Estimator
+    from services.messages import VEHICLE_BODY
 
     args = argparse.Namespace(
         lockstep=True,
@@ -116,6 +118,7 @@ def lockstep_estimator() -> tuple[Any, RecordingBus]:
         vehicle="test",
         jerk_psd=FilterConfig().jerk_psd,
         mocap_noise=FilterConfig().position_std,
+        mocap_body=mocap_body or VEHICLE_BODY,
     )
     est = Estimator(args)
     bus = RecordingBus()

@@ -17,7 +17,8 @@ from arcade.commands.service_options import (
 )
 from arcade_control.knobs import DEFAULT_STACK_METHOD, STACK_METHODS
 from deploy import trajectories
-from services.options import METHOD_HELP
+from services.messages import PAYLOAD_BODY, VEHICLE_BODY
+from services.options import METHOD_HELP, MOCAP_BODY_HELP, mocap_body
 
 HELP = "launch the service stack as processes over Zenoh (profile sim or px4)"
 
@@ -70,6 +71,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="NAME",
         help="the vehicle's name on the bus (topic prefix arcade/NAME/...), not a vehicle "
         "file (default: %(default)s)",
+    )
+    p.add_argument(
+        "--mocap-body",
+        type=mocap_body,
+        default=VEHICLE_BODY,
+        metavar="NAME",
+        help=f"{MOCAP_BODY_HELP}. Give your motion capture's name for the vehicle, e.g. "
+        "cf1 (default: %(default)s)",
     )
     p.add_argument(
         "--duration",
@@ -212,6 +221,7 @@ def usage_problem(args: argparse.Namespace) -> str | None:
         link_delay_problem(args.link_delay, args.rate)
         or hub_problem(args.hub)
         or vehicle_name_problem(args.vehicle)
+        or mocap_body_problem(args)
         or ros2_problem(args)
     )
     if problem is not None:
@@ -264,6 +274,14 @@ def vehicle_name_problem(name: str) -> str | None:
     )
 
 
+def mocap_body_problem(args: argparse.Namespace) -> str | None:
+    """Why ``--mocap-body`` does not fit: the simulated payload's name where a simulator
+    flies (one line), or None."""
+    if (args.profile == "sim" or args.simulate) and args.mocap_body == PAYLOAD_BODY:
+        return f"--mocap-body {PAYLOAD_BODY}: the simulated payload's rigid body has that name"
+    return None
+
+
 def parse_bridge_args(bridge_args: list[str]) -> argparse.Namespace:
     """``--bridge-arg`` values parsed with the bridge's own options and its geofence check,
     as the bridge will parse them; ``ValueError`` with one line otherwise."""
@@ -285,11 +303,17 @@ def parse_bridge_args(bridge_args: list[str]) -> argparse.Namespace:
 
 
 def bridge_args_problem(bridge_args: list[str]) -> str | None:
-    """Why the bridge would refuse ``--bridge-arg`` at its start (one line), or None."""
+    """Why the bridge would refuse ``--bridge-arg`` at its start, or it sets what ``arcade
+    up`` sets for every service (one line), or None."""
+    from arcade.commands.service_options import options_given, service_parser
+
     try:
         parse_bridge_args(bridge_args)
+        given = options_given(service_parser("bridge"), bridge_args)
     except ValueError as err:
         return f"--bridge-arg: {err}"
+    if "--mocap-body" in given:  # one name on the estimator and the bridge
+        return "--bridge-arg: --mocap-body is arcade up's own option, not the bridge's alone"
     return None
 
 
@@ -392,6 +416,7 @@ def stack_config(args: argparse.Namespace, out: Path, configs: dict[str, Path], 
         profile=args.profile,
         lockstep=args.lockstep,
         vehicle=args.vehicle,
+        mocap_body=args.mocap_body,
         hub=args.hub or free_hub(),  # unused with bus configurations
         rate=args.rate,
         duration=args.duration,

@@ -49,7 +49,7 @@ from arcade.demo_stack import free_hub
 from arcade_core.frames import enu_to_ned, quat_enu_flu_to_ned_frd
 from arcade_core.px4_command import ThrustCurve
 from services.bus import Bus, peer_config
-from services.messages import PAYLOAD_BODY, Command, Setpoint
+from services.messages import PAYLOAD_BODY, VEHICLE_BODY, Command, Setpoint
 from simulator.px4 import Px4Sim
 
 # Flown on the wall clock, with timing assertions: run alone (``make test``).
@@ -425,7 +425,7 @@ def test_px4sim_service_flies_from_mavlink_only_and_serves_mocap_on_the_bus(tmp_
             bus.subscribe("event", events.put)
             bus.subscribe("command", commands.put)
             bus.wait_alive(["px4sim"], timeout=START_TIMEOUT)
-            frame = get(mocap_q, "mocap frame", lambda m: m.of_vehicle)
+            frame = get(mocap_q, "mocap frame", lambda m: m.of_vehicle(VEHICLE_BODY))
             assert frame.position[2] == pytest.approx(1.5, abs=0.1)  # hovering at the start
             # The payload is a second rigid body of each capture, hanging below the vehicle.
             hanging = get(mocap_q, "payload frame")
@@ -443,7 +443,7 @@ def test_px4sim_service_flies_from_mavlink_only_and_serves_mocap_on_the_bus(tmp_
                         f = mocap_q.get(timeout=0.1)
                     except queue.Empty:
                         continue
-                    if not f.of_vehicle:  # the payload: not the vehicle's pose
+                    if not f.of_vehicle(VEHICLE_BODY):  # the payload: not the vehicle's pose
                         continue
                     mocap.set_odometry(
                         Odometry(

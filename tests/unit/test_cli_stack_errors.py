@@ -174,6 +174,7 @@ def test_last_output_without_traceback_is_the_last_lines(tmp_path):
         (["demo", "--speed", "0"], "argument --speed: must be a finite number > 0"),
         (["demo", "--payload-g", "-5"], "argument --payload-g: must be a finite number >= 0"),
         (["demo", "--seed", "x"], "argument --seed: not an integer"),
+        (["up", "--mocap-body", "cf 1"], "argument --mocap-body: 'cf 1' is not a mocap rigid-"),
     ],
 )
 def test_bad_numbers_are_argument_errors(elsewhere, capsys, argv, message):
@@ -228,6 +229,22 @@ def test_bad_numbers_are_argument_errors(elsewhere, capsys, argv, message):
         (
             ["up", "--profile", "px4", "--bridge-arg=--vehicle-file=missing.toml"],
             "--bridge-arg: vehicle file not found: missing.toml",
+        ),
+        (
+            ["up", "--lockstep", "--mocap-body", "payload"],
+            "--mocap-body payload: the simulated payload's rigid body has that name",
+        ),
+        (
+            ["up", "--profile", "px4", "--simulate", "--mocap-body", "payload"],
+            "--mocap-body payload: the simulated payload's rigid body has that name",
+        ),
+        (
+            ["up", "--profile", "px4", "--bridge-arg=--mocap-b=cf1"],
+            "--bridge-arg: --mocap-body is arcade up's own option, not the bridge's alone",
+        ),
+        (
+            ["up", "--lockstep", "--service-arg=estimator:--mocap-body=cf1"],
+            "--service-arg estimator: --mocap-body set by the launcher",
         ),
         (["up", "--lockstep", "--payload-g", "5000"], "--payload-g must be below 1059 g"),
         (["demo", "--payload-g", "1059"], "--payload-g must be below 1059 g"),
@@ -321,6 +338,37 @@ def test_service_args_reach_their_service_after_the_launcher_s(elsewhere):
     assert adapter.index("--log-level") < adapter.index("--log-level=DEBUG")  # the last wins
 
 
+@pytest.mark.parametrize("profile", ["sim", "px4", "px4-simulate"])
+def test_the_vehicles_rigid_body_reaches_every_service_that_takes_it(elsewhere, profile):
+    """``arcade up --mocap-body cf1``: the estimator and the bridge take cf1's frames, the
+    simulators publish the vehicle's under it, the recorder and Foxglove hang the cable
+    from it; each service's own parser takes the value."""
+    import argparse
+
+    from arcade.commands.service_options import options_given, service_parser
+    from arcade.commands.up import add_arguments, stack_config
+    from deploy import px4_profile
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    argv = {"sim": [], "px4": ["--profile", "px4"], "px4-simulate": ["--profile", "px4"]}
+    argv["px4-simulate"].append("--simulate")
+    args = p.parse_args([*argv[profile], "--mocap-body", "cf1", "--foxglove"])
+    cfg = stack_config(args, Path("run"), {}, {})
+    if profile != "sim":
+        cfg = px4_profile.config_from_args(args, cfg)
+    takers = {"estimator", "recorder", "foxglove", "sim", "bridge", "px4sim"}
+    assert {"estimator", "recorder", "foxglove"} < set(cfg.services())
+    for name in cfg.services():
+        given = cfg.args(name)
+        parser = service_parser(name)
+        if name in takers:
+            assert parser.parse_args(given).mocap_body == "cf1", name
+        else:
+            assert "--mocap-body" not in options_given(parser, given), name
+    assert {"sim", "bridge"} & set(cfg.services())
+
+
 # ------------------------------------------------------------------ weights
 
 
@@ -380,6 +428,8 @@ def test_up_help_states_defaults_and_units(capsys):
     assert "takes off to this height above the ground [m]" in out
     assert "$ARCADE_RUNS" in out
     assert "(default: real time)" in out
+    assert "the name of the vehicle's rigid body in the motion capture" in out
+    assert "e.g. cf1 (default: vehicle)" in out
 
 
 def test_train_help_states_the_epochs_of_each_system(capsys):

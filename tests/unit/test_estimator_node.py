@@ -1,5 +1,6 @@
 """The estimator service's screening and fallbacks, in process: a frame held back to the
-next control instant, a diverged or non-finite filter, the bounded frame buffer."""
+next control instant, a diverged or non-finite filter, the bounded frame buffer, the
+vehicle's rigid body among others on the stream."""
 
 from __future__ import annotations
 
@@ -8,17 +9,22 @@ import pytest
 
 from services import estimator as est_service
 from services.estimator import Estimator
-from services.messages import PAYLOAD_BODY, Imu, Mocap
+from services.messages import PAYLOAD_BODY, VEHICLE_BODY, Imu, Mocap
 
 T0 = 100.0
 MOCAP_DT = 1.0 / 120.0
 CONTROL_DT = 0.05
 
 
-def frame(t: float) -> Mocap:
-    """A vehicle moving at 1 m/s along x, captured at ``t`` (after ``T0``)."""
+def frame(t: float, body: str = VEHICLE_BODY) -> Mocap:
+    """A vehicle (rigid body ``body``) moving at 1 m/s along x, captured at ``t`` (after
+    ``T0``)."""
     return Mocap(
-        position=[t, 0.0, 1.0], quaternion=[1.0, 0, 0, 0], capture_stamp=T0 + t, stamp=T0 + t
+        position=[t, 0.0, 1.0],
+        quaternion=[1.0, 0, 0, 0],
+        body=body,
+        capture_stamp=T0 + t,
+        stamp=T0 + t,
     )
 
 
@@ -33,15 +39,15 @@ def payload_frame(t: float) -> Mocap:
     )
 
 
-def fly_to(est: Estimator, t_end: float, payload: bool = False) -> None:
-    """Frames every 1/120 s (``payload``: each followed by the payload's) and control
-    instants every 50 ms up to ``t_end``."""
+def fly_to(est: Estimator, t_end: float, payload: bool = False, body: str = VEHICLE_BODY) -> None:
+    """Frames of the vehicle named ``body`` every 1/120 s (``payload``: each followed by
+    the payload's) and control instants every 50 ms up to ``t_end``."""
     captures = iter(np.arange(0.0, t_end, MOCAP_DT))
     c = next(captures)
     for k in range(round(t_end / CONTROL_DT) + 1):
         t = k * CONTROL_DT
         while c is not None and c <= t:
-            est.on_mocap(frame(c))
+            est.on_mocap(frame(c, body))
             if payload:
                 est.on_mocap(payload_frame(c))
             c = next(captures, None)
@@ -63,6 +69,48 @@ def test_frames_of_other_rigid_bodies_are_not_the_vehicles(estimator_factory):
     assert est.stats["other_bodies"] == {PAYLOAD_BODY: 120}
     assert est.stats["frozen_frames"] == est.stats["restamped_frames"] == 0
     assert not bus.events and int(est.filter.rejected) == 0
+
+
+def test_the_vehicles_rigid_body_is_the_one_named_by_the_option(estimator_factory):
+    """``--mocap-body cf1``: the frames of ``cf1`` are the vehicle's (the same states as
+    the default name gives), those named ``vehicle`` another body's."""
+    named, named_bus = estimator_factory("cf1")
+    fly_to(named, 0.5, payload=True, body="cf1")
+    named.on_mocap(frame(0.6))  # "vehicle" is not the vehicle's name here
+    default, default_bus = estimator_factory()
+    fly_to(default, 0.5, payload=True)
+    assert len(named_bus.states) == len(default_bus.states) == 11
+    for s, ref in zip(named_bus.states, default_bus.states, strict=True):
+        np.testing.assert_array_equal(s.x, ref.x)
+    assert named.stats["other_bodies"] == {PAYLOAD_BODY: 60, VEHICLE_BODY: 1}
+    assert not named_bus.events
+
+
+def test_only_other_bodies_for_a_second_is_one_fault_naming_them_and_the_option(
+    estimator_factory,
+):
+    """A lab's mocap names the vehicle ``cf1`` and the estimator waits for ``vehicle``:
+    no state, and after a second of frames one ``fault`` event (logged as a warning) that
+    names the bodies seen and the option to set, not one per frame."""
+    est, bus = estimator_factory()
+    fly_to(est, 0.95, payload=True, body="cf1")
+    assert not bus.events  # not yet a second
+    for t in np.arange(0.95, 2.0, MOCAP_DT):  # no control instant: frames alone tell it
+        est.on_mocap(frame(t, "cf1"))
+    assert not bus.states
+    (fault,) = bus.events
+    assert fault.kind == "fault" and fault.severity == "warning"
+    assert fault.data == {"fault": "mocap_body_missing", "mocap_body": VEHICLE_BODY}
+    assert fault.stamp == pytest.approx(T0 + 1.0, abs=MOCAP_DT)
+    assert "'vehicle'" in fault.text and "'cf1', 'payload'" in fault.text
+    assert "--mocap-body NAME" in fault.text
+    est.on_mocap(frame(2.0))  # the vehicle's frames after all: said once
+    est.on_mocap(frame(2.01))
+    assert [(e.kind, e.data["fault"]) for e in bus.events[1:]] == [("info", "mocap_body_missing")]
+    # With the vehicle's frames from the start, nothing is said.
+    other, other_bus = estimator_factory()
+    fly_to(other, 1.5, payload=True)
+    assert not other_bus.events and other_bus.states
 
 
 def test_a_frame_held_back_to_the_next_instant_is_fused_not_frozen(estimator_factory):
@@ -153,6 +201,23 @@ def test_the_filter_s_noise_model_comes_from_the_options():
     default = _options()
     assert default.jerk_psd == FilterConfig().jerk_psd
     assert default.mocap_noise == FilterConfig().position_std
+
+
+def test_the_vehicles_rigid_body_is_a_mocap_name():
+    assert _options().mocap_body == VEHICLE_BODY
+    assert _options("--mocap-body", "cf-1.quad_2").mocap_body == "cf-1.quad_2"
+
+
+@pytest.mark.parametrize("value", ["", "cf 1", "cf1/body", "x" * 65])
+def test_a_rigid_body_name_the_mocap_schema_refuses_is_refused(value, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        _options(f"--mocap-body={value}")
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1].endswith(
+        f"argument --mocap-body: {value!r} is not a mocap rigid-body name "
+        "(1 to 64 letters, digits, '_', '.', '-')"
+    )
 
 
 @pytest.mark.parametrize("value", ["0", "-1", "inf", "nan", "high"])

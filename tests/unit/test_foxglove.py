@@ -81,6 +81,43 @@ def test_the_payload_is_a_sphere_with_its_cable_from_the_vehicle_until_the_relea
         assert len(entity.spheres) == 1 and len(entity.lines) == cables, t  # then it is gone
 
 
+def test_a_live_scene_that_missed_the_release_draws_no_cable_to_a_payload_out_of_reach():
+    """A Foxglove server that joins after the release never sees its event: the cable is
+    drawn only to a payload within the cable's reach of the vehicle's rigid body (here
+    ``cf1``: ``--mocap-body``), not to one lying on the floor far below it."""
+    from arcade_io.foxglove_scene import REACH_MARGIN_M
+    from services import foxglove_live, options
+
+    parser = options.common_parser("foxglove", "test")
+    foxglove_live._extra(parser)
+    args = parser.parse_args(["--vehicle", "quad1", "--mocap-body", "cf1"])
+    scene = foxglove_live.scene_for(args)
+    assert scene.reach == pytest.approx(0.5 + REACH_MARGIN_M)  # the shipped vehicle's cable
+    vehicle_at = np.array([1.0, -2.0, 2.0])
+
+    def cable(t: float, below: float) -> list:
+        """The cable's ends drawn for the capture at ``t``, the payload ``below`` the
+        vehicle (a body named ``vehicle`` elsewhere: not the anchor)."""
+        one = {"capture_stamp": t, "stamp": t + 0.007, "quaternion": [1.0, 0, 0, 0]}
+        frames = [
+            Mocap(position=vehicle_at, body="cf1", **one),
+            Mocap(position=[0.0, 0.0, 1.0], body=VEHICLE_BODY, **one),
+            Mocap(position=vehicle_at - [0, 0, below], body=PAYLOAD_BODY, **one),
+        ]
+        got = [dict(scene.messages("mocap", f.to_wire())) for f in frames]
+        assert got[:2] == [{}, {}]
+        (entity,) = _decoded_msg(got[2]["payload"]).entities
+        assert len(entity.spheres) == 1
+        return [[[p.x, p.y, p.z] for p in line.points] for line in entity.lines]
+
+    assert cable(20.0, 1.98) == []  # on the floor, without a release event
+    (ends,) = cable(20.01, 0.55)  # hanging
+    np.testing.assert_allclose(ends, [vehicle_at, vehicle_at - [0, 0, 0.55]])
+    assert len(cable(20.02, 0.5 + REACH_MARGIN_M - 0.01)) == 1
+    assert cable(20.03, 0.5 + REACH_MARGIN_M + 0.01) == []
+    assert scene.released_at == np.inf
+
+
 def test_a_state_becomes_the_transform_pose_and_vehicle_and_every_second_the_static_scenes():
     from arcade_io.foxglove_scene import FoxgloveScene, box_edges
 
@@ -278,6 +315,13 @@ def test_the_stack_starts_the_live_service_with_the_bridges_geofence(tmp_path):
     assert "foxglove" in px4.services()
     for name in ("recorder", "foxglove"):
         assert px4.args(name)[-1] == "--geofence=-3,3,-3,3,0,3"
+    # ... and hang the cable from the vehicle's rigid body, as long as its vehicle file says.
+    b = ["--vehicle-file", "lab.toml", "--geofence=-3,3,-3,3,0,3"]
+    px4 = Px4StackConfig(out=tmp_path, foxglove_port=8765, bridge_args=b, mocap_body="cf1")
+    for name in ("recorder", "foxglove"):
+        args = px4.args(name)
+        assert args[-2:] == ["--vehicle-file=lab.toml", "--geofence=-3,3,-3,3,0,3"]
+        assert args[args.index("--mocap-body") + 1] == "cf1"
 
 
 def test_foxglove_takes_a_tcp_port_or_none(capsys):

@@ -468,9 +468,14 @@ def test_mocap_that_cannot_be_forwarded_is_a_fault_event_not_a_log_flood():
     assert b.stats["mocap_forward_errors"] == 200 and b.stats["mocap_forwarded"] == 0
 
 
-def test_only_the_vehicles_mocap_frames_are_forwarded_and_fenced():
-    """Another rigid body on the stream (the payload, here outside the geofence) is not
-    the vehicle: not forwarded to PX4, not checked against the fence, not counted."""
+@pytest.mark.parametrize(
+    ("argv", "vehicle", "other"),
+    [((), "vehicle", "cf1"), (("--mocap-body", "cf1"), "cf1", "vehicle")],
+)
+def test_only_the_vehicles_mocap_frames_are_forwarded_and_fenced(argv, vehicle, other):
+    """Other rigid bodies on the stream (the payload; ``other``, the body ``--mocap-body``
+    does not name; here outside the geofence) are not the vehicle: not forwarded to PX4,
+    not checked against the fence, not counted."""
     from mavsdk.plugins import mocap as mc
 
     from services.messages import PAYLOAD_BODY, Mocap
@@ -482,9 +487,13 @@ def test_only_the_vehicles_mocap_frames_are_forwarded_and_fenced():
         def set_odometry(self, odom) -> None:
             self.sent.append(odom)
 
-    b = engaged_bridge()
+    b = engaged_bridge(*argv)
     b._mc, b.mocap = mc, RecordingMocap()
-    for body, p in (("vehicle", [0.0, 0.0, 1.0]), (PAYLOAD_BODY, [50.0, 0.0, 1.0])):
+    for body, p in (
+        (vehicle, [0.0, 0.0, 1.0]),
+        (PAYLOAD_BODY, [50.0, 0.0, 1.0]),
+        (other, [50.0, 0.0, 1.0]),
+    ):
         b.on_mocap(
             Mocap(position=p, quaternion=[1.0, 0, 0, 0], body=body, capture_stamp=5.0, stamp=5.0)
         )
@@ -493,7 +502,13 @@ def test_only_the_vehicles_mocap_frames_are_forwarded_and_fenced():
     assert b.mocap.sent[0].position_body.z_m == pytest.approx(-1.0)  # the vehicle's, NED
     # The vehicle itself outside the fence: offboard is left.
     b.on_mocap(
-        Mocap(position=[50.0, 0, 1.0], quaternion=[1.0, 0, 0, 0], capture_stamp=5.1, stamp=5.1)
+        Mocap(
+            position=[50.0, 0, 1.0],
+            quaternion=[1.0, 0, 0, 0],
+            body=vehicle,
+            capture_stamp=5.1,
+            stamp=5.1,
+        )
     )
     assert not b._engaged and b.bus.events("failsafe")[0].data["reason"] == "geofence"
 

@@ -183,3 +183,21 @@ def test_the_stream_puts_the_vehicle_then_the_payload_of_each_capture():
     assert [g[1] for g in got[0::2]] == pytest.approx([10.5, 15.2, 12.9, 13.2])
     assert got[-2][3] == pytest.approx(2.9) and got[-1][3] == pytest.approx(3.2)  # frozen
     assert stream.fault_counts == {"dropout": 1, "freeze": 1, "outliers": 0, "clockjump": 1}
+    # The vehicle's rigid body under the name --mocap-body gives.
+    bus = Bus()
+    MocapStream(bus, [], seed=0, vehicle_body="cf1").publish([capture(0.5)], float, float)
+    assert [r.body for r in bus.put_records] == ["cf1", PAYLOAD_BODY]
+
+
+def test_the_simulators_refuse_to_name_the_vehicle_as_the_payload(capsys):
+    from services import options
+    from services.messages import PAYLOAD_BODY
+    from services.sim_options import add_sim_arguments
+
+    parser = options.common_parser("sim", "test")
+    add_sim_arguments(parser)
+    assert parser.parse_args(["--mocap-body", "cf1"]).mocap_body == "cf1"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--mocap-body", PAYLOAD_BODY])
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err.endswith("argument --mocap-body: 'payload' is the simulated payload's rigid body")
