@@ -48,6 +48,7 @@ STACK_ARCADE_KNOBS = {
     "arcade_sigma2": 1e-4,
     "arcade_l1_cutoff": 5.0,
     "arcade_l1_a_s": -0.1,
+    "arcade_thrust_smooth": 10.0,  # the MPC's shared weight: increments within L1's here
 }
 
 

@@ -7,12 +7,14 @@ evaluation, the controller service) only moves a handful of arrays per step.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import Array
 
+from arcade_control.knobs import FLAGSHIP, TUNED_DEFAULTS, knob_owner
 from arcade_control.methods import Method
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import f_nom, nominal_params
@@ -39,6 +41,24 @@ def mpc_config(dtype) -> mpc.MPCConfig:
     return mpc.quadrotor_mpc_config(
         dt=DT, rate_limit=rate, dtype=dtype, max_thrust=4.0 * float(v["rotors"]["max_thrust_n"])
     )
+
+
+def method_mpc_config(
+    cfg: mpc.MPCConfig, name: str, knobs: dict[str, Any] | None = None
+) -> mpc.MPCConfig:
+    """The MPC that method ``name`` plans with: ``cfg``, but for the flagship and its
+    ablations the smoothness weight on the collective thrust is its knob
+    ``arcade_thrust_smooth`` (``knobs`` over :data:`TUNED_DEFAULTS`); ``cfg`` itself where
+    that knob is ``cfg``'s own weight."""
+    if knob_owner(name) != FLAGSHIP:
+        return cfg
+    w = float({**TUNED_DEFAULTS, **(knobs or {})}["arcade_thrust_smooth"])
+    shared = cfg.smooth_weight
+    if not isinstance(shared, (int, float)):
+        raise ValueError(f"the shared MPC has a smoothness weight per input: {shared!r}")
+    if w == float(shared):
+        return cfg
+    return dataclasses.replace(cfg, smooth_weight=(w, *(float(shared),) * (cfg.nu - 1)))
 
 
 def thrust_reference(step_fn, model, x_ref: Array, u_ref: Array) -> Array:

@@ -92,8 +92,10 @@ _SQUASH_MARGIN = 1e-4
 class MPCConfig(eqx.Module):
     """MPC problem and solver settings (Appendix D table). Shapes are fixed by ``N``.
 
-    Weights are diagonals: ``Q``, ``P`` (nx,), ``R`` (nu,). ``x_min``/``x_max`` (nx,) are
-    optional soft state bounds (``±inf`` entries are ignored).
+    Weights are diagonals: ``Q``, ``P`` (nx,), ``R`` (nu,). ``smooth_weight`` weighs the
+    change of the inputs from one stage to the next: one weight for every input, or a tuple
+    of one per input (``nu``). ``x_min``/``x_max`` (nx,) are optional soft state bounds
+    (``±inf`` entries are ignored).
     """
 
     Q: Array
@@ -103,7 +105,7 @@ class MPCConfig(eqx.Module):
     u_max: Array
     N: int = eqx.field(static=True, default=20)
     dt: float = eqx.field(static=True, default=0.05)
-    smooth_weight: float = eqx.field(static=True, default=10.0)
+    smooth_weight: float | tuple[float, ...] = eqx.field(static=True, default=10.0)
     constraint_weight: float = eqx.field(static=True, default=1000.0)
     x_min: Array | None = None
     x_max: Array | None = None

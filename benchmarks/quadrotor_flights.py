@@ -24,7 +24,7 @@ from arcade_control.methods import BeamLearner, MassOracle, make_method
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import f_nom, nominal_params
 from arcade_control.scenario import Scenario, reference, trial
-from arcade_control.step import Carry, make_controller_step, mpc_config
+from arcade_control.step import Carry, make_controller_step, method_mpc_config, mpc_config
 from arcade_core import adaptation, estimation, metrics
 from arcade_core.dynamics.quadrotor import predict_over_delay
 from simulator import QuadrotorSim
@@ -141,8 +141,9 @@ class Runner:
         """The jitted step of method ``name`` (:func:`make_controller_step`)."""
         key = (name, delay_s)
         if key not in self._steps:
+            cfg = method_mpc_config(self.cfg, name, getattr(self.models, "closedloop", None))
             self._steps[key] = make_controller_step(
-                make_method(name), self.cfg, hold_residual=name.endswith(HELD), delay_s=delay_s
+                make_method(name), cfg, hold_residual=name.endswith(HELD), delay_s=delay_s
             )
         return self._steps[key]
 

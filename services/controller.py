@@ -125,9 +125,15 @@ class Controller(runtime.Service):
             controller_learner,
             controller_method,
             one_hypothesis_beam,
+            stack_knobs,
             with_finite_flag,
         )
-        from arcade_control.step import Carry, make_controller_step, mpc_config
+        from arcade_control.step import (
+            Carry,
+            make_controller_step,
+            method_mpc_config,
+            mpc_config,
+        )
         from arcade_core import adaptation
         from services.adapter import DEFAULT_WEIGHTS
 
@@ -162,7 +168,11 @@ class Controller(runtime.Service):
         self._learner_nominal = jnp.zeros((), dtype)
         if weights.is_file():
             self.learner0 = controller_learner(weights, dtype, a.method)
-            step = make_controller_step(controller_method(a.method), cfg, delay_s=delay)
+            step = make_controller_step(
+                controller_method(a.method),
+                method_mpc_config(cfg, a.method, stack_knobs(a.method)),
+                delay_s=delay,
+            )
 
             def learned(carry, x, u_sent, k, theta, cov, x_ref_all, u_ref_all):
                 learner = carry[0]

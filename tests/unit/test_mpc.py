@@ -381,3 +381,22 @@ def test_line_search_converges_where_full_gauss_newton_steps_diverge():
     )
     assert damped.result == optx.RESULTS.successful
     assert abs(float(damped.value[0])) < 1e-6
+
+
+def test_a_smoothness_weight_per_input_weighs_that_inputs_change_only():
+    """``smooth_weight`` as one weight per input: the same weight on every input is the
+    scalar's problem; a larger one on the thrust alone makes the first thrust step from
+    the previous input smaller."""
+    x0 = hover_state(jnp.array([0.0, 0.0, 0.6]))  # 0.4 m below the reference: climb
+    xr, ur = hover_problem(20)
+    u_prev = hover_input(QUAD)
+    first = {}
+    for name, w in (("scalar", 10.0), ("same", (10.0,) * 4), ("thrust", (1000.0,) + (10.0,) * 3)):
+        ctrl = make_controller(quad_step, quadrotor_mpc_config(smooth_weight=w))
+        sol = ctrl.solve(
+            x0, xr, ur, ctrl.initial_guess(u_prev), u_prev, jnp.zeros(13), jnp.zeros(13)
+        )
+        first[name] = np.asarray(sol.u[0]) - np.asarray(u_prev)
+    np.testing.assert_allclose(first["same"], first["scalar"], rtol=1e-12, atol=1e-12)
+    assert first["scalar"][0] > 0.1  # it climbs
+    assert 0.0 < first["thrust"][0] < 0.5 * first["scalar"][0]

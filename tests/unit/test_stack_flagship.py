@@ -148,3 +148,22 @@ def test_the_demo_summary_names_the_controller_flown(adaptation, text):
     s = {"adaptation": adaptation, "rmse_m": 0.04, "rmse_z_m": 0.02, "flight_wall_s": 30.0,
          "startup_s": 4.0, "crashed": False, "rejects": {}}  # fmt: skip
     assert format_summary(s).splitlines()[0].startswith(text)
+
+
+def test_the_flagship_plans_with_its_thrust_smoothness_the_others_with_the_shared_one():
+    from arcade_control.knobs import TUNED_DEFAULTS
+    from arcade_control.stack import STACK_ARCADE_KNOBS, stack_knobs
+    from arcade_control.step import method_mpc_config, mpc_config
+
+    cfg = mpc_config(jnp.float64)
+    assert cfg.smooth_weight == 10.0
+    for name in ("l1", "ours", "nominal", "ours_matched"):
+        assert method_mpc_config(cfg, name, {"arcade_thrust_smooth": 50.0}) is cfg
+    w = TUNED_DEFAULTS["arcade_thrust_smooth"]
+    for name in ("arcade", "arcade_no_model", "arcade_no_l1"):
+        assert method_mpc_config(cfg, name).smooth_weight == (w, 10.0, 10.0, 10.0)
+    assert method_mpc_config(cfg, "arcade", {"arcade_thrust_smooth": 35.0}).smooth_weight == (
+        35.0, 10.0, 10.0, 10.0)  # fmt: skip
+    # The stack flies the shared weight: its controller's MPC is the shared one.
+    assert STACK_ARCADE_KNOBS["arcade_thrust_smooth"] == 10.0
+    assert method_mpc_config(cfg, "arcade", stack_knobs("arcade")) is cfg
