@@ -76,6 +76,9 @@ TUNING_METHOD = {
     "arcade_l1_a_s": FLAGSHIP,
     "arcade_thrust_smooth": FLAGSHIP,
 }
+#: The flagship's knobs that its controller applies (its augmentation and its MPC), not its
+#: learner: the adapter does not fly them (``arcade replay --set`` refuses them).
+CONTROLLER_KNOBS = ("arcade_l1_cutoff", "arcade_l1_a_s", "arcade_thrust_smooth")
 #: What :func:`tune` chose on the reference machine (``run_closedloop(tuning=True)`` returns
 #: the choice under "tuning"); used when the tuning is skipped (``quick``).
 TUNED_DEFAULTS = {

@@ -184,11 +184,11 @@ def service_args(name: str, argv: list[str], out: Path, knobs: list[str]) -> arg
 
 def knob_problem(knobs: list[str], method: str) -> str | None:
     """Why a knob does not parse or is none of the adapter's flying ``method``, or None."""
-    from arcade_control.knobs import DETECTOR_PREFIX, TUNING_METHOD, parse_knob
+    from arcade_control.knobs import CONTROLLER_KNOBS, DETECTOR_PREFIX, TUNING_METHOD, parse_knob
     from arcade_control.stack import adapter_method, stack_knobs
 
     own = [k for k in stack_knobs(method) if TUNING_METHOD[k] == adapter_method(method)]
-    own = [k for k in own if "l1" not in k]  # the controller's augmentation, not the adapter
+    own = [k for k in own if k not in CONTROLLER_KNOBS]
     for text in knobs:
         try:
             name, _ = parse_knob(text)

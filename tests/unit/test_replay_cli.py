@@ -82,6 +82,12 @@ def test_unknown_knobs_wrong_values_and_other_methods_knobs_are_refused(recordin
     # ours' knob on a flight of the flagship would change nothing: said, not ignored.
     why = _refused(capsys, [path, "--set", "ours_beta=0.1"])
     assert "not a knob of the adapter flying arcade" in why and "arcade_lambda" in why
+    # The controller's knobs (augmentation, MPC) are not the adapter's either.
+    for knob in ("arcade_thrust_smooth=30", "arcade_l1_cutoff=40"):
+        why = _refused(capsys, [path, "--set", knob])
+        assert "not a knob of the adapter flying arcade" in why
+        listed = why.rsplit("(", 1)[1]
+        assert "arcade_lambda" in listed and "thrust" not in listed and "l1" not in listed
 
 
 def test_the_recordings_own_folder_is_refused_as_the_output(recording, capsys):
