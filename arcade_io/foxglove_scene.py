@@ -45,7 +45,13 @@ from typing import Any
 import numpy as np
 from foxglove import messages as fm
 
-from arcade_io.vehicle import DEFAULT_CABLE_LENGTH_M, PAYLOAD_RADIUS_M
+from arcade_io.vehicle import (
+    DEFAULT_CABLE_LENGTH_M,
+    PAYLOAD_BODY,
+    PAYLOAD_RADIUS_M,
+    PAYLOAD_RELEASED,
+    VEHICLE_BODY,
+)
 
 #: Channel name -> Foxglove message type (the topic is ``arcade/<vehicle>/foxglove/<name>``).
 CHANNELS: Mapping[str, Any] = {
@@ -57,9 +63,6 @@ CHANNELS: Mapping[str, Any] = {
     "payload_transform": fm.FrameTransform,
     "payload": fm.SceneUpdate,
 }
-#: Rigid bodies of the ``mocap`` topic drawn here (those of :mod:`services.messages`; the
-#: vehicle's by default, see :class:`FoxgloveScene`).
-VEHICLE_BODY, PAYLOAD_BODY = "vehicle", "payload"
 #: The cable hangs from the vehicle's frame captured at most this long from the payload's
 #: [s] (a mocap system sends both of one capture with the same stamp).
 ANCHOR_AGE_S = 0.05
@@ -269,7 +272,7 @@ class FoxgloveScene:
         if kind == "mocap":
             return self.mocap(wire)
         if kind == "event":
-            if (wire.get("data") or {}).get("payload") == "released":
+            if (wire.get("data") or {}).get("payload") == PAYLOAD_RELEASED:
                 self.released_at = min(self.released_at, float(wire["stamp"]))
             return []
         if kind != "state":

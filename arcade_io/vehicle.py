@@ -20,6 +20,11 @@ REQUIRED = {
 #: defaults: it always carries the electromagnet, and the nominal model counts it).
 DEFAULT_CABLE_MASS_KG = 0.002
 DEFAULT_ELECTROMAGNET_MASS_KG = 0.02
+#: Rigid bodies on the ``mocap`` topic: the vehicle's by default (a lab names it with
+#: ``--mocap-body``) and the simulator's swinging payload.
+VEHICLE_BODY, PAYLOAD_BODY = "vehicle", "payload"
+#: The ``payload`` entry of the simulator's event data at the release (the cable goes).
+PAYLOAD_RELEASED = "released"
 #: Radius of the payload sphere [m] (the simulator's, and the one Foxglove draws).
 PAYLOAD_RADIUS_M = 0.02
 #: Cable length [m] when the vehicle file gives none.

@@ -44,6 +44,9 @@ from typing import Any, ClassVar, TypeVar
 import msgpack
 import numpy as np
 
+# Rigid bodies on the ``mocap`` topic (the vehicle's frames are the only ones its estimator
+# and the PX4 bridge take), defined with the vehicle files.
+from arcade_io.vehicle import PAYLOAD_BODY, VEHICLE_BODY
 from services.message_fields import (
     COMMANDS,
     COV_TOL,
@@ -212,12 +215,6 @@ _R, _V = MAX_RATE_RADPS, MAX_SPEED_MPS
 _P, _Q = MAX_POSITION_M, 1.0 + QUAT_NORM_TOL
 _X_LO = (-_P,) * 3 + (-_V,) * 3 + (-_Q,) * 4 + (-_R,) * 3
 _X_HI = (_P,) * 3 + (_V,) * 3 + (_Q,) * 4 + (_R,) * 3
-
-
-#: Rigid bodies on the ``mocap`` topic: the vehicle's by default (the only frames its
-#: estimator and the PX4 bridge take; a lab names it with ``--mocap-body``) and the
-#: simulator's swinging payload (drawn in Foxglove).
-VEHICLE_BODY, PAYLOAD_BODY = "vehicle", "payload"
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)

@@ -92,6 +92,7 @@ from arcade_control.hover import hold_setpoint
 from arcade_control.scenario import trial
 from arcade_io import flightlog, hostcpu
 from arcade_io.traced import load_or_trace
+from arcade_io.vehicle import PAYLOAD_RELEASED
 from services import options, runtime
 from services.csvlog import StreamedCsv
 from services.messages import Command, Event, Imu, Setpoint, State
@@ -351,7 +352,7 @@ class SimNode(runtime.Service):
                     stamp=stamp,
                     sim_time=self.sim.time,
                     step=k,
-                    payload="released",  # what a Foxglove drawing takes (the cable goes)
+                    payload=PAYLOAD_RELEASED,  # what a Foxglove drawing takes (the cable goes)
                 )
 
     def _record(self, u: np.ndarray, t: float | None = None) -> bool:
