@@ -285,6 +285,7 @@ class StackConfig:
             own += ["--mocap-source", self.mocap_source()]
         if service in ("adapter", "controller"):  # one value on both, never one alone
             own += ["--link-delay", f"{self.link_delay_s:g}", "--method", self.method]
+            own += ["--state-source", "sim" if self.truth_state else "estimator"]
         if service == "sim":
             own += ["--ready-timeout", f"{self.ready_timeout:g}"]
             consumers = [s for s in self.services() if s != "sim"]  # incl. the recorder

@@ -286,8 +286,9 @@ class Adapter(runtime.Service):
         self._applied = bool(a.lockstep)
         self._first_setpoint: float | None = None  # stamp of the first setpoint received
         self._mission_t0: float | None = None  # t0 of the newest mission start
-        bus.subscribe("setpoint", self.on_setpoint)
-        bus.subscribe("state", self.on_state)
+        # Learned from only what the controller answered and the state source measured.
+        bus.subscribe("setpoint", self.on_setpoint, source="controller")
+        bus.subscribe("state", self.on_state, source=self.args.state_source)
         bus.subscribe("event", self.on_event, check_order=False)
         self.pub_model = bus.publisher("model")
         self.pub_res = bus.publisher("residual")
@@ -596,6 +597,7 @@ def _extra(p) -> None:
     options.add_weights_argument(p)
     options.add_method_argument(p)
     options.add_link_delay_argument(p)
+    options.add_state_source_argument(p)
     p.add_argument(
         "--checkpoint",
         type=Path,

@@ -250,7 +250,7 @@ class Controller(runtime.Service):
             stamp_reanchored=0,
         )
         bus.subscribe("model", self.on_model, source="adapter")
-        self._state_sub = bus.subscribe("state", self.on_state)
+        self._state_sub = bus.subscribe("state", self.on_state, source=self.args.state_source)
         self._react_s = runtime.LatencySamples(skip=1)  # state received -> setpoint put
         self.pub = bus.publisher("setpoint")
         self.pub_ref = bus.publisher("reference")
@@ -576,6 +576,7 @@ def _extra(p) -> None:
     options.add_weights_argument(p)
     options.add_method_argument(p)
     options.add_link_delay_argument(p)
+    options.add_state_source_argument(p)
     p.add_argument(
         "--model-timeout",
         type=float,

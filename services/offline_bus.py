@@ -18,7 +18,7 @@ import zenoh
 
 #: The session id of whatever the stand-in delivers, and the services it speaks for.
 PEER = "5e55"
-PINNED = ("controller", "adapter", "sim", "px4sim")
+PINNED = ("controller", "adapter", "estimator", "sim", "px4sim")
 
 
 class Payload:

@@ -161,6 +161,18 @@ def add_mocap_source_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_state_source_argument(p: argparse.ArgumentParser) -> None:
+    """``--state-source``: the one service whose bus session the state is taken from."""
+    p.add_argument(
+        "--state-source",
+        default="estimator",
+        metavar="SERVICE",
+        help="accept the state only from the bus session of this service (its liveliness "
+        "token arcade/<vehicle>/alive/SERVICE/<session>); the rest is refused as "
+        "foreign_publisher (the simulator with --truth-state: sim)",
+    )
+
+
 def mocap_body(text: str) -> str:
     """argparse ``type=``: a rigid-body name as a ``mocap`` record's ``body`` carries it
     (the schema's check of :class:`~services.messages.Mocap`)."""

@@ -474,8 +474,8 @@ class Rogue:
     """Another process on the host (its own Zenoh session) that answers every ``state``
     with a valid setpoint that would flip the vehicle: its own ``seq``, the state's
     ``stamp`` and ``seq``, the controller's ``src`` copied from the controller's setpoints,
-    and its own publisher's source info; and with a valid mocap frame and model of the
-    same stamp. Counts the states it saw and what it sent."""
+    and its own publisher's source info; and with a valid mocap frame, model and state
+    (1 m off) of the same stamp. Counts the states it saw and what it sent."""
 
     def __init__(self, vehicle: str, config: zenoh.Config):
         self.session = zenoh.open(config)
@@ -488,7 +488,7 @@ class Rogue:
             topic: self.session.declare_publisher(
                 f"arcade/{vehicle}/{topic}", priority=zbus.QOS[topic].priority
             )
-            for topic in ("setpoint", "mocap", "model")
+            for topic in ("setpoint", "mocap", "model", "state")
         }
         for topic, handler in (("setpoint", self._on_setpoint), ("state", self._on_state)):
             self.session.declare_subscriber(f"arcade/{vehicle}/{topic}", handler)
@@ -500,6 +500,8 @@ class Rogue:
 
     def _on_state(self, sample) -> None:
         state = decode("state", sample.payload.to_bytes())
+        if state.src == "state/rogue":
+            return  # its own
         with self._cond:
             self.states += 1
             self.stamp = max(self.stamp, state.stamp)
@@ -509,6 +511,7 @@ class Rogue:
             "setpoint": Setpoint(u=[0.0, 3.0, -3.0, 0.0], state_seq=state.seq, stamp=t),
             "mocap": valid(Mocap).replace(capture_stamp=t, stamp=t),
             "model": valid(Model).replace(stamp=t),
+            "state": state.replace(x=np.r_[state.x[:2], state.x[2] + 1.0, state.x[3:]]),
         }
         for topic, record in records.items():
             src = self.src if topic == "setpoint" else f"{topic}/rogue"
@@ -579,6 +582,7 @@ def test_the_embedded_bus_keeps_a_rogue_out_and_pins_the_controller(tmp_path: Pa
     assert outsider.states == 0 and insider.sent > 0
     # Refused and counted by every pinned subscription, announced once.
     takers = [(vehicle, "setpoint"), ("estimator", "mocap"), ("controller", "model")]
+    takers += [("controller", "state"), ("adapter", "setpoint"), ("adapter", "state")]
     if profile == "px4":
         takers.append(("bridge", "setpoint"))
     for name, topic in takers:

@@ -16,6 +16,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 
 from arcade_control.stack import adapter_learner
 from services.adapter import DEFAULT_WEIGHTS, load_checkpoint, save_checkpoint
@@ -73,16 +74,13 @@ def test_controller_degrades_on_stale_state_and_rejects_garbage(tmp_path):
     setpoints: queue.Queue = queue.Queue()
     events: queue.Queue = queue.Queue()
     try:
-        with (
-            Bus("default", "estimator", peer_config(hub)) as est,
-            Bus("default", "late", peer_config(hub)) as late,
-        ):
+        with Bus("default", "estimator", peer_config(hub)) as est:
             est.subscribe("setpoint", setpoints.put)
             est.subscribe("event", events.put)
             est.wait_alive(["controller"], timeout=TIMEOUT)
-            late.wait_alive(["controller"], timeout=TIMEOUT)
 
-            seq = est.put(hover_state(time.monotonic()))
+            t0 = time.monotonic()
+            seq = est.put(hover_state(t0))
             sp = get(setpoints, "setpoint", lambda m: m.state_seq == seq)
             # No model on the bus: nominal MPC, announced by an event.
             assert sp.mode == "nominal_model"
@@ -93,7 +91,10 @@ def test_controller_degrades_on_stale_state_and_rejects_garbage(tmp_path):
             # thrust: the mean of the tracking thrusts so far (level states), i.e. the one
             # tracked thrust, not the nominal hover thrust it starts from.
             tracked = sp.thrust
-            late_seq = late.put(hover_state(time.monotonic() - 1.0))
+            # The state is the estimator's (the only source the controller takes): its
+            # late stamp must still be newer than its first, so the clock passes t0 + 1 s.
+            time.sleep(max(0.0, t0 + 1.05 - time.monotonic()))
+            late_seq = est.put(hover_state(time.monotonic() - 1.0))
             sp = get(setpoints, "hover setpoint", lambda m: m.state_seq == late_seq)
             assert sp.mode == "hover"
             np.testing.assert_allclose(sp.rates, 0.0, atol=1e-12)
@@ -105,7 +106,8 @@ def test_controller_degrades_on_stale_state_and_rejects_garbage(tmp_path):
             bad = hover_state(time.monotonic()).to_wire()
             bad["x"][2] = float("nan")
             bad["seq"], bad["src"] = 99, "estimator/raw"
-            est.session.put(est.key("state"), msgpack.packb(bad))
+            raw = est.session.declare_publisher(est.key("state"))  # the estimator's session
+            raw.put(msgpack.packb(bad), source_info=zenoh.SourceInfo(raw.id, 99))
             # Fresh state again: the MPC takes over again (nominal model) and says so.
             seq = est.put(hover_state(time.monotonic()))
             sp = get(setpoints, "setpoint", lambda m: m.state_seq == seq)
@@ -153,11 +155,14 @@ def test_adapter_checkpoint_round_trip(tmp_path):
     args = ("--checkpoint", str(ckpt), "--checkpoint-every", "0", "--lockstep")
     models: queue.Queue = queue.Queue()
     rng = np.random.default_rng(0)
-    with Bus("default", "estimator", peer_config(hub)) as bus:
+    with (
+        Bus("default", "estimator", peer_config(hub)) as bus,
+        Bus("default", "controller", peer_config(hub)) as ctl,
+    ):
         bus.subscribe("model", models.put)
         # This test plays the controller too: while one is alive, the lockstep adapter
         # waits for the setpoint answering the previous state (sent after its model).
-        bus.declare_alive("controller")
+        ctl.declare_alive()
 
         proc = start("adapter", hub, tmp_path, *args)
         try:
@@ -169,7 +174,7 @@ def test_adapter_checkpoint_round_trip(tmp_path):
                 x = np.r_[p, 0.0, 0.0, 0.2, 1.0, 0, 0, 0, 0, 0, 0]
                 seq = bus.put(State(x=x, stamp=t + 0.05 * k, meas_stamp=t + 0.05 * k))
                 last = get(models, "model", lambda m, seq=seq: m.state_seq == seq)
-                bus.put(Setpoint(u=[6.0, 0.0, 0.0, 0.0], state_seq=seq, stamp=t + 0.05 * k))
+                ctl.put(Setpoint(u=[6.0, 0.0, 0.0, 0.0], state_seq=seq, stamp=t + 0.05 * k))
             assert last.step == 5  # five transitions learned
         finally:
             assert stop(proc) == 0
