@@ -104,9 +104,10 @@ def format_params(params: dict[str, Any], units: dict[str, str] | None = None) -
 
 def added_text(effect: dict[str, Any]) -> str:
     """Whether an effect was added, and why not when the held-out data contradict it."""
-    if effect["added"]:
-        return "yes"
     gate = effect.get("heldout")
+    if effect["added"]:
+        together = (gate or {}).get("with")
+        return f"yes, together with {', '.join(together)}" if together else "yes"
     if gate and not gate["confirmed"]:
         return (
             f"no: not confirmed on held-out data ({'+'.join(gate['components'])} "

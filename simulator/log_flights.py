@@ -45,6 +45,7 @@ rich excitation), sensor noise 1 mm / 1 mrad / 0.01 m/s / 0.01 rad/s white.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -181,6 +182,62 @@ class GroundPassPath:
         return p, v, a, yaw
 
 
+class VerticalFigureEight:
+    """A figure-eight in a vertical plane, as a flight plan flies it (no floor passes).
+
+    Along the heading ``heading`` [rad, ENU] through ``center``: horizontal offset
+    ``half_length sin(phi)``, height offset ``half_height sin(2 phi)`` (a lemniscate of
+    Gerono standing upright), ``phi = 2 pi s(t) / period``. The clock ``s`` ramps up from
+    rest over ``ramp_s`` (``ds/dt`` a quintic smoothstep, as
+    :class:`arcade_control.scenario.RampedPath`), so the flight starts from a hover.
+    The heading of the vehicle stays 0.
+    """
+
+    def __init__(
+        self,
+        center=START,
+        half_length: float = 2.0,
+        half_height: float = 0.75,
+        period: float = 6.0,
+        heading: float = 0.0,
+        ramp_s: float = 2.0,
+    ):
+        self.center = np.asarray(center, dtype=float)
+        self.half_length, self.half_height = float(half_length), float(half_height)
+        self.omega, self.ramp = 2.0 * np.pi / float(period), float(ramp_s)
+        self.along = np.array([np.cos(heading), np.sin(heading), 0.0])
+
+    def __call__(self, t: float):
+        r = min(max(t / self.ramp, 0.0), 1.0)
+        if t < self.ramp:
+            s = self.ramp * r**4 * (2.5 - 3.0 * r + r * r)
+            ds, dds = r**3 * (10.0 - 15.0 * r + 6.0 * r * r), 30.0 * r * r * (1.0 - r) ** 2
+            dds /= self.ramp
+        else:
+            s, ds, dds = 0.5 * self.ramp + (t - self.ramp), 1.0, 0.0
+        phi, dphi, ddphi = self.omega * s, self.omega * ds, self.omega * dds
+        L, H = self.half_length, self.half_height
+        x = L * np.sin(phi)
+        dx = L * np.cos(phi) * dphi
+        ddx = -L * np.sin(phi) * dphi**2 + L * np.cos(phi) * ddphi
+        z = H * np.sin(2.0 * phi)
+        dz = 2.0 * H * np.cos(2.0 * phi) * dphi
+        ddz = -4.0 * H * np.sin(2.0 * phi) * dphi**2 + 2.0 * H * np.cos(2.0 * phi) * ddphi
+        up = np.array([0.0, 0.0, 1.0])
+        return (
+            self.center + x * self.along + z * up,
+            dx * self.along + dz * up,
+            ddx * self.along + ddz * up,
+            0.0,
+        )
+
+
+def hover_path(point=START):
+    """A reference that holds ``point`` (a hover-only flight)."""
+    p, zero = np.asarray(point, dtype=float), np.zeros(3)
+    return lambda _t: (p.copy(), zero.copy(), zero.copy(), 0.0)
+
+
 #: Largest phase lag [deg] the pilot's loops accept from the vehicle at their crossover
 #: (attitude: rate loop, rate-setpoint delay and filter, motors; vertical: motors).
 PILOT_MAX_PHASE_DEG = (35.0, 30.0)
@@ -251,11 +308,18 @@ def fly_quadrotor(
     *,
     vehicle: dict[str, Any] | str | Path | None = None,
     noise_scale: float = 1.0,
+    path: Callable[[float], tuple] | None = None,
+    excitation: float = 1.0,
 ) -> FlightLog:
     """Fly the standard exciting trajectory with ``effects`` injected; the noisy 100 Hz log.
 
     ``effects`` are tables by canonical name (merged over the vehicle file's ``[effects]``).
-    Returns a :class:`arcade_io.flightlog.FlightLog`.
+    ``path``: another reference for the pilot, ``path(t) -> (p, v, a, yaw)`` from ``t = 0``
+    (e.g. :class:`VerticalFigureEight`, :func:`hover_path`; the flight starts at
+    ``path(0)``); ``excitation``: multiplier of the pilot's setpoint excitation (0: the
+    path alone, as a flight plan is flown). The thrust excitation scales with the vehicle's
+    mass (the same acceleration as on the default vehicle). Returns a
+    :class:`arcade_io.flightlog.FlightLog`.
     """
     veh = vehicle if isinstance(vehicle, dict) else load_vehicle(vehicle)
     merged = {**veh.get("effects", {}), **(effects or {})}
@@ -269,12 +333,15 @@ def fly_quadrotor(
     # pulls up as hard as its loop allows and excites less (its position loop would let
     # the excitation carry it away).
     ground = min(GROUND_HEIGHT_M / min(s_h, s_v), APPROACH_HEIGHT_M)
-    path = GroundPassPath(np.random.default_rng(path_ss), duration, ground)
+    if path is None:
+        path = GroundPassPath(np.random.default_rng(path_ss), duration, ground)
+    excitation_scale = getattr(path, "excitation_scale", lambda _t: 1.0)
     guard = FLOOR_GUARD_GAIN * s_v * s_v
-    excitation = EXCITATION_STD * np.array([s_v, s_h, s_h, s_h])
+    heavier = float(params.mass) / float(quadrotor_params(load_vehicle()).mass)
+    excitation_std = excitation * EXCITATION_STD * np.array([s_v * heavier, s_h, s_h, s_h])
     rng_exc = np.random.default_rng(exc_ss)
     pilot = ExpertPilot(float(params.mass), float(params.gravity), **gains)
-    x = sim.reset(START)
+    x = sim.reset(tuple(float(c) for c in path(0.0)[0]))
     # The pilot trims the hover *command* (what the throttle reads at hover), as a pilot
     # does after take-off; with a thrust mismatch that is not the weight.
     pilot.trim(sim.hover_thrust() / float(merged.get("thrust_scale", {}).get("scale", 1.0)))
@@ -289,7 +356,7 @@ def fly_quadrotor(
         u = pilot(x, (p_ref, v_ref, a_ref, yaw), CONTROL_DT)
         w = np.clip(rng_exc.standard_normal(4), -2.0, 2.0)
         exc = a * exc + np.sqrt(1.0 - a * a) * w
-        return sim.set_setpoint(u + path.excitation_scale(t) * exc * excitation)
+        return sim.set_setpoint(u + excitation_scale(t) * exc * excitation_std)
 
     # Hover before the log starts (rate-loop integrator and pilot trim settle), like a log
     # that starts in flight.

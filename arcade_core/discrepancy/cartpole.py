@@ -34,6 +34,8 @@ GROUPS: tuple[tuple[str, tuple[int, ...]], ...] = (
     ("length_mismatch", (6,)),
 )
 N_THETA = 7
+#: No cartpole effect acts only through another (see the quadrotor's ``CARRIERS``).
+CARRIERS: dict[str, tuple[str, ...]] = {}
 THETA_LOW = (0.0, 0.0, 0.0, -3.0, 0.1, 0.01, 0.1)
 THETA_HIGH = (2.0, 0.5, 3.0, 3.0, 10.0, 2.0, 5.0)
 #: Velocity over which the Coulomb friction's sign is smoothed [m/s].

@@ -13,7 +13,10 @@ predicted). Identification:
    base over the step (a share of the plausible range,
    :func:`~arcade_core.discrepancy.linearise.scaled_secants`) that explains the residual
    best, so that a lag of many log steps is seen for what it does; later over a small
-   fixed share of the range.
+   fixed share of the range. An effect that acts only through another the base lacks
+   (wind through drag) has no sensitivity at the base; its secants are taken where that
+   other effect is on (:func:`~arcade_core.discrepancy.linearise.carried_secants`), and
+   when it is selected the two are fitted together (step 4).
 2. **Whiten**: fit all candidates by least squares, estimate the channel covariance of
    what is left (trimming gross outliers such as floor contacts: windows whose whitened
    residual exceeds :data:`~arcade_core.discrepancy.linearise.OUTLIER_CHI2`), and
@@ -53,6 +56,7 @@ import numpy as np
 from jax import Array
 
 from arcade_core.discrepancy.linearise import (
+    carried_secants,
     fd_jacobian,
     fit_nonlinear,
     linearise,
@@ -66,6 +70,7 @@ from arcade_core.discrepancy.subsets import (
     group_masks,
     select_subset,
     solve_masked_jit,
+    subset_rss,
 )
 
 
@@ -125,8 +130,11 @@ def identify(
     low: np.ndarray,
     high: np.ndarray,
     config: SelectionConfig | None = None,
+    carriers: dict[int, Sequence[int]] | None = None,
 ) -> Identification:
-    """Select, fit and rate effects for the residuals ``residual_fn`` (module docstring)."""
+    """Select, fit and rate effects for the residuals ``residual_fn`` (module docstring).
+
+    ``carriers``: per group, the groups it may act through (default: any other group)."""
     config = SelectionConfig() if config is None else config
     theta_base = np.asarray(theta_base, dtype=float)
     low, high = np.asarray(low, float), np.asarray(high, float)
@@ -156,6 +164,12 @@ def identify(
         return np.where(th + config.probe * span <= high, 1.0, -1.0) * config.probe * span
 
     jac = scaled_secants(residual_fn, theta_base, low, high, r_base, config.probe_scales)
+    # An effect that acts only through another (wind through a drag the base lacks) gets
+    # its secants where that other one is on; selecting it fits both (step 4).
+    jac, carried = carried_secants(
+        residual_fn, theta_base, groups, low, high, r_base, jac, config.probe_scales,
+        config.min_explained, carriers,
+    )  # fmt: skip
 
     # Whitening from what is left after all candidates (step 2).
     keep = np.isfinite(r_base).all(axis=1)
@@ -179,17 +193,45 @@ def identify(
         r_th = np.nan_to_num(np.asarray(residual_fn(jnp.asarray(th))), nan=1e6)
         return float(np.sum((r_th @ W.T)[keep] ** 2))
 
-    def fit(sel: tuple[int, ...], start: np.ndarray) -> np.ndarray:
+    def fit(sel: tuple[int, ...], *starts: np.ndarray, previous: bool = True) -> np.ndarray:
         free = [i for j in sel for i in groups[j] if alive_any[i]]
-        th0 = theta_base.copy()
-        th0[free] = start[free]
-        # Start from the linear estimate or from the previous fit, whichever is better.
-        prev = theta_base.copy()
-        prev[free] = theta[free]
-        th0 = th0 if cost(np.clip(th0, low, high)) <= cost(prev) else prev
+        # Start from a linear estimate or from the previous fit, whichever is best.
+        candidates = []
+        for start in (*starts, *((theta,) if previous else ())):
+            th0 = theta_base.copy()
+            th0[free] = start[free]
+            candidates.append(np.clip(th0, low, high))
+        th0 = min(candidates, key=cost)
         return fit_nonlinear(
             residual_fn, th0, free, low, high, W, keep, steps, config.lm_iterations
         )
+
+    def carried_start(j: int, k: int, ctx, cols, sel: tuple[int, ...]) -> np.ndarray:
+        """Start of the fit of ``sel`` in which the carried effect ``j`` acts through ``k``
+        (:func:`~arcade_core.discrepancy.linearise.carried_secants`): the linear estimate
+        (within the plausible ranges) of ``sel`` without ``j``'s other carriers, at the
+        base with ``j``'s secants taken under ``k`` (at ``ctx``: ``cols``), in the reading
+        with the smaller cost: ``k`` where the secants were taken, or ``k`` at its own
+        linear estimate and ``j`` scaled by how much weaker ``k`` is there (the product of
+        the two is what the linear estimate measured, as wind times drag)."""
+        gj, gk = list(groups[j]), list(groups[k])
+        jac_k = np.array(jac, dtype=float)
+        jac_k[..., gj] = cols
+        lin_k, _, _ = linearise(
+            np.nan_to_num(r_base), np.nan_to_num(jac_k), W, keep, blocks, n_blocks, span
+        )
+        others = {c for c, _, _ in carried[j]} - {k}
+        mask = np.zeros(P, dtype=bool)
+        mask[[i for g in sel if g not in others for i in groups[g]]] = True
+        _, d = subset_rss(
+            lin_k.G.sum(0), lin_k.g.sum(0), lin_k.s.sum(), jnp.asarray(mask[None]), bounds
+        )
+        d = np.asarray(d[0])
+        at_ctx, own = theta_base + d, theta_base + d
+        at_ctx[gk] = ctx[gk]
+        weaker = np.max(np.abs(ctx[gk] - theta_base[gk])) / max(np.max(np.abs(d[gk])), 1e-12)
+        own[gj] = theta_base[gj] + d[gj] * weaker
+        return min((at_ctx, own), key=lambda th: cost(np.clip(th, low, high)))
 
     def drop_gains(th: np.ndarray, sel: tuple[int, ...]) -> dict[int, float]:
         """Share of the residual each effect explains on the nonlinear model."""
@@ -221,7 +263,23 @@ def identify(
         if set(new) <= set(selected) and rounds > 1:
             break
         new = tuple(sorted(set(new) | set(selected)))
-        theta = fit(new, theta_base + np.asarray(deltas[int(best)]))
+        start = theta_base + np.asarray(deltas[int(best)])
+        carried_now = [j for j in new if j in carried and rounds == 1]
+        if carried_now:
+            # A carried effect is fitted first with the effects that carry it alone (the
+            # relevance test below drops the carriers that do not matter; the rest of the
+            # selection is found again in the next round, once the effect is in), once
+            # from the linear estimate under each carrier (a bilinear start is rough: its
+            # cost does not rank it against the base); the best fit is kept.
+            new = tuple(sorted({*carried_now, *(k for j in carried_now for k, *_ in carried[j])}))
+            for j in carried_now:
+                fits = [
+                    fit(new, carried_start(j, k, ctx, cols, new), previous=False)
+                    for k, ctx, cols in carried[j]
+                ]
+                theta = min(fits, key=cost)
+        else:
+            theta = fit(new, start)
         # Keep only effects that are relevant on the nonlinear model, refit without the rest.
         gains = drop_gains(theta, new)
         kept = tuple(

@@ -24,6 +24,9 @@ from jax import Array
 OUTLIER_CHI2 = 60.0
 #: Largest share of windows that the outlier trimming may leave out.
 MAX_OUTLIER_SHARE = 0.02
+#: Carriers of an effect (:func:`carried_secants`) kept: those under which it adds at least
+#: this share of what it adds under the best one.
+CARRIER_SHARE = 0.5
 
 
 class Linearisation(NamedTuple):
@@ -64,23 +67,29 @@ def scaled_secants(
     high: np.ndarray,
     r0: np.ndarray,
     scales: Sequence[float],
+    idx: Sequence[int] | None = None,
+    target: np.ndarray | None = None,
 ) -> np.ndarray:
     """Secant sensitivities ``(n, c, P)`` at the scale that explains the residual best.
 
     Per parameter, secants over steps of ``scales`` times its plausible range, both signs,
-    within the range; kept is the one whose column alone explains most of ``r0`` (channels
-    weighed by their RMS). A lag far larger than a log step (a 0.1 s delay) changes the
-    one-step prediction in a way no tangent at zero extrapolates to; the secant over the
-    whole range reproduces it exactly, and for a parameter that acts linearly all secants
-    agree.
+    within the range; kept is the one whose column alone explains most of ``target``
+    (default ``r0``, the residual at ``theta``; channels weighed by their RMS). A lag far
+    larger than a log step (a 0.1 s delay) changes the one-step prediction in a way no
+    tangent at zero extrapolates to; the secant over the whole range reproduces it
+    exactly, and for a parameter that acts linearly all secants agree. A step whose
+    prediction is not finite where ``r0`` is gives no secant. ``idx``: only these
+    parameters (``(n, c, len(idx))``).
     """
     theta = np.asarray(theta, dtype=float)
+    finite = np.isfinite(np.asarray(r0))
     r0 = np.nan_to_num(np.asarray(r0))
-    scale = 1.0 / np.maximum(np.sqrt(np.mean(r0**2, axis=0)), 1e-300)
-    y = (r0 * scale).reshape(-1)
+    target = r0 if target is None else np.nan_to_num(np.asarray(target))
+    scale = 1.0 / np.maximum(np.sqrt(np.mean(target**2, axis=0)), 1e-300)
+    y = (target * scale).reshape(-1)
     span = high - low
     cols = []
-    for j in range(theta.shape[0]):
+    for j in range(theta.shape[0]) if idx is None else idx:
         best, best_score = None, -1.0
         for k in scales:
             for sign in (1.0, -1.0):
@@ -89,13 +98,98 @@ def scaled_secants(
                     continue
                 th = theta.copy()
                 th[j] += h
-                col = np.nan_to_num((np.asarray(residual_fn(jnp.asarray(th))) - r0) / h)
+                r_h = np.asarray(residual_fn(jnp.asarray(th)))
+                if not np.isfinite(r_h[finite]).all():  # no secant into a broken prediction
+                    continue
+                col = np.nan_to_num((r_h - r0) / h)
                 a = (col * scale).reshape(-1)
                 score = float((a @ y) ** 2 / max(float(a @ a), 1e-300))
                 if score > best_score:
                     best, best_score = col, score
         cols.append(best if best is not None else np.zeros_like(r0))
     return np.stack(cols, axis=-1)
+
+
+def carried_secants(
+    residual_fn: Callable[[Array], Array],
+    theta: np.ndarray,
+    groups: Sequence[Sequence[int]],
+    low: np.ndarray,
+    high: np.ndarray,
+    r0: np.ndarray,
+    jac: np.ndarray,
+    scales: Sequence[float],
+    min_gain: float,
+    candidates: dict[int, Sequence[int]] | None = None,
+) -> tuple[np.ndarray, dict[int, list[tuple[int, np.ndarray, np.ndarray]]]]:
+    """Secants of the effects that do not move the residual at ``theta`` because they act
+    through another one (wind through drag), taken where that one is on.
+
+    For each group whose columns of ``jac`` are all zero, each other group (or each of its
+    ``candidates``, the groups the model says it acts through) is switched on at the bound
+    of its plausible range farther from ``theta``; it is a *carrier* if the first group
+    then moves the residual. The group's :func:`scaled_secants` (over the two largest of
+    ``scales``: this is a search, not a fit) are taken under each carrier. What
+    they add is the share of ``r0`` that all columns of ``jac`` leave and they explain
+    (least squares, channels weighed by their RMS): under a carrier through which the
+    group only repeats what another effect does (wind through the thrust's inflow loss
+    acts as a thrust scale) it adds nothing. Carriers under which the group adds at least
+    ``min_gain`` and :data:`CARRIER_SHARE` of what it adds under the best one are kept,
+    best first; the group's columns become those under the best. Returns ``jac`` with
+    those columns, and per such group its carriers, each with the parameter vector at
+    which the secants were taken (the linear model assumes the first carrier at that
+    value) and the secants there. Groups no carrier adds to stay at zero.
+    """
+    jac = np.array(jac, dtype=float)
+    theta = np.asarray(theta, dtype=float)
+    r0 = np.nan_to_num(np.asarray(r0))
+    weight = 1.0 / np.maximum(np.sqrt(np.mean(r0**2, axis=0)), 1e-300)
+    y = (r0 * weight).reshape(-1)
+    span = high - low
+    coarse = sorted(scales)[-2:]
+    dead = [j for j, idx in enumerate(groups) if not np.any(jac[..., list(idx)])]
+    live = [i for i in range(theta.shape[0]) if np.any(jac[..., i])]
+    A0 = (np.nan_to_num(jac[..., live]) * weight[None, :, None]).reshape(-1, len(live))
+    # What the columns of jac leave: projections onto the orthogonal complement of their span.
+    U, sv, _ = np.linalg.svd(A0, full_matrices=False)
+    U = U[:, sv > 1e-10 * max(float(sv[0]), 1e-300)] if sv.size else U
+
+    def rest(a: np.ndarray) -> np.ndarray:
+        return a - U @ (U.T @ a)
+
+    e0 = rest(y)
+    rss0 = float(e0 @ e0)
+    carried: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = {}
+    for j in dead:
+        idx = list(groups[j])
+        found = []
+        for k, idx_k in enumerate(groups):
+            if k in dead or (candidates is not None and k not in candidates.get(j, ())):
+                continue
+            ctx = theta.copy()
+            for i in idx_k:
+                ctx[i] = low[i] if abs(low[i] - theta[i]) > abs(high[i] - theta[i]) else high[i]
+            r_ctx = np.nan_to_num(np.asarray(residual_fn(jnp.asarray(ctx))))
+            if candidates is None:  # one probe of the whole group first: a carrier at all?
+                probe = ctx.copy()
+                for i in idx:
+                    h = max(scales) * span[i]
+                    probe[i] = ctx[i] + h if ctx[i] + h <= high[i] else ctx[i] - h
+                moved = np.nan_to_num(np.asarray(residual_fn(jnp.asarray(probe)))) - r_ctx
+                if not np.any(moved):
+                    continue
+            cols = scaled_secants(residual_fn, ctx, low, high, r_ctx, coarse, idx, target=r0)
+            C = rest((cols * weight[None, :, None]).reshape(-1, len(idx)))
+            coef, *_ = np.linalg.lstsq(C, e0, rcond=None)
+            gain = float(e0 @ (C @ coef)) / max(rss0, 1e-300)
+            if gain >= min_gain:
+                found.append((gain, k, ctx, cols))
+        if found:
+            found.sort(key=lambda f: -f[0])
+            jac[..., idx] = found[0][3]
+            lead = found[0][0]
+            carried[j] = [(k, c, cols) for g, k, c, cols in found if g >= CARRIER_SHARE * lead]
+    return jac, carried
 
 
 def whitening(e: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

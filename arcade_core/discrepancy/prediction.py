@@ -59,6 +59,11 @@ class DiscrepancyModel:
             self.channels = CART_CHANNELS
         self.mod = mod
         self.groups = mod.GROUPS
+        names = [name for name, _ in self.groups]
+        #: Group index -> indices of the groups it acts through (``mod.CARRIERS``).
+        self.carriers = {
+            names.index(j): tuple(names.index(k) for k in ks) for j, ks in mod.CARRIERS.items()
+        }
         self.low = np.asarray(mod.THETA_LOW, float)
         self.high = np.asarray(mod.THETA_HIGH, float)
         self.theta_base = np.asarray(mod.theta_from_effects(self.model, self.effect_tables))

@@ -18,18 +18,20 @@ DiscrepancyModel`: nominal model, motors, rate loop and the effects it already h
    (:mod:`arcade_core.discrepancy.identify`). Only effects with confidence at least
    ``confidence`` are added; otherwise the answer is "no confident effect". A selected
    effect whose signature in this log stays within the noise (it could not halve the
-   one-step gap, :func:`effect_visibility`) is reported as "below detectability" and not
+   one-step gap, :func:`effect_visibility`; effects that only compensate each other stand
+   out no more than they do together) is reported as "below detectability" and not
    added (quadrotor; the library states each effect's limit on the standard trajectory).
    An effect that this log could not show even at the edge of its plausible range is
    listed as "not enough excitation to tell" (``cannot_tell``, ``reach``); when that holds
    for every effect the answer is "not enough excitation to tell", not a guess.
 4. **Gate and add**: a confident effect is added only if the held-out one-step gap
    shrinks with it, on the components it acts on and over all velocity and rate
-   components (:func:`heldout_gate`); otherwise it is listed as "not confirmed on
-   held-out data" with both numbers, so the updated model is never worse on held-out
-   data than the current one. The effect tables of the updated model
-   (``Outcome.model_effects``): the current model's and the added effects, within their
-   plausible ranges.
+   components (:func:`~arcade_core.discrepancy.heldout.heldout_gate`; effects that help
+   only together, as wind and the drag it acts through, are tried together); otherwise
+   it is listed as "not confirmed on held-out data" with both numbers, so the updated
+   model is never worse on held-out data than the current one. The effect tables of the
+   updated model (``Outcome.model_effects``): the current model's and the added effects,
+   within their plausible ranges.
 5. **Show**: the log is split in time into blocks; a held-out fraction of them is only
    evaluated, never fitted (:mod:`arcade_core.discrepancy.settings`). Before/after one-step
    RMSE and multi-step CRMSE per component.
@@ -58,6 +60,7 @@ from typing import Any
 import numpy as np
 
 from arcade_core.discrepancy.catalog import effects_for
+from arcade_core.discrepancy.heldout import heldout_gate, heldout_numbers, without_effects
 from arcade_core.discrepancy.identify import SelectionConfig, identify
 from arcade_core.discrepancy.localize import localise_gap
 from arcade_core.discrepancy.prediction import DiscrepancyModel, rms
@@ -126,8 +129,9 @@ def find_discrepancy(
         seed=settings.seed,
     )
     ident = identify(
-        residual_fn, model.theta_base, [g for _, g in model.groups], model.low, model.high, cfg
-    )
+        residual_fn, model.theta_base, [g for _, g in model.groups], model.low, model.high, cfg,
+        carriers=model.carriers,
+    )  # fmt: skip
     say(f"selected {[model.groups[j][0] for j in ident.selected]} in {ident.rounds} round(s)")
 
     # ---- detectability: could each selected effect halve the held-out gap at all? An
@@ -140,7 +144,7 @@ def find_discrepancy(
         visible, reach = _visibility(model, X, U, dt, fit_starts, H, ident)
         below = [j for j in ident.confident if visible[j] < HALVING_RATIO]
         if below:
-            ident = _without(ident, below, model.theta_base, [g for _, g in model.groups])
+            ident = without_effects(ident, below, model.theta_base, [g for _, g in model.groups])
 
     # ---- held-out gate: an effect is added only if it shrinks the held-out gap.
     theta_b = model.theta_base
@@ -154,7 +158,7 @@ def find_discrepancy(
     # components and overall; the pooled number over their union (what the report
     # headlines) is checked too, dropping the effect that explains least until it holds.
     while True:
-        held = _heldout_numbers(model, X, U, dt, ho, H, ident, err_b)
+        held = heldout_numbers(model, X, U, dt, ho, H, ident, err_b)
         if not ident.confident or held["rmse_after"] <= held["rmse_before"]:
             break
         j = min(ident.confident, key=lambda j: ident.contribution[j])
@@ -166,7 +170,7 @@ def find_discrepancy(
             "confirmed": False,
             "theta": ident.theta,
         }
-        ident = _without(ident, [j], model.theta_base, [g for _, g in model.groups])
+        ident = without_effects(ident, [j], model.theta_base, [g for _, g in model.groups])
     theta_a, err_a, act = ident.theta, held["err_after"], held["components"]
     rmse_b, rmse_a = held["rmse_before"], held["rmse_after"]
     gap_before = {c: float(v) for c, v in zip(comps, rms(err_b))}
@@ -276,101 +280,6 @@ def find_discrepancy(
     return Outcome(result, details, updated_effects(model, ident))
 
 
-def _velocity_and_rates(model: DiscrepancyModel) -> list[int]:
-    """Indices of the components the held-out gap is judged on when nothing is added."""
-    comps = list(model.components)
-    names = (
-        [comps[i] for i in (3, 4, 5, 9, 10, 11)]
-        if model.name == "quadrotor"
-        else ["xdot", "thetadot"]
-    )
-    return [comps.index(c) for c in names]
-
-
-def heldout_gate(
-    model: DiscrepancyModel, X, U, dt, ho, H, ident, err0
-) -> tuple[Any, dict[int, dict[str, Any]]]:
-    """The held-out gate: ``ident`` with only the confident effects that shrink the
-    held-out one-step gap, and every confident effect's verdict (``err0``: the current
-    model's one-step errors on the held-out windows ``ho``).
-
-    The confident effects are tried in the order of the share they explain, each on top of
-    those already accepted (at its estimate of the joint fit): it is accepted when the
-    pooled held-out RMSE over the components it acts on (the library's ``acts_on``)
-    decreases *and* the gap over all velocity and rate components does not grow, each
-    component weighed by the current model's held-out RMSE (so that units do not decide).
-    A verdict gives both RMSEs of its components (``before``: without it, ``after``: with
-    it) and of the overall measure. The held-out windows ``ho`` are only evaluated here,
-    never fitted: the decision uses the same data as the reported before/after numbers,
-    which is what makes ``heldout_rmse_after <= heldout_rmse_before`` hold.
-    """
-    groups = [g for _, g in model.groups]
-    comps = list(model.components)
-    specs = effects_for(model.name)
-    base = np.asarray(model.theta_base, float)
-    overall = _velocity_and_rates(model)
-
-    def errors(theta: np.ndarray) -> np.ndarray:
-        return model.errors(X, model.predict(theta, X, U, ho, H, dt), ho, H)[:, -1]
-
-    scale = np.maximum(rms(err0[:, overall]), 1e-300)
-
-    def measure(err: np.ndarray) -> float:
-        return float(np.sqrt(np.mean((rms(err[:, overall]) / scale) ** 2)))
-
-    theta, err = base.copy(), err0
-    accepted, verdicts = [], {}
-    for j in sorted(ident.confident, key=lambda j: -ident.contribution[j]):
-        name, idx = model.groups[j][0], list(groups[j])
-        cand = theta.copy()
-        cand[idx] = np.asarray(ident.theta, float)[idx]
-        err_new = errors(cand)
-        own = [comps.index(c) for c in specs[name].acts_on if c in comps]
-        before = float(rms(err[:, own].reshape(-1)))
-        after = float(rms(err_new[:, own].reshape(-1)))
-        all_before, all_after = measure(err), measure(err_new)
-        confirmed = bool(after < before and all_after <= all_before)
-        verdicts[j] = {
-            "components": [comps[i] for i in own],
-            "before": before,
-            "after": after,
-            "overall_before": all_before,
-            "overall_after": all_after,
-            "confirmed": confirmed,
-            "theta": cand,
-        }
-        if confirmed:
-            theta, err = cand, err_new
-            accepted.append(j)
-    drop = [j for j in ident.confident if j not in accepted]
-    return _without(ident, drop, base, groups), verdicts
-
-
-def _heldout_numbers(model: DiscrepancyModel, X, U, dt, ho, H, ident, err_b) -> dict[str, Any]:
-    """One-step held-out errors of the model with ``ident``'s added effects, and the pooled
-    RMSE before (``err_b``: the current model) and after over the components the added
-    effects act on (library) where their contribution to the held-out prediction is at
-    least half of what is left (where the effect is visible in this log); over all
-    velocity and rate components when nothing is added."""
-    comps = list(model.components)
-    specs = effects_for(model.name)
-    err_a = model.errors(X, model.predict(ident.theta, X, U, ho, H, dt), ho, H)[:, -1]
-    names = [model.groups[j][0] for j in ident.confident]
-    if names:
-        act = sorted({c for nme in names for c in specs[nme].acts_on}, key=comps.index)
-        change, left = rms(err_b - err_a), rms(err_a)
-        act = [c for c in act if change[comps.index(c)] >= 0.5 * left[comps.index(c)]] or act
-    else:
-        act = [comps[i] for i in _velocity_and_rates(model)]
-    sel = [comps.index(c) for c in act]
-    return {
-        "err_after": err_a,
-        "components": act,
-        "rmse_before": float(rms(err_b[:, sel].reshape(-1))),
-        "rmse_after": float(rms(err_a[:, sel].reshape(-1))),
-    }
-
-
 def _public(verdict: dict[str, Any] | None) -> dict[str, Any] | None:
     """A gate verdict for the JSON (without the parameter vector)."""
     if verdict is None:
@@ -404,16 +313,19 @@ def _clip_to_spec(system: str, name: str, params: dict[str, Any]) -> dict[str, A
 
 def noise_levels(model: DiscrepancyModel, X, U, dt, starts, H, theta) -> np.ndarray:
     """What is left per identification channel once ``theta`` models the log: the RMS
-    one-step residual over the windows ``starts`` (the floor a model can get down to)."""
+    one-step residual over the windows ``starts`` (the floor a model can get down to;
+    windows whose prediction is not finite are left out)."""
     pred = model.predict(theta, X, U, starts, H, dt)[:, -1]
     ch = np.asarray(model.channels)
-    return rms(X[np.asarray(starts) + H][:, ch] - pred[:, ch])
+    e = X[np.asarray(starts) + H][:, ch] - pred[:, ch]
+    return rms(e[np.isfinite(e).all(axis=1)])
 
 
 def effect_visibility(
     model: DiscrepancyModel, X, U, dt, starts, H, theta, name, sigma, pred0=None
 ) -> float:
-    """How far effect ``name`` at ``theta`` stands out of the noise in this log (quadrotor).
+    """How far effect ``name`` at ``theta`` stands out of the noise in this log (quadrotor;
+    ``name`` may be a tuple of effects: what they do together, on what any acts on).
 
     Mirrors the held-out metric: over the windows ``starts``, the RMS change ``g_c`` of the
     one-step prediction that ``theta`` makes against the base model, per component ``c``
@@ -423,6 +335,7 @@ def effect_visibility(
     sigma_c^2)``. A model that removes the gap takes the pooled RMSE from ``sqrt(sigma^2 +
     g^2)`` to ``sigma`` at best: halving it takes a ratio of at least ``sqrt(3)``
     (:data:`HALVING_RATIO`). Below that the effect is *below detectability* in this log.
+    Windows where either prediction is not finite are left out (none left: 0).
     """
     comps = list(model.components)
     # component name -> (state index, identification channel); all are v or omega.
@@ -431,7 +344,13 @@ def effect_visibility(
     if pred0 is None:
         pred0 = model.predict(base, X, U, starts, H, dt)[:, -1]
     pred = model.predict(theta, X, U, starts, H, dt)[:, -1]
-    acts = [c for c in effects_for(model.name)[name].acts_on if c in chan]
+    finite = np.isfinite(pred).all(axis=1) & np.isfinite(pred0).all(axis=1)
+    if not finite.any():
+        return 0.0
+    pred, pred0 = pred[finite], pred0[finite]
+    names = (name,) if isinstance(name, str) else tuple(name)
+    on = {c for n in names for c in effects_for(model.name)[n].acts_on}
+    acts = [c for c in comps if c in on and c in chan]
     g = np.array([float(rms(pred[:, chan[c][0]] - pred0[:, chan[c][0]])) for c in acts])
     sig = np.array([float(sigma[chan[c][1]]) for c in acts])
     moved = g >= 0.5 * sig
@@ -455,41 +374,57 @@ def excitation(reach: dict[str, float], named: bool) -> tuple[list[str], list[st
 def _visibility(
     model: DiscrepancyModel, X, U, dt, starts, H, ident
 ) -> tuple[dict[int, float], dict[str, float]]:
-    """:func:`effect_visibility` of every selected effect at its estimate, alone, against
-    what the fit with all selected effects leaves (fitting windows); and every library
-    effect's *reach*: its visibility at the edge of its plausible range (each parameter at
-    the bound farther from the current model's value), what the log could show of it at
-    most. An effect whose reach is below :data:`HALVING_RATIO` cannot be told in this log,
-    whatever its size: the log does not excite it enough."""
+    """:func:`effect_visibility` of every selected effect at its estimate, against the
+    same model without it (the other effects it is fitted with stay in: wind shows only
+    through a drag fitted with it), and against what the fit with all selected effects
+    leaves (fitting windows), but no larger than that of all selected effects together;
+    and every library effect's *reach*: its visibility at the edge of its plausible range
+    (each parameter at the bound farther from the current model's value) on top of the
+    fitted model's visible effects, what the log could show of it at most. An effect
+    whose reach is below :data:`HALVING_RATIO` cannot be told in this log, whatever its
+    size: the log does not excite it enough."""
     # Windows the identification left out as gross outliers (floor contacts) stay out.
     starts = np.asarray(starts)[~np.asarray(ident.outliers)]
     sigma = noise_levels(model, X, U, dt, starts, H, ident.theta_selected)
     base = np.asarray(model.theta_base, float)
-    pred0 = model.predict(base, X, U, starts, H, dt)[:, -1]
+
+    def prediction(theta: np.ndarray) -> np.ndarray:
+        return model.predict(theta, X, U, starts, H, dt)[:, -1]
+
+    def without(theta: np.ndarray, idx) -> np.ndarray:
+        off = np.array(theta, dtype=float)
+        off[list(idx)] = base[list(idx)]
+        return off
+
     out = {}
     for j in ident.selected:
         name, idx = model.groups[j]
-        th = base.copy()
-        src = ident.theta if j in ident.confident else ident.theta_selected
-        th[list(idx)] = np.asarray(src)[list(idx)]
+        th = np.asarray(ident.theta if j in ident.confident else ident.theta_selected, float)
+        pred0 = prediction(without(th, idx))
         out[j] = effect_visibility(model, X, U, dt, starts, H, th, name, sigma, pred0)
+    # Effects that compensate each other (a thrust scale against an inflow loss) each look
+    # large without the other: none stands out if all of them together do not.
+    if len(ident.selected) > 1:
+        names = tuple(model.groups[j][0] for j in ident.selected)
+        together = effect_visibility(
+            model, X, U, dt, starts, H, ident.theta_selected, names, sigma, prediction(base)
+        )
+        out = {j: min(v, together) for j, v in out.items()}
+    # The reach on top of the selected effects that stand out of the noise.
+    context = np.asarray(ident.theta_selected, float)
+    for j, v in out.items():
+        if v < HALVING_RATIO:
+            context = without(context, model.groups[j][1])
+    pred_context = prediction(context)
     reach = {}
     low, high = np.asarray(model.low, float), np.asarray(model.high, float)
     for name, idx in model.groups:
-        th = base.copy()
+        th = without(context, idx)
+        pred0 = pred_context if np.array_equal(th, context) else prediction(th)
         for i in idx:
             th[i] = low[i] if abs(low[i] - base[i]) > abs(high[i] - base[i]) else high[i]
         reach[name] = effect_visibility(model, X, U, dt, starts, H, th, name, sigma, pred0)
     return out, reach
-
-
-def _without(ident, drop: list[int], theta_base: np.ndarray, groups) -> Any:
-    """``ident`` with the effects ``drop`` taken out of the confident (added) set."""
-    theta = np.asarray(ident.theta, float).copy()
-    for j in drop:
-        theta[list(groups[j])] = theta_base[list(groups[j])]
-    confident = tuple(j for j in ident.confident if j not in drop)
-    return ident._replace(confident=confident, theta=theta)
 
 
 def _interval(lo, hi):

@@ -21,7 +21,7 @@ from arcade_core.discrepancy.catalog import (
     magnitude,
 )
 from arcade_core.discrepancy.identify import SelectionConfig, identify
-from arcade_core.discrepancy.linearise import scaled_secants
+from arcade_core.discrepancy.linearise import carried_secants, scaled_secants
 from arcade_core.discrepancy.localize import binned_rms, changepoints, segment_rms
 from arcade_core.discrepancy.subsets import Bounds, _solve_bounded
 from arcade_core.dynamics.cartpole import cartpole_true_step
@@ -171,6 +171,26 @@ def test_hover_is_an_equilibrium_and_rates_follow_setpoints():
     assert 0.05 < pred[102, 12] < 0.3  # ... with the loop's lag (about 50 ms)
 
 
+def test_a_fast_motor_is_predicted_at_a_slow_log_rate():
+    # A 2 ms motor (the plausible range's lower end) in the rate loop's companion form
+    # needs about 18 squarings of the matrix exponential over a 20 ms log step; with the
+    # default limit of 16 the prediction was NaN, and every 50 Hz log broke the secants.
+    model = quad_model_from_vehicle(load_vehicle())
+    n = 60
+    U = np.tile([0.57 * 9.81, 0.0, 0.0, 0.0], (n, 1))
+    U[10:, 3] = 0.4  # a yaw-rate step
+    X = np.tile(np.r_[0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0.0], (n, 1))
+    final = []
+    for tau in (0.002, 0.005):
+        theta = qm.theta_off(model).at[8].set(tau)
+        pred = qm.predict_windows(
+            model, theta, jnp.asarray(X), jnp.asarray(U), jnp.array([0]), 50, 0.02
+        )
+        assert np.isfinite(np.asarray(pred)).all(), tau
+        final.append(float(pred[0, -1, 12]))
+    np.testing.assert_allclose(final, 0.4, atol=5e-3)
+
+
 def test_aerodynamic_and_battery_effects_follow_their_formulas():
     """The thrust and the effect acceleration each effect makes at one instant (level)."""
     model = quad_model_from_vehicle(load_vehicle())
@@ -307,6 +327,38 @@ def test_a_long_delay_is_found_through_scaled_secants():
     res = identify(residual_fn, base, [(0,), (1,)], low, high, SelectionConfig(n_boot=50, block=50))
     assert res.confident == (0,), res.confidence
     assert res.theta[0] == pytest.approx(truth, abs=0.1)
+
+
+def test_an_effect_that_acts_only_through_another_is_found_with_it():
+    # Wind acts only through drag: y = -d (v - w). A model without drag cannot see the wind
+    # (no sensitivity at the base); its secants are taken where the drag is on, and
+    # selecting it fits both. A distractor (a third regressor) stays out; without wind in
+    # the data nothing is carried.
+    rng = np.random.default_rng(4)
+    n = 1500
+    v = 2.0 * np.sin(0.01 * np.arange(n)) + 0.3 * rng.normal(size=n)
+    other, noise = rng.normal(size=n), 0.05 * rng.normal(size=n)
+    low, high = np.array([0.0, -5.0, -1.0]), np.array([2.0, 5.0, 1.0])
+    groups = [(0,), (1,), (2,)]
+
+    def residuals(d_true, w_true):
+        y = -d_true * (v - w_true) + noise
+
+        def residual_fn(theta):
+            th = np.asarray(theta)
+            return np.stack([y + th[0] * (v - th[1]) - th[2] * other, 0.0 * v], axis=1)
+
+        return residual_fn
+
+    cfg = SelectionConfig(n_boot=100, block=50)
+    res = identify(residuals(0.4, 3.0), np.zeros(3), groups, low, high, cfg)
+    assert set(res.confident) == {0, 1}, res.confidence
+    np.testing.assert_allclose(res.theta[:2], [0.4, 3.0], rtol=0.05)
+    calm = residuals(0.4, 0.0)
+    base = np.zeros(3)
+    jac = scaled_secants(calm, base, low, high, calm(base), cfg.probe_scales)
+    _, carried = carried_secants(calm, base, groups, low, high, calm(base), jac, (1.0,), 0.02)
+    assert carried == {}
 
 
 def test_bounded_solution_holds_unphysical_parameters_at_their_bound():
