@@ -391,6 +391,11 @@ def convert(
             f"({segment[0]:.1f}-{segment[1]:.1f} s into the log), less than the "
             f"{min_airborne_s:g} s asked for (--min-airborne-s)"
         )
+    if duration < DEFAULT_MIN_AIRBORNE_S:
+        warnings.append(
+            f"{duration:.1f} s airborne: the discrepancy workflow needs "
+            f"{DEFAULT_MIN_AIRBORNE_S:g} s to tell effects apart"
+        )
     if len(airborne) > 1:
         warnings.append(f"{len(airborne)} airborne segments: kept the longest usable one")
     if (flight[1] - flight[0]) - duration > 2.0 / rate_hz:

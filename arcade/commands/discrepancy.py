@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from arcade.commands.log import add_ulog_options
-from arcade_core.discrepancy.settings import HELDOUT_RANGE, Settings, check_log
+from arcade_core.discrepancy.settings import HELDOUT_RANGE, LogTooShort, Settings, check_log
 from arcade_io import atomicfile, jsonout
 
 HELP = "find where a flight log and the model disagree, name the missing effect, show the fix"
@@ -159,10 +159,51 @@ def run_workflow(
     return outcome
 
 
+def _not_enough_data(
+    args: argparse.Namespace, samples: int, reason: str, log_import: dict[str, Any] | None
+) -> int:
+    """The answer for a log too short to tell anything: "not enough excitation to tell",
+    nothing named or added, no held-out numbers (there are no windows to hold out); the
+    same ``result.json`` keys as a full run where they apply, and ``report.md``."""
+    from arcade_io.runs import new_run_dir
+
+    out = Path(args.out or new_run_dir(f"discrepancy-{args.system}"))
+    out.mkdir(parents=True, exist_ok=True)
+    summary = f"not enough excitation to tell: {reason}"
+    result: dict[str, Any] = {
+        "system": args.system,
+        "summary": summary,
+        "no_confident_effect": True,
+        "not_enough_excitation": True,
+        "too_short": reason,
+        "effects": [],
+        "heldout_rmse_before": None,
+        "heldout_rmse_after": None,
+        "heldout_components": [],
+        "samples": samples,
+        "model_file": None,
+    }
+    if log_import is not None:
+        result["log_import"] = log_import
+    report = out / "report.md"
+    atomicfile.write_text(
+        report, f"# Discrepancy: {args.log}\n\n{summary}.\n\nNo effect named or added.\n"
+    )
+    result["report"] = str(report)
+    atomicfile.write_text(out / "result.json", jsonout.dumps(result, indent=2))
+    if args.json:
+        print(jsonout.dumps(result))
+    else:
+        print(summary)
+        print(f"no model file written (nothing to add); report in {out}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     from arcade.commands.log import is_ulog, read_ulog_args, ulog_options_given, ulog_summary
     from arcade_io.discrepancy import check_model_file
     from arcade_io.flightlog import LogError, read_log
+    from arcade_io.resample import DEFAULT_MIN_AIRBORNE_S
     from arcade_io.runs import check_output_dir, check_runs_root, new_run_dir
 
     settings = Settings(
@@ -178,12 +219,20 @@ def run(args: argparse.Namespace) -> int:
         check_model_file(args.system, args.vehicle)
         if args.log.is_dir():
             raise ValueError(f"flight log {args.log} is a directory, not a CSV file")
-        log_import = None
+        log_import, too_short = None, None
         if is_ulog(args.log):
             if args.system != "quadrotor":
                 raise ValueError(f"{args.log}: a PX4 ULog is a quadrotor log, not {args.system}")
-            log_import = read_ulog_args(args, args.log)
+            # Any airborne stretch is read; a short one is an answer, not an error.
+            log_import = read_ulog_args(args, args.log, min_airborne_s=0.0)
             log = log_import.log
+            need = DEFAULT_MIN_AIRBORNE_S if args.min_airborne_s is None else args.min_airborne_s
+            airborne = log_import.meta["duration_s"]
+            if airborne < need:
+                too_short = (
+                    f"the longest usable airborne stretch is {airborne:.1f} s, less than the "
+                    f"{need:g} s the workflow needs to tell effects apart (--min-airborne-s)"
+                )
         else:
             given = ulog_options_given(args)
             if given:
@@ -197,10 +246,16 @@ def run(args: argparse.Namespace) -> int:
                         f"{args.log}: this looks like a {other} log: pass --system {other}"
                     ) from None
                 raise
-        check_log(args.system, len(log), log.dt, settings)
+        try:
+            check_log(args.system, len(log), log.dt, settings)
+        except LogTooShort as exc:
+            too_short = too_short or str(exc)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if too_short is not None:
+        meta = None if log_import is None else log_import.meta
+        return _not_enough_data(args, len(log), too_short, meta)
 
     from arcade_io import jaxsetup
 

@@ -23,6 +23,7 @@ _EPILOG = """\
 what the conversion does (docs/discrepancy.md, "PX4 flight logs"):
   segment   the longest airborne stretch (vehicle_land_detected) in which every signal is
             logged without a gap over --max-gap-s; shorter than --min-airborne-s: an error
+            (shorter than 30 s: a warning, the discrepancy workflow needs that much)
   resample  one constant rate (--rate): linear for positions, velocities and rates,
             normalised linear for the attitude quaternion, zero-order hold for setpoints
   frames    PX4's NED/FRD -> ENU/FLU (arcade_core.frames)
@@ -62,9 +63,8 @@ def add_ulog_options(p: argparse.ArgumentParser, *, vehicle: bool, defaults: boo
             help="vehicle file whose mass to use: [body] mass_kg plus its electromagnet, as "
             "the model counts it",
         )
-    rate, min_s, gap = (
-        (DEFAULT_RATE_HZ, DEFAULT_MIN_AIRBORNE_S, DEFAULT_MAX_GAP_S) if defaults else (None,) * 3
-    )
+    # Converting takes any airborne stretch; the workflow needs DEFAULT_MIN_AIRBORNE_S.
+    rate, min_s, gap = (DEFAULT_RATE_HZ, 0.0, DEFAULT_MAX_GAP_S) if defaults else (None,) * 3
     g.add_argument(
         "--rate",
         type=number(0.0, 1000.0, low_open=True),
@@ -78,7 +78,9 @@ def add_ulog_options(p: argparse.ArgumentParser, *, vehicle: bool, defaults: boo
         default=min_s,
         metavar="S",
         help="shortest airborne segment accepted [s] (default: "
-        f"{DEFAULT_MIN_AIRBORNE_S:g}; lower it for short test flights)",
+        + ("0, any" if defaults else f"{DEFAULT_MIN_AIRBORNE_S:g}")
+        + f"; the discrepancy workflow needs {DEFAULT_MIN_AIRBORNE_S:g} s to tell effects "
+        "apart: below it, it answers 'not enough excitation to tell')",
     )
     g.add_argument(
         "--max-gap-s",
@@ -107,8 +109,9 @@ def ulog_options_given(args: argparse.Namespace) -> list[str]:
     return [flag for k, flag in names.items() if getattr(args, k, None) not in (None, False)]
 
 
-def read_ulog_args(args: argparse.Namespace, path: Path):
-    """:func:`arcade_io.ulog.read_ulog` of ``path`` with the options in ``args``."""
+def read_ulog_args(args: argparse.Namespace, path: Path, min_airborne_s: float | None = None):
+    """:func:`arcade_io.ulog.read_ulog` of ``path`` with the options in ``args``
+    (``min_airborne_s``: instead of the option's)."""
     from arcade_io import resample, ulog
 
     def opt(name: str, default: float) -> float:
@@ -120,7 +123,11 @@ def read_ulog_args(args: argparse.Namespace, path: Path):
         mass_kg=args.mass,
         vehicle=getattr(args, "vehicle", None),
         rate_hz=opt("rate", resample.DEFAULT_RATE_HZ),
-        min_airborne_s=opt("min_airborne_s", resample.DEFAULT_MIN_AIRBORNE_S),
+        min_airborne_s=(
+            opt("min_airborne_s", resample.DEFAULT_MIN_AIRBORNE_S)
+            if min_airborne_s is None
+            else min_airborne_s
+        ),
         max_gap_s=opt("max_gap_s", resample.DEFAULT_MAX_GAP_S),
         allow_damaged=args.allow_damaged,
     )

@@ -83,16 +83,21 @@ def fit_windows(settings: Settings, system: str, n: int, dt: float) -> np.ndarra
     return block_windows(log_blocks(settings, n, dt), False, burn, H, H)
 
 
+class LogTooShort(ValueError):
+    """The log holds too few fitting windows for the workflow to tell anything."""
+
+
 def check_log(system: str, n: int, dt: float, settings: Settings) -> None:
     """``ValueError`` if the workflow cannot run on a log of ``n`` samples at period ``dt``
-    with ``settings`` (cheap: no model is built)."""
+    with ``settings`` (:class:`LogTooShort` when it has too few fitting windows; cheap: no
+    model is built)."""
     lo, hi = HELDOUT_RANGE
     if not lo <= settings.heldout <= hi:
         raise ValueError(f"--heldout must be between {lo:g} and {hi:g}, got {settings.heldout:g}")
     H = step_samples(settings, dt)
     n_windows = len(fit_windows(settings, system, n, dt))
     if n_windows < MIN_FIT_WINDOWS:
-        raise ValueError(
+        raise LogTooShort(
             f"log too short: {n_windows} fitting windows of {H * dt:.3g} s "
             f"(at least {MIN_FIT_WINDOWS} are needed; {n} samples at {1.0 / dt:.4g} Hz, "
             f"--step {settings.step_s:g})"

@@ -91,7 +91,8 @@ def test_convert_json_is_the_conversions_metadata(workdir, capsys):
         (["notulog.ulg", "--mass", "1"], "notulog.ulg: not a ULog file"),
         ([EVENTS, "--min-airborne-s", "5"], "the vehicle's mass is not in a ULog: give it "
          "with --mass KG or a vehicle file (--vehicle FILE)"),
-        ([EVENTS, "--mass", "2"], "less than the 30 s asked for (--min-airborne-s)"),
+        ([EVENTS, "--mass", "2", "--min-airborne-s", "12"],
+         "less than the 12 s asked for (--min-airborne-s)"),
         ([EVENTS, "--vehicle", "none.toml"], "error: vehicle file not found: none.toml"),
         (["cut.ulg", "--mass", "2", "--min-airborne-s", "5"], "the file is truncated"),
     ],
@@ -118,7 +119,7 @@ def test_convert_help_explains_the_conversion(capsys):
     assert _code(["log", "convert", "--help"]) == 0
     out = " ".join(capsys.readouterr().out.split())
     for text in ("THR_MDL_FAC", "hover_thrust_estimate", "zero-order hold", "--mass KG",
-                 "measured rates stand in", "(default: 100)", "(default: 30;",
+                 "measured rates stand in", "(default: 100)", "(default: 0, any;",
                  "linear in force: m*g*s/s_hover", "reported, not used"):  # fmt: skip
         assert text in out
     assert "through PX4's THR_MDL_FAC curve" not in out  # the curve is PX4's, not applied
@@ -154,7 +155,6 @@ def test_discrepancy_takes_a_ulog_converted_in_memory(workdir, monkeypatch, caps
     "args, expect",
     [
         ([EVENTS, "--min-airborne-s", "5"], "the vehicle's mass is not in a ULog"),
-        ([EVENTS, "--mass", "2"], "less than the 30 s asked for"),
         (["missing.ulg", "--mass", "2"], "error: ULog file not found: missing.ulg"),
         ([EVENTS, "--mass", "2", "--system", "cartpole", "--min-airborne-s", "5"],
          "a PX4 ULog is a quadrotor log, not cartpole"),
@@ -172,3 +172,25 @@ def test_discrepancy_ulog_errors_come_before_any_work(workdir, monkeypatch, caps
     assert _code(["discrepancy", *args]) == 2
     assert expect in _one_error(capsys)
     assert not (workdir / "runs").exists()
+
+
+@pytest.mark.parametrize("ulog", [EVENTS, SMALL], ids=["events", "small"])
+def test_both_samples_convert_and_analyse_without_an_error(workdir, monkeypatch, capsys, ulog):
+    # Converting takes any airborne stretch (a warning below the workflow's 30 s); the
+    # workflow answers "not enough excitation to tell" for 11.4 s and 1.1 s of flight.
+    assert _code(["log", "convert", ulog, "--mass", "2", "--out", "x.csv"]) == 0
+    assert "the discrepancy workflow needs 30 s to tell effects apart" in capsys.readouterr().out
+    assert len(read_log(workdir / "x.csv", "quadrotor")) > 100
+
+    def reached(*_a, **_k):
+        raise AssertionError("nothing to fit: the workflow must not start")
+
+    monkeypatch.setattr("arcade.commands.discrepancy.run_workflow", reached)
+    assert _code(["discrepancy", ulog, "--mass", "2", "--out", "d", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["summary"].startswith("not enough excitation to tell: the longest usable")
+    assert result["not_enough_excitation"] and result["effects"] == []
+    assert result["heldout_rmse_before"] is None and result["model_file"] is None
+    assert result["log_import"]["thrust_conversion"]["mass_kg"] == 2.0
+    assert json.loads((workdir / "d" / "result.json").read_text()) == result
+    assert "No effect named or added" in (workdir / "d" / "report.md").read_text()
