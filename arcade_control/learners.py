@@ -20,6 +20,7 @@ from arcade_control.knobs import (
     FLAGSHIP_ABLATIONS,
     MLP_INPUT_STD,
     ORACLE,
+    PAPER_SETTINGS,
     RESTARTING,
     TUNED_DEFAULTS,
     base_name,
@@ -120,7 +121,9 @@ def initial_learner(name: str, models, dtype) -> Any:
         cfg = flagship_config(name, cfg, tuned["arcade_lambda"])
     else:
         cfg = cfg._replace(beta=tuned[f"{knobs}_beta"])
-    if name == "ours_no_cp":
+    if name == PAPER_SETTINGS:  # Appendix D's values, whatever the tuning chose
+        cfg = adaptation.quadrotor_config()
+    elif name == "ours_no_cp":
         cfg = no_cp_config(cfg)
     elif name.startswith("ours_K"):
         cfg = cfg._replace(K=int(name[len("ours_K") :]))

@@ -32,6 +32,7 @@ from arcade_control.knobs import (
     FLAGSHIP_ABLATIONS,
     METHODS,
     ORACLE,
+    PAPER_SETTINGS,
     RESTARTING,
     base_name,
 )
@@ -410,9 +411,9 @@ def make_method(name: str) -> Method:
     if name in BEAM_VARIANTS:
         intercept, matched = BEAM_VARIANTS[name]
         return beam_method(name, intercept=intercept, matched=matched)
-    if name in ("ours", "ours_no_cp") or name.startswith("ours_K"):
+    if name in ("ours", "ours_no_cp", PAPER_SETTINGS) or name.startswith("ours_K"):
         return beam_method(name)
     if name == ORACLE:
         return oracle_mass_method()
-    known = (*METHODS, FLAGSHIP, *FLAGSHIP_ABLATIONS, *BEAM_VARIANTS)
+    known = (*METHODS, PAPER_SETTINGS, FLAGSHIP, *FLAGSHIP_ABLATIONS, *BEAM_VARIANTS)
     raise ValueError(f"unknown method {name!r} (one of {', '.join(known)})")

@@ -42,6 +42,8 @@ Methods:
   ``tau^2 = 0.1``; ``beta`` and ``sigma^2`` tuned, see below) and the offline prior re-injected
   at changepoints, which Lemma 2's proof assumes
   (:func:`arcade_core.adaptation.quadrotor_config`);
+- ``ours_paper`` (:data:`~arcade_control.knobs.PAPER_SETTINGS`): ours at every Appendix D
+  value (``beta = 0.997``, ``sigma^2 = 0.1`` too), never tuned;
 - ``ours_matched`` (:data:`VARIANTS`, not the paper's method, not in :data:`EVAL_METHODS`):
   ours with an intercept feature, planning with :func:`matched_residual` only; flown by
   ``arcade bench variants`` (:mod:`benchmarks.quadrotor_variants`);
@@ -214,6 +216,7 @@ def tune(
     command_delay_s: float = 0.0,
     compensate_delay: bool = False,
     estimated: bool = False,
+    hand_set: dict[str, float] | None = None,
 ) -> dict[str, Any]:
     """Pick the adaptive methods' knobs on the tuning cell (the flights of
     :data:`TUNING_SEEDS` per grid value, lowest mean tracking RMSE wins; crashes are
@@ -232,7 +235,8 @@ def tune(
     tuned; the others keep their :data:`TUNED_DEFAULTS`. ``command_delay_s``: the tuning
     flights' setpoint delay (:class:`Scenario`), compensated by the methods with
     ``compensate_delay``; ``estimated``: the methods fly on the state estimate
-    (:meth:`Runner.fly`).
+    (:meth:`Runner.fly`); ``hand_set``: knobs set by hand for the condition, over
+    :data:`TUNED_DEFAULTS` (:class:`~benchmarks.quadrotor_protocol.Condition`).
     """
     runner = runner or Runner(models)
     scen = Scenario(*TUNING_CELL, command_delay_s=command_delay_s)
@@ -265,7 +269,8 @@ def tune(
             )
         return flown[key]
 
-    models.closedloop = {**TUNED_DEFAULTS, **{k: TUNING_START[k] for k in grids}}
+    start = {k: TUNING_START[k] for k in grids}
+    models.closedloop = {**TUNED_DEFAULTS, **(hand_set or {}), **start}
     by_pass: list[dict[str, dict[str, float]]] = []
     while len(by_pass) < MAX_TUNING_PASSES:
         changed = False
@@ -340,10 +345,13 @@ def run_closedloop(
             cond.command_delay_s,
             compensate_delay=cond.compensate_delay,
             estimated=cond.estimated,
+            hand_set=dict(cond.hand_set),
         )
         if tuning
         else None
     )
+    if not tuning:  # the stored or given knobs, with the condition's hand-set ones
+        models.closedloop = {**getattr(models, "closedloop", {}), **dict(cond.hand_set)}
     rows, per_trial, fig5 = [], [], {}
     for pay, speed in cells:
         scen = Scenario(

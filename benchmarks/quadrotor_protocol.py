@@ -25,6 +25,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from arcade_control.stack import STACK_ARCADE_KNOBS
+
 #: The setpoint delay of the simulated PX4 chain [s] (``actuation_delay`` in
 #: ``stats/px4sim.json``: median 15-20 ms per flight), compensated as ``arcade up
 #: --link-delay`` does.
@@ -35,16 +37,24 @@ BOOTSTRAP_SEED = 0
 
 
 class Condition(NamedTuple):
-    """How a flight of one condition is flown (:meth:`Runner.fly`'s arguments)."""
+    """How a flight of one condition is flown (:meth:`Runner.fly`'s arguments), and the
+    knobs set by hand for it (not tuned: what the stack flies in that condition)."""
 
     command_delay_s: float
     estimated: bool
     compensate_delay: bool
+    hand_set: tuple[tuple[str, float], ...] = ()
 
 
 CONDITIONS = {
     "ideal": Condition(command_delay_s=0.0, estimated=False, compensate_delay=False),
-    "stack": Condition(command_delay_s=LINK_DELAY_S, estimated=True, compensate_delay=True),
+    "stack": Condition(
+        command_delay_s=LINK_DELAY_S,
+        estimated=True,
+        compensate_delay=True,
+        # The flagship's thrust smoothness as the stack flies it (the tuning scores RMSE).
+        hand_set=(("arcade_thrust_smooth", STACK_ARCADE_KNOBS["arcade_thrust_smooth"]),),
+    ),
 }
 
 

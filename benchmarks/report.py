@@ -28,6 +28,7 @@ from benchmarks.report_measurements import (
     soak_section,
 )
 from benchmarks.report_quadrotor import QUADROTOR_DIR, quadrotor_section
+from benchmarks.report_stack import STACK_DIR, stack_section
 from benchmarks.report_variants import (
     VARIANTS_DIR,
     delay_section,
@@ -63,6 +64,8 @@ def write_report(out: str | Path = "BENCHMARKS.md", quick: bool = False) -> Path
     sections += cartpole_section(result, fig_dir)
     _log("discrepancy workflow (about a minute)")
     sections += discrepancy_section(discrepancy.run(quick=quick))
+    # The condition users fly leads the closed-loop tables; the paper's ideal one follows.
+    sections += stack_section(STACK_DIR / "results.json")
     sections += quadrotor_section(QUADROTOR_DIR / "results.json")
     sections += variants_section(VARIANTS_DIR / "results.json")
     sections += oracle_section(VARIANTS_DIR / "oracle.json")

@@ -99,7 +99,14 @@ def _diagnostics_tables(cells: list[dict[str, Any]]) -> list[str]:
 
 def quadrotor_section(path: Path) -> list[str]:
     """Tables of the stored quadrotor evaluation (its own command: ~25 min on 2 cores)."""
-    head = ["## Quadrotor (`arcade eval quadrotor --json`; paper Sec. V-B, Tables II, III, V)", ""]
+    head = [
+        "## Quadrotor, the paper's condition (`arcade eval quadrotor --json`; paper Sec. V-B, "
+        "Tables II, III, V)",
+        "",
+        "Every method on the true state, no setpoint delay: the paper's setting, not what the "
+        "stack flies (the section above).",
+        "",
+    ]
     if not path.is_file():
         return [
             *head,

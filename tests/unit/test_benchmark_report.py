@@ -455,3 +455,59 @@ def test_discrepancy_section_names_what_was_found_and_what_was_not():
     assert "| rotor_drag | 0.97 | 1.2 % |" in text
     assert "| motor_lag | — | not found |" in text  # hidden but not identified
     assert "time_constant_s = 0.06" in text
+
+
+def test_stack_section_leads_with_paired_differences_to_l1(tmp_path):
+    # Three paired seeds in one cell: arcade 5 mm better than L1 each time, ours worse; the
+    # section gives the paired intervals in total, horizontally and vertically.
+    from benchmarks import report_stack
+    from benchmarks.quadrotor_protocol import paired_differences
+
+    trials = []
+    for k in range(3):
+        for method, r, z in (("l1", 0.010, 0.006), ("arcade", 0.005, 0.003), ("ours", 0.02, 0.016)):
+            r += 1e-4 * k
+            trials.append(
+                {
+                    "payload_g": 175,
+                    "speed_mps": 2.5,
+                    "method": method,
+                    "trial": k,
+                    "rmse_m": r,
+                    "rmse_z_m": z,
+                }
+            )
+    cells = []
+    for method in ("l1", "arcade", "ours"):
+        c = _cell(175, 2.5, method, 0.01, 0.0)
+        c.update(thrust_increment_rms_n=0.5, converged_fraction=0.99)
+        cells.append(c)
+    path = tmp_path / "results.json"
+    path.write_text(
+        jsonout.dumps(
+            {
+                "cells": cells,
+                "trials": trials,
+                "paired": paired_differences(trials, vs="l1"),
+                "settings": {"trials": 3, "condition": "stack"},
+                "machine": "test machine",
+            }
+        )
+    )
+    text = "\n".join(report_stack.stack_section(path))
+    assert "test machine" in text and "3 paired seeds per cell" in text
+    assert "`arcade` better in 1, worse in 0, no difference in 0" in text
+    assert "`ours` better in 0, worse in 1, no difference in 0" in text
+    assert "| 175 | 2.5 | **-5.0 [-5.0, -5.0]** | +10.0 [+10.0, +10.0] |" in text
+    # Horizontal, sqrt(r^2 - z^2) per seed: L1 8 mm, arcade 4 mm, ours 12 mm; z: 6, 3, 16.
+    assert "| 175 | 2.5 | **-4.0 [-4.0, -4.0]** | **-3.0 [-3.0, -3.0]** | +4.0 [" in text
+    assert "| +10.0 [+10.0, +10.0] |\n\nTracking RMSE" in text
+    assert "| 175 | 2.5 | **0.004** | 0.008 | 0.012 |" in text  # horizontal RMSE
+    assert report_stack.ORDER[:4] == ("arcade", "l1", "ours", "ours_paper")
+
+
+def test_stack_section_says_how_to_produce_missing_results(tmp_path):
+    from benchmarks import report_stack
+
+    text = "\n".join(report_stack.stack_section(tmp_path / "results.json"))
+    assert "No results yet: run `arcade eval quadrotor --condition stack --out" in text

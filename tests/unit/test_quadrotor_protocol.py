@@ -65,8 +65,9 @@ def test_paired_ci_of_a_constant_difference_is_the_value():
 
 
 def test_conditions():
-    assert condition("ideal") == (0.0, False, False)
-    assert condition("stack") == (LINK_DELAY_S, True, True)
+    assert condition("ideal") == (0.0, False, False, ())
+    # The stack condition flies the flagship's thrust smoothness the stack flies (by hand).
+    assert condition("stack") == (LINK_DELAY_S, True, True, (("arcade_thrust_smooth", 10.0),))
     with pytest.raises(ValueError, match="one of ideal, stack"):
         condition("px4")
     assert set(CONDITIONS) == {"ideal", "stack"}
@@ -102,6 +103,7 @@ def test_the_evaluation_flies_and_tunes_in_its_condition(monkeypatch):
     )
     assert set(flown) == {(m, LINK_DELAY_S, True, True) for m in ("l1", "arcade")}
     assert r["settings"]["condition"] == "stack"
+    assert r["settings"]["tuned"]["arcade_thrust_smooth"] == 10.0  # not the ideal's 25
     (p,) = r["paired"]
     assert p["method"] == "arcade" and p["diff_mean_m"] == pytest.approx(-0.01) and p["better"]
     assert "Paired RMSE difference to L1" in qc.format_table(r)
