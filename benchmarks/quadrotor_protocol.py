@@ -25,7 +25,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from arcade_control.stack import STACK_ARCADE_KNOBS
+from arcade_control.knobs import STACK_METHODS, TUNED_DEFAULTS
+from arcade_control.stack import STACK_ARCADE_KNOBS, stack_knobs
 
 #: The setpoint delay of the simulated PX4 chain [s] (``actuation_delay`` in
 #: ``stats/px4sim.json``: median 15-20 ms per flight), compensated as ``arcade up
@@ -56,6 +57,20 @@ CONDITIONS = {
         hand_set=(("arcade_thrust_smooth", STACK_ARCADE_KNOBS["arcade_thrust_smooth"]),),
     ),
 }
+
+
+def stored_knobs(name: str) -> dict[str, float]:
+    """The knobs stored for condition ``name``, what ``arcade eval quadrotor
+    --stored-knobs`` flies instead of tuning: the evaluation's (:data:`TUNED_DEFAULTS`,
+    tuned on the true state); in the stack's condition, the knobs the service stack flies
+    (:func:`arcade_control.stack.stack_knobs` of ours, L1 and the flagship, tuned in that
+    condition), over those."""
+    condition(name)
+    knobs = dict(TUNED_DEFAULTS)
+    if name == "stack":
+        for method in STACK_METHODS:
+            knobs.update(stack_knobs(method))
+    return {**knobs, **dict(condition(name).hand_set)}
 
 
 def condition(name: str) -> Condition:

@@ -128,7 +128,8 @@ def stack_section(path: Path) -> list[str]:
         "behind the simulated PX4 link's 20 ms setpoint delay, compensated, as the service "
         "stack flies; each tuned in this condition on a cell that is not evaluated (same "
         f"grids and budget for every method). {s.get('trials', '?')} paired seeds per cell "
-        "(the same seeds for every method); figure-eight with a swinging payload released "
+        f"(the same seeds for every method; {', '.join(s.get('methods', []))} flown); "
+        "figure-eight with a swinging payload released "
         "before the second lap. `arcade` is the product's controller (what `arcade up` "
         "flies), not the paper's method; `ours` is the paper's method with its tuned "
         "`beta` and `sigma^2`, `ours_paper` the paper's method at Appendix D's values.",
@@ -188,7 +189,19 @@ def stack_section(path: Path) -> list[str]:
         "",
     ]
     tuning = r.get("tuning")
-    if tuning:
+    if s.get("knobs") == "stored":
+        tuned = s.get("tuned", {})
+        lines += [
+            "Not tuned in this run (`--stored-knobs`): every method flew the knobs stored "
+            "for this condition, the service stack's own where it has them (tuned in this "
+            "condition by the same protocol before; `arcade_control.stack`), the "
+            "evaluation's otherwise: "
+            + ", ".join(f"{k} = {v:g}" for k, v in tuned.items())
+            + ". A full run (`arcade eval quadrotor --condition stack`) tunes every method "
+            "again.",
+            "",
+        ]
+    elif tuning:
         cell = tuning.get("cell", ["?", "?"])
         lines += [
             f"Knobs tuned in this condition on {cell[0]:g} g, {cell[1]:g} m/s (not "

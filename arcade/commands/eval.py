@@ -49,12 +49,43 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "stack (the estimator's state, a 20 ms setpoint delay compensated, as the service "
         "stack flies); every method is tuned and flown in it (default: %(default)s)",
     )
+    p.add_argument(
+        "--methods",
+        type=_method_list,
+        default=None,
+        metavar="M1,M2,...",
+        help="quadrotor: fly only these methods (default: all of them; include l1 for the "
+        "paired differences)",
+    )
+    p.add_argument(
+        "--stored-knobs",
+        action="store_true",
+        help="quadrotor: fly the knobs stored for the condition instead of tuning them (the "
+        "stack's own in --condition stack); a shorter run, marked so in results.json",
+    )
+
+
+def _method_list(text: str) -> tuple[str, ...]:
+    """argparse ``type=``: a comma-separated list of the quadrotor evaluation's methods."""
+    from arcade_control.knobs import EVAL_METHODS
+
+    names = tuple(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+    unknown = [n for n in names if n not in EVAL_METHODS]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(
+            f"{', '.join(unknown) or 'no method'}: methods are {', '.join(EVAL_METHODS)}"
+        )
+    return names
 
 
 def run(args: argparse.Namespace) -> int:
     from arcade_io import jaxsetup
     from arcade_io.runs import check_output_dir, check_runs_root, new_run_dir
 
+    only = [f for f, v in (("--methods", args.methods), ("--stored-knobs", args.stored_knobs)) if v]
+    if only and args.system != "quadrotor":
+        print(f"error: {', '.join(only)}: for the quadrotor evaluation only", file=sys.stderr)
+        return 2
     if args.condition != "ideal" and args.system != "quadrotor":
         print(
             f"error: --condition {args.condition} applies to the quadrotor evaluation only",
@@ -108,19 +139,26 @@ def _cartpole(args, out, progress):
 def _quadrotor(args, out, progress):
     from benchmarks import quadrotor_closedloop as qc
     from benchmarks import quadrotor_openloop as qo
+    from benchmarks.quadrotor_protocol import stored_knobs
 
     models = qo.prepare_models(args.quick, args.seed, progress, None)
     trials = args.trials if args.trials is not None else (1 if args.quick else 10)
+    if args.stored_knobs:
+        models.closedloop = stored_knobs(args.condition)
     result = qc.run_closedloop(
         quick=args.quick,
         trials=trials,
+        methods=args.methods,
         out=out,
         progress=progress,
         models=models,
         seed=args.seed,
         condition_name=args.condition,
+        tuning=False if args.stored_knobs else None,
     )
-    if args.condition != "ideal":  # the open-loop tables and the ablations are the paper's
+    result["settings"]["knobs"] = "stored" if args.stored_knobs or args.quick else "tuned"
+    if args.condition != "ideal" or args.methods is not None:
+        # The open-loop tables and the ablations are the paper's, with every method.
         return result, qc.format_table(result)
     progress("open-loop prediction (Table II) and Gramian diagnostics (Fig. 4)")
     result["openloop"] = qo.run_openloop(

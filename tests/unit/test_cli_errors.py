@@ -307,6 +307,16 @@ def test_eval_condition_belongs_to_the_quadrotor(quad_log, monkeypatch, capsys):
     assert not (quad_log.parent / "runs").exists()
 
 
+def test_eval_methods_and_stored_knobs_belong_to_the_quadrotor(quad_log, monkeypatch, capsys):
+    _forbid(monkeypatch, "benchmarks.cartpole_eval.evaluate")
+    _forbid(monkeypatch, "benchmarks.quadrotor_openloop.prepare_models")
+    assert _exit_code(["eval", "cartpole", "--methods", "l1", "--stored-knobs"]) == 2
+    assert "--methods, --stored-knobs: for the quadrotor evaluation only" in _error_line(capsys)
+    assert _exit_code(["eval", "quadrotor", "--methods", "l1,l2"]) == 2
+    assert "argument --methods: l2: methods are nominal, l1," in capsys.readouterr().err
+    assert not (quad_log.parent / "runs").exists()
+
+
 @pytest.mark.parametrize("mode", ["--sweep", "--limits"])
 def test_bench_discrepancy_rejects_unknown_effects(monkeypatch, capsys, mode):
     _forbid(monkeypatch, "benchmarks.discrepancy.sweep")

@@ -107,3 +107,17 @@ def test_the_evaluation_flies_and_tunes_in_its_condition(monkeypatch):
     (p,) = r["paired"]
     assert p["method"] == "arcade" and p["diff_mean_m"] == pytest.approx(-0.01) and p["better"]
     assert "Paired RMSE difference to L1" in qc.format_table(r)
+
+
+def test_stored_knobs_of_the_stack_condition_are_the_stacks():
+    from arcade_control.knobs import TUNED_DEFAULTS
+    from arcade_control.stack import STACK_ARCADE_KNOBS, STACK_L1_KNOBS
+    from benchmarks.quadrotor_protocol import stored_knobs
+
+    assert stored_knobs("ideal") == TUNED_DEFAULTS
+    stack = stored_knobs("stack")
+    assert {k: stack[k] for k in STACK_ARCADE_KNOBS} == STACK_ARCADE_KNOBS
+    assert {k: stack[k] for k in STACK_L1_KNOBS} == STACK_L1_KNOBS
+    assert stack["ours_sigma2"] == 0.1 and stack["mlp_lr"] == TUNED_DEFAULTS["mlp_lr"]
+    with pytest.raises(ValueError, match="unknown condition"):
+        stored_knobs("px4")
