@@ -93,6 +93,17 @@ def verdict(paired: list[dict[str, Any]], method: str) -> str:
     return f"better in {better}, worse in {worse}, no difference in {len(rows) - better - worse}"
 
 
+def _command(settings: dict[str, Any]) -> str:
+    """The command that wrote a run with ``settings``."""
+    cmd = STACK_COMMAND
+    if settings.get("knobs") == "stored":
+        cmd += " --stored-knobs"
+    methods = settings.get("methods")
+    if methods and set(methods) != set(ORDER):
+        cmd += f" --methods {','.join(methods)}"
+    return cmd
+
+
 def stack_section(path: Path) -> list[str]:
     """Tables of the stored stack-condition evaluation (its own command)."""
     head = [
@@ -119,20 +130,27 @@ def stack_section(path: Path) -> list[str]:
     n_cells = len({(c["payload_g"], c["speed_mps"]) for c in r["cells"]})
     lines = [
         *head,
-        f"From `{path.as_posix()}`, written {when} by `{STACK_COMMAND}`"
+        f"From `{path.as_posix()}`, written {when} by `{_command(s)}`"
         + (f" on {r['machine']}" if r.get("machine") else "")
         + (f", in {r['wall_time_s'] / 60:.0f} min" if r.get("wall_time_s") else "")
         + " (not re-run by `make benchmarks`).",
         "",
         "Every method flies on the estimator's state (motion-capture noise and latency) "
         "behind the simulated PX4 link's 20 ms setpoint delay, compensated, as the service "
-        "stack flies; each tuned in this condition on a cell that is not evaluated (same "
-        f"grids and budget for every method). {s.get('trials', '?')} paired seeds per cell "
+        "stack flies"
+        + (
+            "; with the knobs stored for this condition (below)"
+            if s.get("knobs") == "stored"
+            else "; each tuned in this condition on a cell that is not evaluated (same grids "
+            "and budget for every method)"
+        )
+        + f". {s.get('trials', '?')} paired seeds per cell "
         f"(the same seeds for every method; {', '.join(s.get('methods', []))} flown); "
         "figure-eight with a swinging payload released "
         "before the second lap. `arcade` is the product's controller (what `arcade up` "
-        "flies), not the paper's method; `ours` is the paper's method with its tuned "
-        "`beta` and `sigma^2`, `ours_paper` the paper's method at Appendix D's values.",
+        "flies), not the paper's method; `ours` is the paper's method with `beta` and "
+        "`sigma^2` chosen for this condition, `ours_paper` the paper's method at Appendix "
+        "D's values.",
         "",
         f"Against L1 over the {n_cells} cell{'s' if n_cells != 1 else ''} (95 % bootstrap "
         "interval of the paired RMSE difference): "
@@ -183,19 +201,23 @@ def stack_section(path: Path) -> list[str]:
         "",
         *cell_table(r["cells"], "settling_s", ".2f", missing=math.inf, order=ORDER),
         "",
-        "The flagship's ablations against L1 (paired tracking-RMSE difference, mm):",
-        "",
-        *paired_table(paired, FLAGSHIP_ABLATIONS),
-        "",
     ]
+    if any(p["method"] in FLAGSHIP_ABLATIONS for p in paired):
+        lines += [
+            "The flagship's ablations against L1 (paired tracking-RMSE difference, mm):",
+            "",
+            *paired_table(paired, FLAGSHIP_ABLATIONS),
+            "",
+        ]
     tuning = r.get("tuning")
     if s.get("knobs") == "stored":
         tuned = s.get("tuned", {})
         lines += [
             "Not tuned in this run (`--stored-knobs`): every method flew the knobs stored "
-            "for this condition, the service stack's own where it has them (tuned in this "
-            "condition by the same protocol before; `arcade_control.stack`), the "
-            "evaluation's otherwise: "
+            "for this condition, the service stack's own where it has them "
+            "(`arcade_control.stack`: chosen in this condition before, by the protocol's "
+            "tuning for L1 and ours, partly by hand for the flagship: "
+            "docs/quadrotor-closed-loop.md), the evaluation's otherwise: "
             + ", ".join(f"{k} = {v:g}" for k, v in tuned.items())
             + ". A full run (`arcade eval quadrotor --condition stack`) tunes every method "
             "again.",
