@@ -97,6 +97,16 @@ def _diagnostics_tables(cells: list[dict[str, Any]]) -> list[str]:
     ]
 
 
+def stored_run(path: Path) -> tuple[dict[str, Any], str]:
+    """A stored evaluation's results and when they were written (their ``generated``, else
+    the file's time)."""
+    r = json.loads(path.read_text())
+    when = r.get("generated") or time.strftime(
+        "%Y-%m-%d %H:%M", time.localtime(path.stat().st_mtime)
+    )
+    return r, when
+
+
 def quadrotor_section(path: Path) -> list[str]:
     """Tables of the stored quadrotor evaluation (its own command: ~25 min on 2 cores)."""
     head = [
@@ -114,10 +124,7 @@ def quadrotor_section(path: Path) -> list[str]:
             "cores), then `make benchmarks`.",
             "",
         ]
-    r = json.loads(path.read_text())
-    when = r.get("generated") or time.strftime(
-        "%Y-%m-%d %H:%M", time.localtime(path.stat().st_mtime)
-    )
+    r, when = stored_run(path)
     s = r.get("settings", {})
     lines = [
         *head,

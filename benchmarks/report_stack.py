@@ -4,22 +4,20 @@
 on the estimator's state (the motion capture's noise and latency), behind the simulated
 PX4 link's 20 ms setpoint delay, compensated; every method tuned in that condition. This is
 the condition users fly, so its section leads the closed-loop tables. The report renders
-the stored run (its own command, about 1.5 hours on 2 cores); paired differences to L1
+the stored run (its own command: 3-4 hours on 2 cores with the tuning); paired differences to L1
 with 95 % bootstrap intervals for the tracking, horizontal and vertical RMSE.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import time
 from pathlib import Path
 from typing import Any
 
 from arcade_control.knobs import FLAGSHIP, FLAGSHIP_ABLATIONS, METHODS, PAPER_SETTINGS
 from benchmarks.common import RESULTS
 from benchmarks.quadrotor_protocol import paired_differences
-from benchmarks.report_quadrotor import cell_table
+from benchmarks.report_quadrotor import cell_table, stored_run
 
 STACK_DIR = RESULTS / "quadrotor_stack"
 STACK_COMMAND = f"arcade eval quadrotor --condition stack --out {STACK_DIR.as_posix()}"
@@ -114,14 +112,12 @@ def stack_section(path: Path) -> list[str]:
     if not path.is_file():
         return [
             *head,
-            f"No results yet: run `{STACK_COMMAND}` (about 1.5 hours on 2 cores), then "
+            f"No results yet: run `{STACK_COMMAND}` (3-4 hours on 2 cores; with "
+            "`--stored-knobs`, no tuning, about 50 minutes for five methods), then "
             "`make benchmarks`.",
             "",
         ]
-    r = json.loads(path.read_text())
-    when = r.get("generated") or time.strftime(
-        "%Y-%m-%d %H:%M", time.localtime(path.stat().st_mtime)
-    )
+    r, when = stored_run(path)
     s = r.get("settings", {})
     trials = _with_horizontal(r.get("trials", []))
     paired = r.get("paired", [])
