@@ -47,11 +47,10 @@ def guard_from_metadata(extra: dict[str, Any] | None) -> Guard | None:
     meta = (extra or {}).get("guard")
     if meta is None:
         return None
-    # Through NumPy (cast on the host) and put on the device as it is: a list into
-    # jnp.asarray compiles a conversion, a NumPy array a copy (per shape, in every process).
+    # Through NumPy (cast on the host): a list into jnp.asarray compiles a conversion.
     return Guard(
         *(
-            jax.device_put(np.asarray(meta[k], dtype=jax.dtypes.canonicalize_dtype(np.float64)))
+            jnp.asarray(np.asarray(meta[k], dtype=jax.dtypes.canonicalize_dtype(np.float64)))
             for k in Guard._fields
         )
     )

@@ -5,7 +5,6 @@ from __future__ import annotations
 from functools import partial
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,19 +42,6 @@ def beam_at_prior(theta0: Any, cfg: adaptation.AdaptationConfig) -> adaptation.B
     and ``sigma2`` only) as one compiled call: eager, its twenty-odd small operations are
     each lowered and compiled in every process that starts a learner."""
     return _init_jit(theta0, cfg.tau2, cfg.sigma2, K=int(cfg.K))
-
-
-# The other constructors of a learner at take-off, each one compiled call for the same
-# reason as beam_at_prior (the values are those of the eager operations: casts, zeros,
-# identities, a square root and a product).
-_l1_init = eqx.filter_jit(l1.init)
-_detection_at_prior = eqx.filter_jit(adaptation.init_detection)
-
-
-@jax.jit
-def _with_intercept(theta0: Any) -> Any:
-    """``theta0`` with a zero intercept column."""
-    return jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
 
 
 def no_cp_config(cfg: adaptation.AdaptationConfig) -> adaptation.AdaptationConfig:
@@ -144,7 +130,7 @@ def initial_learner(name: str, models, dtype) -> Any:
     vld = cast(models.vld)
     theta0 = vld.theta0
     if flagship or BEAM_VARIANTS.get(name, (False, False))[0]:  # intercept: zero column
-        theta0 = _with_intercept(theta0)
+        theta0 = jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
     beam = beam_at_prior(theta0, cfg)
     traced_cfg = adaptation.AdaptationConfig(
         K=jnp.asarray(cfg.K),
@@ -166,9 +152,9 @@ def initial_learner(name: str, models, dtype) -> Any:
         scale = jnp.asarray(tuned["arcade_restart_scale"], dtype)
         learner = learner._replace(
             restart=Restart(
-                _detection_at_prior(vld.theta0, det),
+                adaptation.init_detection(vld.theta0, det),
                 det,
-                _restart_prior(beam, scale),
+                restart_prior(beam, scale),
                 scale,
                 traced_cfg.sigma2,
                 jnp.asarray(adaptation.quadrotor_config().sigma2, dtype),
@@ -184,14 +170,11 @@ def restart_prior(beam: adaptation.BeamState, scale: Any) -> adaptation.BeamStat
     return beam._replace(sqrt_covariances=beam.sqrt_covariances * jnp.sqrt(scale))
 
 
-_restart_prior = jax.jit(restart_prior)
-
-
 def _l1_state(cutoff: float, cutoff_rates: float, a_s: float, dtype) -> l1.L1State:
     """An L1 augmentation at take-off: the rate channel (matched body-rate disturbance) is
     applied when it has a bandwidth."""
     p = nominal_params()
-    return _l1_init(
+    return l1.init(
         l1.L1Params(
             mass=p.mass,
             gravity=p.gravity,
@@ -218,6 +201,6 @@ def per_output_noise(learner: BeamLearner) -> BeamLearner:
     if learner.restart is not None:  # it restarts to the same layout
         r = learner.restart
         learner = learner._replace(
-            restart=r._replace(prior=_restart_prior(beam, r.scale), base_sigma2=vec.sigma2)
+            restart=r._replace(prior=restart_prior(beam, r.scale), base_sigma2=vec.sigma2)
         )
     return learner._replace(config=vec, beam=beam)

@@ -125,9 +125,8 @@ def load_model(
     # A float64 file read with x64 disabled is loaded as float32 (the only loss-y case).
     dtype = jax.dtypes.canonicalize_dtype(jnp.dtype(header["dtype"]))
     # Shapes and dtypes only: initialising the weights that the file replaces costs about
-    # half a second of eager operations in every process that loads a model (the key is
-    # made inside too: made eagerly, it would be compiled in every such process).
-    skeleton = eqx.filter_eval_shape(lambda: VLD(jax.random.PRNGKey(0), config, dtype=dtype))
+    # half a second of eager operations in every process that loads a model.
+    skeleton = eqx.filter_eval_shape(VLD, jax.random.PRNGKey(0), config, dtype=dtype)
     stream = io.BytesIO(payload)
     try:
         model = eqx.tree_deserialise_leaves(stream, skeleton, filter_spec=_host_cast_leaf)
@@ -142,11 +141,10 @@ def _host_cast_leaf(f: Any, x: Any) -> Any:
     """equinox's default leaf reader, except that an array is cast to JAX's precision
     (float64 to float32 with x64 off) on the host: ``jnp.load`` casts on the device, which
     lowers and compiles one conversion per leaf shape in every process that loads a model.
-    The same rounding (IEEE round to nearest) either way. The host array is put on the
-    device as it is (``jnp.asarray`` would compile a copy per leaf shape)."""
+    The same rounding (IEEE round to nearest) either way."""
     if isinstance(x, (jax.Array, jax.ShapeDtypeStruct)):
         a = np.load(f)
-        return jax.device_put(a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False))
+        return jnp.asarray(a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False))
     return eqx.default_deserialise_filter_spec(f, x)
 
 

@@ -121,12 +121,8 @@ class Estimator(runtime.Service):
             a.jerk_psd,
             1e3 * a.mocap_noise,
         )
-        # The filter at rest in one compiled call (at start and at each reset): eager, each
-        # of its zeros and identities would be lowered and compiled on its own.
-        self._init_filter = jax.jit(est.init, static_argnums=0)
-        self.filter = self._init_filter(self.dtype)
+        self.filter = est.init(self.dtype)
         self._step = jax.jit(_packed_step, static_argnames="config")
-        self._empty_frames = jax.jit(est.empty_frames, static_argnames=("max_frames", "dtype"))
         self._pending: list[Mocap] = []
         # Frames captured after the previous control instant, screened already: fused at
         # the next one (this thread only).
@@ -166,7 +162,7 @@ class Estimator(runtime.Service):
         self.pub = bus.publisher("state")
 
     def warmup(self) -> None:
-        frames = self._empty_frames(dtype=self.dtype)
+        frames = self.est.empty_frames(dtype=self.dtype)
         for _ in range(3):
             self._step(self.filter, frames, 0.0, np.zeros(3), self.config)
 
@@ -371,7 +367,7 @@ class Estimator(runtime.Service):
     def _reset_filter(self, stamp: float, why: str) -> None:
         """Start the filter again from the next frame (nothing is published meanwhile)."""
         self.stats["filter_resets"] += 1
-        self.filter = self._init_filter(self.dtype)
+        self.filter = self.est.init(self.dtype)
         self._requeued = []
         self.event(
             "fault",
