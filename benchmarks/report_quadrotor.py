@@ -107,6 +107,16 @@ def stored_run(path: Path) -> tuple[dict[str, Any], str]:
     return r, when
 
 
+def provenance(path: Path, r: dict[str, Any], when: str, command: str) -> str:
+    """The line saying which stored run a section renders: file, time, command, machine."""
+    return (
+        f"From `{path.as_posix()}`, written {when} by `{command}`"
+        + (f" on {r['machine']}" if r.get("machine") else "")
+        + (f", in {r['wall_time_s'] / 60:.0f} min" if r.get("wall_time_s") else "")
+        + " (not re-run by `make benchmarks`)."
+    )
+
+
 def quadrotor_section(path: Path) -> list[str]:
     """Tables of the stored quadrotor evaluation (its own command: ~25 min on 2 cores)."""
     head = [
@@ -128,10 +138,7 @@ def quadrotor_section(path: Path) -> list[str]:
     s = r.get("settings", {})
     lines = [
         *head,
-        f"From `{path.as_posix()}`, written {when} by `{QUADROTOR_COMMAND}`"
-        + (f" on {r['machine']}" if r.get("machine") else "")
-        + (f", in {r['wall_time_s'] / 60:.0f} min" if r.get("wall_time_s") else "")
-        + " (not re-run by `make benchmarks`).",
+        provenance(path, r, when, QUADROTOR_COMMAND),
         "",
         f"Closed loop, figure-eight with a swinging payload released before the second lap; "
         f"mean over {s.get('trials', '?')} seeded trials per cell; best in bold.",

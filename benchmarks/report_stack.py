@@ -17,7 +17,7 @@ from typing import Any
 from arcade_control.knobs import FLAGSHIP, FLAGSHIP_ABLATIONS, METHODS, PAPER_SETTINGS
 from benchmarks.common import RESULTS
 from benchmarks.quadrotor_protocol import paired_differences
-from benchmarks.report_quadrotor import cell_table, stored_run
+from benchmarks.report_quadrotor import cell_table, provenance, stored_run
 
 STACK_DIR = RESULTS / "quadrotor_stack"
 STACK_COMMAND = f"arcade eval quadrotor --condition stack --out {STACK_DIR.as_posix()}"
@@ -126,10 +126,7 @@ def stack_section(path: Path) -> list[str]:
     n_cells = len({(c["payload_g"], c["speed_mps"]) for c in r["cells"]})
     lines = [
         *head,
-        f"From `{path.as_posix()}`, written {when} by `{_command(s)}`"
-        + (f" on {r['machine']}" if r.get("machine") else "")
-        + (f", in {r['wall_time_s'] / 60:.0f} min" if r.get("wall_time_s") else "")
-        + " (not re-run by `make benchmarks`).",
+        provenance(path, r, when, _command(s)),
         "",
         "Every method flies on the estimator's state (motion-capture noise and latency) "
         "behind the simulated PX4 link's 20 ms setpoint delay, compensated, as the service "
