@@ -326,7 +326,10 @@ def fly_quadrotor(
     params = quadrotor_params(veh)
     ss = np.random.SeedSequence(seed)
     path_ss, exc_ss, sim_ss, noise_ss = ss.spawn(4)
-    sim = QuadrotorSim(veh, effects=merged, seed=int(sim_ss.generate_state(1)[0]))
+    # The log's noise is added below (add_quadrotor_noise): no motion-capture frames.
+    sim = QuadrotorSim(
+        veh, effects=merged, seed=int(sim_ss.generate_state(1)[0]), motion_capture=False
+    )
     gains = pilot_gains(veh, merged)
     s_h, s_v = gains.pop("slowdown")
     # A slow pilot keeps farther from the floor (a sluggish attitude loop banks for longer),

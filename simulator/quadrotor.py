@@ -76,6 +76,9 @@ class QuadrotorSim:
         effects: effects file, mapping or :class:`~simulator.effects.Effects`; an effect
             named here replaces the vehicle file's effect of the same name.
         mocap, gyro: sensor settings.
+        motion_capture: run the motion-capture emulator; ``False``: no frames are captured
+            (:meth:`read_mocap` returns none), for flights that only read the true state.
+            The flight is the same either way (its noise has its own random stream).
         seed: seeds all sensor noise.
         timestep: physics step [s].
         command_delay_s: transport delay of every setpoint [s], rounded to whole physics
@@ -92,6 +95,7 @@ class QuadrotorSim:
         effects: str | Path | dict[str, Any] | Effects | None = None,
         mocap: MocapConfig | None = None,
         gyro: GyroConfig | None = None,
+        motion_capture: bool = True,
         seed: int = 0,
         timestep: float = 0.001,
         command_delay_s: float = 0.0,
@@ -186,6 +190,7 @@ class QuadrotorSim:
             np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2)
         )
         self.mocap = MocapEmulator(mocap or MocapConfig(), mocap_rng)
+        self._motion_capture = bool(motion_capture)
         self.gyro = GyroEmulator(gyro or GyroConfig(), gyro_rng)
         self.reset()
 
@@ -234,7 +239,8 @@ class QuadrotorSim:
         self._lag.reset(np.zeros(3))
         self.mocap.reset(0.0)
         self.gyro.reset(0.0)
-        self.mocap.observe(0.0, d.qpos[0:3], d.qpos[3:7], self._tracked_payload)
+        if self._motion_capture:
+            self.mocap.observe(0.0, d.qpos[0:3], d.qpos[3:7], self._tracked_payload)
         self.gyro.observe(0.0, d.qvel[3:6])
         return self.state()
 
@@ -347,7 +353,8 @@ class QuadrotorSim:
         while self._in_flight and self._in_flight[0][0] <= self._k:  # due from now on
             self._setpoint = self._in_flight.popleft()[1]
         t = self._k * self.dt
-        self.mocap.observe(t, d.qpos[0:3], d.qpos[3:7], self._tracked_payload)
+        if self._motion_capture:
+            self.mocap.observe(t, d.qpos[0:3], d.qpos[3:7], self._tracked_payload)
         self.gyro.observe(t, d.qvel[3:6])
 
     # ------------------------------------------------------------------ outputs
