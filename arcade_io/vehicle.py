@@ -102,15 +102,19 @@ def max_payload_g(vehicle: dict[str, Any]) -> float:
 
 def quadrotor_params(vehicle: dict[str, Any]):
     """Nominal-model parameters from a vehicle file (the electromagnet counts as airframe)."""
+    import jax
     import jax.numpy as jnp
+    import numpy as np
 
     from arcade_core.dynamics.params import QuadrotorParams
 
     body = vehicle["body"]
     magnet = vehicle.get("payload", {}).get("electromagnet_mass_kg", DEFAULT_ELECTROMAGNET_MASS_KG)
+    # Cast on the host (the same rounding), not by a conversion compiled in every process.
+    inertia = np.asarray(body["inertia_kgm2"], dtype=jnp.result_type(float))
     return QuadrotorParams(
         mass=float(body["mass_kg"]) + float(magnet),
-        inertia=jnp.asarray(body["inertia_kgm2"], dtype=float),
+        inertia=jax.device_put(inertia),
         gravity=float(vehicle.get("nominal", {}).get("gravity_mps2", 9.81)),
         rate_tau=float(vehicle["rate_loop"]["time_constant_s"]),
     )

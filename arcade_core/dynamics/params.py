@@ -8,8 +8,17 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
+
+#: JAX's default float (float32, or float64 with ``jax_enable_x64``) when this is imported.
+#: The constants below are made on the host in it and put on the device as they are: an
+#: operation made at import would be compiled in every process that imports the models,
+#: before it has set up the compilation cache. The values are those of the JAX operations
+#: (IEEE square root and rounding).
+_FLOAT = jnp.result_type(float)
 
 
 class CartpoleParams(NamedTuple):
@@ -31,7 +40,13 @@ class CartpoleParams(NamedTuple):
 
 #: The paper's "true" cartpole (Appendix D): friction and a N(-0.5, 0.5) force disturbance.
 CARTPOLE_TRUE = CartpoleParams(
-    M=1.0, m=0.1, L=1.5, mu_c=0.25, mu_p=0.05, dist_mean=-0.5, dist_std=float(jnp.sqrt(0.5))
+    M=1.0,
+    m=0.1,
+    L=1.5,
+    mu_c=0.25,
+    mu_p=0.05,
+    dist_mean=-0.5,
+    dist_std=float(np.sqrt(_FLOAT.type(0.5))),
 )
 #: The paper's nominal cartpole (Appendix D): other masses and length, no friction, no disturbance.
 CARTPOLE_NOMINAL = CartpoleParams(M=1.7, m=0.25, L=1.7)
@@ -47,6 +62,6 @@ class QuadrotorParams(NamedTuple):
     """
 
     mass: float | Array = 0.57  # airframe 0.55 kg + 20 g electromagnet [kg]
-    inertia: Array = jnp.array([1.1e-3, 1.1e-3, 1.9e-3])  # principal moments, FLU [kg m^2]
+    inertia: Array = jax.device_put(np.array([1.1e-3, 1.1e-3, 1.9e-3], _FLOAT))  # FLU [kg m^2]
     gravity: float | Array = 9.81  # [m/s^2]
     rate_tau: float | Array = 0.05  # closed-loop body-rate time constant [s]
