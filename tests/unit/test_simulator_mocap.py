@@ -201,3 +201,16 @@ def test_the_simulators_refuse_to_name_the_vehicle_as_the_payload(capsys):
         parser.parse_args(["--mocap-body", PAYLOAD_BODY])
     err = capsys.readouterr().err.splitlines()[-1]
     assert err.endswith("argument --mocap-body: 'payload' is the simulated payload's rigid body")
+
+
+def test_without_motion_capture_the_flight_is_the_same_and_no_frame_is_captured():
+    # Log flights read the true state only: without the emulator, the same states (the
+    # mocap noise has its own random stream), and no frames.
+    sims = [QuadrotorSim(seed=3, motion_capture=on) for on in (True, False)]
+    states = []
+    for sim in sims:
+        sim.set_setpoint(np.array([6.0, 0.3, -0.2, 0.1]))
+        states.append(np.stack([sim.step(0.01) for _ in range(50)]))
+    np.testing.assert_array_equal(states[0], states[1])
+    assert len(sims[0].read_mocap()) > 0 and sims[0].mocap.n_captured > 0
+    assert sims[1].read_mocap() == [] and sims[1].mocap.n_captured == 0
