@@ -47,7 +47,10 @@ when that one is missing (the controller answers only the newest state, or the b
 it), the newest setpoint stamped at or before that state (what the vehicle's zero-order hold
 applied) if it is at most about one period older (``input_fallback``), else the transition
 is skipped (``input_missing``; ``before_first_setpoint`` for the states before the first
-setpoint this adapter received: the controller was not answering yet). Quaternions: ``q``
+setpoint this adapter received: the controller was not answering yet). In realtime the adapter
+never falls behind the vehicle: when an update took longer than a period (a loaded host),
+the states that arrived meanwhile are dropped (``behind``) and the newest transition is
+learned, so that the model the controller gets answers a recent state. Quaternions: ``q``
 and ``-q`` are one attitude but far apart as the vectors the features and the residual use;
 each transition is taken with the first state's scalar part non-negative (as in training)
 and the second state in the same hemisphere. Link delay (``--link-delay D``, the
@@ -79,6 +82,7 @@ time and counted (``checkpoint_errors``); adaptation goes on.
 from __future__ import annotations
 
 import hashlib
+import queue
 import threading
 from pathlib import Path
 from typing import Any
@@ -281,14 +285,18 @@ class Adapter(runtime.Service):
             input_missing=0,
             before_first_setpoint=0,
             nonfinite_resets=0,
+            behind=0,
         )
+        # Realtime: states wait here for the adapter's own loop (:meth:`main`), which takes
+        # the newest; lockstep: each state is handled in its bus callback, in order.
+        self._states: queue.SimpleQueue[State] = queue.SimpleQueue()
         # Whether the vehicle is flying the controller's setpoints (see the module docstring).
         self._applied = bool(a.lockstep)
         self._first_setpoint: float | None = None  # stamp of the first setpoint received
         self._mission_t0: float | None = None  # t0 of the newest mission start
         # Learned from only what the controller answered and the state source measured.
         bus.subscribe("setpoint", self.on_setpoint, source="controller")
-        bus.subscribe("state", self.on_state, source=self.args.state_source)
+        bus.subscribe("state", self.receive_state, source=self.args.state_source)
         bus.subscribe("event", self.on_event, check_order=False)
         self.pub_model = bus.publisher("model")
         self.pub_res = bus.publisher("residual")
@@ -434,6 +442,42 @@ class Adapter(runtime.Service):
                 changepoint_step=dated,
                 **dated_at,
             )
+
+    def receive_state(self, s: State) -> None:
+        """The bus's state callback: lockstep, handled at once and in order; realtime,
+        queued for :meth:`main`."""
+        if self.args.lockstep:
+            self.on_state(s)
+        else:
+            self._states.put(s)
+
+    def main(self) -> None:
+        """Realtime: the newest state, with the one before it as the start of its transition.
+
+        An update that takes longer than a period (a loaded host) must not make the adapter
+        fall behind the vehicle: a model answers a state it came late for, and one older than
+        the controller's ``--max-model-age`` is not flown at all. The states that arrived
+        meanwhile are not learned from (counted: ``behind``), except the newest transition."""
+        if self.args.lockstep:
+            return super().main()
+        while not self.stop.is_set():
+            try:
+                pending = [self._states.get(timeout=0.2)]
+            except queue.Empty:
+                continue
+            while True:
+                try:
+                    pending.append(self._states.get_nowait())
+                except queue.Empty:
+                    break
+            if len(pending) > 1:
+                self.stats["behind"] += len(pending) - 1
+                self._prev = pending[-2]  # the newest transition is learned
+                self._predicted = None  # not predicted over the link delay: skipped
+            try:
+                self.on_state(pending[-1])
+            except Exception as err:  # as a bus callback's failure: counted, logged, go on
+                self.bus.rejects.failure(err, topic="state")
 
     def on_state(self, s: State) -> None:
         if not self.args.lockstep and self._controller_alive():
