@@ -182,12 +182,25 @@ def test_controller_handlers(tmp_path):
     session.outputs("event")  # valid events only
 
 
+def adapter_loop_body(svc) -> None:
+    """The realtime adapter's loop without the blocking wait: every queued state is
+    handled, in order (the loop would keep only the newest; here each one is fuzzed)."""
+    while not svc._states.empty():
+        svc.on_state(svc._states.get_nowait())
+
+
 def test_adapter_handlers(tmp_path):
     from services import adapter as mod
 
     svc, session = build(mod, mod.Adapter, tmp_path)
     assert svc.learner is not None
-    fuzz = Fuzzer(svc, session, {"state": 2, "setpoint": 1, "command": 1}, valid_every={"state": 8})
+    fuzz = Fuzzer(
+        svc,
+        session,
+        {"state": 2, "setpoint": 1, "command": 1},
+        valid_every={"state": 8},
+        after_batch=lambda: adapter_loop_body(svc),
+    )
     fuzz.run()
     models = session.outputs("model")
     assert 0 < len(models) <= fuzz.delivered["state"]
@@ -324,6 +337,7 @@ def test_adapter_extreme_but_valid_states(tmp_path):
         session.deliver(
             "state", wm.encode(wm.State(x=x, cov_diag=cov, stamp=stamp, seq=seq, src="estimator/1"))
         )
+        adapter_loop_body(svc)
         session.deliver(
             "setpoint",
             wm.encode(
