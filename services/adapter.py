@@ -452,32 +452,40 @@ class Adapter(runtime.Service):
             self._states.put(s)
 
     def main(self) -> None:
-        """Realtime: the newest state, with the one before it as the start of its transition.
+        """Realtime: one :meth:`handle_newest` after another until the service stops."""
+        if self.args.lockstep:
+            return super().main()
+        while not self.stop.is_set():
+            self.handle_newest(timeout=0.2)
+
+    def handle_newest(self, timeout: float = 0.0) -> bool:
+        """One turn of the realtime loop: the newest queued state, with the one before it
+        as the start of its transition (False: none came within ``timeout`` seconds).
 
         An update that takes longer than a period (a loaded host) must not make the adapter
         fall behind the vehicle: a model answers a state it came late for, and one older than
         the controller's ``--max-model-age`` is not flown at all. The states that arrived
         meanwhile are not learned from (counted: ``behind``), except the newest transition."""
-        if self.args.lockstep:
-            return super().main()
-        while not self.stop.is_set():
+        try:
+            pending = [
+                self._states.get(timeout=timeout) if timeout > 0 else self._states.get_nowait()
+            ]
+        except queue.Empty:
+            return False
+        while True:
             try:
-                pending = [self._states.get(timeout=0.2)]
+                pending.append(self._states.get_nowait())
             except queue.Empty:
-                continue
-            while True:
-                try:
-                    pending.append(self._states.get_nowait())
-                except queue.Empty:
-                    break
-            if len(pending) > 1:
-                self.stats["behind"] += len(pending) - 1
-                self._prev = pending[-2]  # the newest transition is learned
-                self._predicted = None  # not predicted over the link delay: skipped
-            try:
-                self.on_state(pending[-1])
-            except Exception as err:  # as a bus callback's failure: counted, logged, go on
-                self.bus.rejects.failure(err, topic="state")
+                break
+        if len(pending) > 1:
+            self.stats["behind"] += len(pending) - 1
+            self._prev = pending[-2]  # the newest transition is learned
+            self._predicted = None  # not predicted over the link delay: skipped
+        try:
+            self.on_state(pending[-1])
+        except Exception as err:  # as a bus callback's failure: counted, logged, go on
+            self.bus.rejects.failure(err, topic="state")
+        return True
 
     def on_state(self, s: State) -> None:
         if not self.args.lockstep and self._controller_alive():

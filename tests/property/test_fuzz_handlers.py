@@ -183,8 +183,9 @@ def test_controller_handlers(tmp_path):
 
 
 def adapter_loop_body(svc) -> None:
-    """The realtime adapter's loop without the blocking wait: every queued state is
-    handled, in order (the loop would keep only the newest; here each one is fuzzed)."""
+    """The realtime adapter's queue, every state handled in order (its loop,
+    :meth:`~services.adapter.Adapter.handle_newest`, would keep only the newest; here each
+    one is fuzzed)."""
     while not svc._states.empty():
         svc.on_state(svc._states.get_nowait())
 
