@@ -289,7 +289,7 @@ class Adapter(runtime.Service):
         )
         # Realtime: states wait here for the adapter's own loop (:meth:`main`), which takes
         # the newest; lockstep: each state is handled in its bus callback, in order.
-        self._states: queue.SimpleQueue[State] = queue.SimpleQueue()
+        self._states: queue.Queue[State] = queue.Queue()
         # Whether the vehicle is flying the controller's setpoints (see the module docstring).
         self._applied = bool(a.lockstep)
         self._first_setpoint: float | None = None  # stamp of the first setpoint received
