@@ -89,9 +89,9 @@ from typing import Any
 
 import numpy as np
 
-from arcade_io import atomicfile
 from arcade_io.traced import load_or_trace
 from services import options, runtime
+from services.checkpoint import load_checkpoint, save_checkpoint
 from services.messages import MAX_VARIANCE, Event, Model, Residual, Setpoint, State
 
 #: The shipped quadrotor VLD (``arcade train --system quadrotor`` writes it).
@@ -102,38 +102,6 @@ FALLBACK_PERIODS = 1.5
 #: Steps whose stamps are kept to date a changepoint (the MAP history dates one at most a
 #: few steps back).
 STEP_STAMPS = 256
-
-
-def save_checkpoint(path: Path, beam: Any, meta: dict[str, Any]) -> None:
-    """Atomically write a beam (``BeamState`` fields) and ``meta`` strings to ``path``."""
-    arrays = {f: np.asarray(getattr(beam, f)) for f in beam._fields}
-    arrays.update({f"meta_{k}": np.asarray(str(v)) for k, v in meta.items()})
-    # Against a crash of the process, not of the machine: no fsync in the adapter's loop.
-    with atomicfile.atomic_open(path, "wb", fsync=False) as f:
-        np.savez(f, **arrays)
-
-
-def load_checkpoint(path: Path, template: Any, meta: dict[str, Any]) -> Any | None:
-    """The beam stored at ``path`` if it matches ``template``'s shapes and ``meta``."""
-    path = Path(path)
-    if not path.is_file():
-        return None
-    with np.load(path) as data:
-        for k, v in meta.items():
-            if f"meta_{k}" not in data or str(data[f"meta_{k}"]) != str(v):
-                return None
-        fields = {}
-        for f in template._fields:
-            ref = np.asarray(getattr(template, f))
-            if f not in data:  # written by a version whose beam had other fields
-                return None
-            a = data[f]
-            if a.shape != ref.shape:
-                return None
-            fields[f] = a.astype(ref.dtype)
-    import jax.numpy as jnp
-
-    return type(template)(**{k: jnp.asarray(v) for k, v in fields.items()})
 
 
 def _without_network(out: tuple) -> tuple:
@@ -646,44 +614,7 @@ class Adapter(runtime.Service):
 
 
 def _extra(p) -> None:
-    options.add_weights_argument(p)
-    options.add_method_argument(p)
-    options.add_link_delay_argument(p)
-    options.add_state_source_argument(p)
-    p.add_argument(
-        "--checkpoint",
-        type=Path,
-        default=None,
-        help="posterior checkpoint file (restored at start if it matches)",
-    )
-    p.add_argument(
-        "--checkpoint-every",
-        type=int,
-        default=20,
-        help="steps between checkpoints (0: only at shutdown)",
-    )
-    p.add_argument(
-        "--step-timeout",
-        type=float,
-        default=5.0,
-        help="lockstep: longest wait for the setpoint of the previous state [s]",
-    )
-    p.add_argument(
-        "--knob",
-        type=options.adapter_knob,
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="a knob of the learner (e.g. arcade_lambda=0.95, of the --method flown) or "
-        "of the changepoint detector (detector_threshold=0.9) instead of the stack's "
-        "(repeatable; `arcade replay --set` tries them on a recorded flight)",
-    )
-    p.add_argument(
-        "--max-gap-periods",
-        type=float,
-        default=2.5,
-        help="states further apart (in control periods) are not learned from",
-    )
+    options.add_adapter_arguments(p)
 
 
 def main(argv: list[str] | None = None) -> int:

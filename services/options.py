@@ -351,3 +351,45 @@ def trajectory(value: str | None, sha256: str | None, center: Any, speed: float)
         heading = None if yaw is None else PiecewisePolynomial(*yaw)
         return traj.sampled(name, PiecewisePolynomial(breaks, coeffs), heading)
     return traj.builtin(value, center, speed)
+
+
+def add_adapter_arguments(p: argparse.ArgumentParser) -> None:
+    """The adapter's options beyond :func:`common_parser`'s."""
+    add_weights_argument(p)
+    add_method_argument(p)
+    add_link_delay_argument(p)
+    add_state_source_argument(p)
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        help="posterior checkpoint file (restored at start if it matches)",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=20,
+        help="steps between checkpoints (0: only at shutdown)",
+    )
+    p.add_argument(
+        "--step-timeout",
+        type=float,
+        default=5.0,
+        help="lockstep: longest wait for the setpoint of the previous state [s]",
+    )
+    p.add_argument(
+        "--knob",
+        type=adapter_knob,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a knob of the learner (e.g. arcade_lambda=0.95, of the --method flown) or "
+        "of the changepoint detector (detector_threshold=0.9) instead of the stack's "
+        "(repeatable; `arcade replay --set` tries them on a recorded flight)",
+    )
+    p.add_argument(
+        "--max-gap-periods",
+        type=float,
+        default=2.5,
+        help="states further apart (in control periods) are not learned from",
+    )

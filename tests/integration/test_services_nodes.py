@@ -19,8 +19,9 @@ import pytest
 import zenoh
 
 from arcade_control.stack import adapter_learner
-from services.adapter import DEFAULT_WEIGHTS, load_checkpoint, save_checkpoint
+from services.adapter import DEFAULT_WEIGHTS
 from services.bus import Bus, peer_config
+from services.checkpoint import load_checkpoint, save_checkpoint
 from services.messages import Setpoint, State
 
 REPO = Path(__file__).resolve().parents[2]
