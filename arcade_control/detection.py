@@ -34,13 +34,14 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
     prior floor, watching the outputs the knob names with the learner's noise. ``score``:
     the hypothesis score (``"algorithm1"`` only to compare, see ``docs/changepoints.md``).
     A knob ``nu`` gives the scores Student-t tails (``AdaptationConfig.nu``, static; default
-    ``inf``, the Gaussian of Eq. 8)."""
+    ``inf``, the Gaussian of Eq. 8). ``noise`` scales the noise of the watched outputs
+    (``DetectionConfig.noise_scale``), ``block`` is ``DetectionConfig.block``."""
     k = {**DETECTION_DEFAULTS, **(knobs or {})}
     if k["outputs"] not in DETECTION_OUTPUTS:
         raise ValueError(f"unknown detector outputs {k['outputs']!r}")
     dtype = dtype or jnp.result_type(float)
     scale = np.full(13, np.inf)
-    scale[list(DETECTION_OUTPUTS[k["outputs"]])] = 1.0
+    scale[list(DETECTION_OUTPUTS[k["outputs"]])] = k["noise"]
     beam = adaptation.quadrotor_config()._replace(pi=k["pi"], beta=k["beta"], score="joint")
     f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
     return adaptation.DetectionConfig(
@@ -59,4 +60,5 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
         window=jnp.asarray(k["window"], jnp.int32),
         threshold=f(k["threshold"]),
         refractory_steps=jnp.asarray(k["refractory_steps"], jnp.int32),
+        block=jnp.asarray(k["block"], jnp.int32),
     )

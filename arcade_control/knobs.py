@@ -167,6 +167,8 @@ DETECTION_DEFAULTS = {
     "window": 5,
     "threshold": 0.95,
     "refractory_steps": 20,
+    "block": 1,
+    "noise": 1.0,
 }
 
 

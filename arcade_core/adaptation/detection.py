@@ -23,8 +23,13 @@ posterior (the data term counts twice, see :func:`arcade_core.adaptation.update`
 from a likelihood ratio of ``sqrt((1 - pi) / pi)`` on, and in the tests' stationary
 sequences the same rule raised false alarms on that beam and none on the ``"joint"`` one.
 
-All functions are pure and jit/vmap friendly; ``m``, ``threshold`` and
-``refractory_steps`` may be traced.
+The detector of :func:`detection_step` may learn blocks of ``b`` transitions instead of
+single ones (``DetectionConfig.block``): residuals computed from estimated states carry the
+estimate's error as a difference ``e_{k+1} - e_k``, which a block's sum cancels but for its
+two ends, while a change adds up over the block.
+
+All functions are pure and jit/vmap friendly; ``m``, ``threshold``, ``refractory_steps``
+and ``block`` may be traced.
 """
 
 from __future__ import annotations
@@ -165,9 +170,19 @@ class DetectionConfig(NamedTuple):
             multiplied by ``max(1, r_j)`` where ``r_j`` is an exponential average (rate
             ``a``) of the squared innovations of output ``j`` over their predicted variance;
             ``0`` turns it off.
-        window: ``m`` of :func:`changepoint_probability_within`.
+        window: ``m`` of :func:`changepoint_probability_within`, in updates of the
+            detector's beam (blocks, see ``block``).
         threshold: declaration threshold on that probability.
-        refractory_steps: of :func:`declare`.
+        refractory_steps: of :func:`declare`, in transitions learned.
+        block: ``b >= 1`` (default 1: every transition): the beam learns the sum of ``b``
+            consecutive transitions learned, ``(sum z_k, sum delta_k)``, once every ``b``
+            of them, and decides only then. The decoder is linear in the features
+            (Eq. 4), so a block obeys the same ``theta``; what it changes is the noise.
+            A residual computed from estimated states carries the estimate's error twice,
+            ``e_{k+1} - e_k`` (a lag-one autocorrelation near ``-1/2``), so in a block's
+            sum that error telescopes to its two ends while a change of ``theta`` adds up
+            ``b`` times. The block's noise is the sum of its transitions' noise times
+            ``noise_scale``, which a calibration for that ``b`` sets.
     """
 
     beam: AdaptationConfig
@@ -176,15 +191,32 @@ class DetectionConfig(NamedTuple):
     window: ArrayLike
     threshold: ArrayLike
     refractory_steps: ArrayLike
+    block: ArrayLike = 1
 
 
 class DetectionState(NamedTuple):
-    """State of :func:`detection_step`: the detector's beam, its declarations and the
-    tracked noise ratio ``r`` (``(d,)``, 1 at first)."""
+    """State of :func:`detection_step`: the detector's beam, its declarations, the tracked
+    noise ratio ``r`` (``(d,)``, 1 at first), and the block being summed.
+
+    Attributes:
+        beam, detector, noise_ratio: as above.
+        block_z: ``(l,)`` sum of the features of the transitions of the current block.
+        block_delta: ``(d,)`` sum of their residuals.
+        block_noise: ``(d,)`` sum of their calibrated noise variances.
+        filled: ``()`` int32, transitions in the current block.
+        steps: ``()`` int32, transitions learned so far (what declarations are dated in).
+        probability: ``()`` the probability of the latest block (held between blocks).
+    """
 
     beam: BeamState
     detector: Detector
     noise_ratio: Array
+    block_z: Array
+    block_delta: Array
+    block_noise: Array
+    filled: Array
+    steps: Array
+    probability: Array
 
 
 class Detection(NamedTuple):
@@ -201,9 +233,20 @@ def init_detection(theta0: ArrayLike, config: DetectionConfig) -> DetectionState
     """A detector at the offline prior ``theta0`` (``(d, l)``) that has declared nothing;
     ``config.beam.K`` must be a Python int."""
     theta0 = jnp.asarray(theta0)
-    d = theta0.shape[0]
+    d, l = theta0.shape
     beam = init(theta0, config.beam._replace(sigma2=jnp.ones(d, theta0.dtype)))
-    return DetectionState(beam, init_detector(), jnp.ones(d, theta0.dtype))
+    zero = jnp.zeros((), jnp.int32)
+    return DetectionState(
+        beam,
+        init_detector(),
+        jnp.ones(d, theta0.dtype),
+        block_z=jnp.zeros(l, theta0.dtype),
+        block_delta=jnp.zeros(d, theta0.dtype),
+        block_noise=jnp.zeros(d, theta0.dtype),
+        filled=zero,
+        steps=zero,
+        probability=jnp.zeros((), theta0.dtype),
+    )
 
 
 def detection_step(
@@ -215,31 +258,69 @@ def detection_step(
     config: DetectionConfig,
 ) -> tuple[DetectionState, Detection]:
     """One observation ``(z_k, delta_k)`` with the learner's noise ``sigma2`` (``(d,)``):
-    the detector's beam learns it (Algorithm 1 with ``config.beam``; the Eq. 8 noise
-    ``sigma_j^2 noise_scale_j max(1, r_j)``), then :func:`declare` on
-    :func:`changepoint_probability_within`. ``learn = False`` leaves the state as it was
-    and declares nothing."""
+    added to the current block; when the block holds ``config.block`` transitions the
+    detector's beam learns their sum (Algorithm 1 with ``config.beam``; the Eq. 8 noise
+    ``sum_k sigma_{j,k}^2 noise_scale_j max(1, r_j)``), then :func:`declare` on
+    :func:`changepoint_probability_within`. A declaration is dated to the first transition
+    of the block the change is dated to, counted in transitions learned (with ``block =
+    1``, the beam's own step). ``learn = False`` (or a non-finite input) leaves the state as
+    it was and declares nothing."""
     beam = state.beam
     dtype = beam.means.dtype
     z = jnp.asarray(z, dtype)
     delta = jnp.asarray(delta, dtype)
-    base = jnp.asarray(sigma2, dtype) * jnp.asarray(config.noise_scale, dtype)
+    learn = jnp.asarray(learn, bool) & jnp.all(jnp.isfinite(delta)) & jnp.all(jnp.isfinite(z))
+    size = jnp.asarray(config.block, jnp.int32)
+    base_k = jnp.asarray(sigma2, dtype) * jnp.asarray(config.noise_scale, dtype)
+    block_z = state.block_z + jnp.where(learn, z, 0.0)
+    block_delta = state.block_delta + jnp.where(learn, delta, 0.0)
+    block_noise = state.block_noise + jnp.where(learn, base_k, 0.0)
+    filled = state.filled + learn.astype(jnp.int32)
+    steps = state.steps + learn.astype(jnp.int32)
+    full = learn & (filled >= size)
+
+    base = block_noise
     noise = base * jnp.maximum(1.0, state.noise_ratio)
     # Outputs left out (an infinite scale) carry no evidence: a huge finite variance.
     noise = jnp.where(jnp.isfinite(noise), noise, jnp.asarray(1e12, dtype))
     # One projection of the beam serves the prediction and the update (Algorithm 1 step).
-    new, pred, _ = step(beam, z, delta, config.beam._replace(sigma2=noise))
-    learn = jnp.asarray(learn, bool) & jnp.all(jnp.isfinite(delta)) & jnp.all(jnp.isfinite(z))
-    new = jax.tree.map(lambda a, b: jnp.where(learn, a, b), new, beam)
+    new, pred, _ = step(beam, block_z, block_delta, config.beam._replace(sigma2=noise))
+    new = jax.tree.map(lambda a, b: jnp.where(full, a, b), new, beam)
     # Innovation over its predicted variance at the calibrated (untracked) noise.
-    q = (delta - pred.mean) ** 2 / (
+    q = (block_delta - pred.mean) ** 2 / (
         pred.param + pred.between + jnp.where(jnp.isfinite(base), base, 1.0)
     )
     a = jnp.asarray(config.tracking, dtype)
-    ratio = jnp.where(learn, (1.0 - a) * state.noise_ratio + a * q, state.noise_ratio)
-    prob = jnp.where(learn, changepoint_probability_within(new, config.window), 0.0)
-    dated = dated_changepoint_within(new, config.window)
-    detector, declared, when = declare(
-        state.detector, prob, new.step, config.threshold, config.refractory_steps, dated
+    ratio = jnp.where(full, (1.0 - a) * state.noise_ratio + a * q, state.noise_ratio)
+    prob = jnp.where(
+        full,
+        changepoint_probability_within(new, config.window),
+        jnp.where(learn, state.probability, 0.0),
     )
-    return DetectionState(new, detector, ratio), Detection(prob, declared & learn, when)
+    # The beam's step b is the block of transitions (b - 1) * block + 1, ..., b * block.
+    dated_block = dated_changepoint_within(new, config.window)
+    dated = jnp.where(dated_block > 0, (dated_block - 1) * size + 1, dated_block)
+    detector, declared, when = declare(
+        state.detector,
+        jnp.where(full, prob, jnp.nan),
+        steps,
+        config.threshold,
+        config.refractory_steps,
+        dated.astype(jnp.int32),
+    )
+
+    def emptied(x):
+        return jnp.where(full, jnp.zeros_like(x), x)
+
+    new_state = DetectionState(
+        new,
+        detector,
+        ratio,
+        block_z=emptied(block_z),
+        block_delta=emptied(block_delta),
+        block_noise=emptied(block_noise),
+        filled=jnp.where(full, 0, filled).astype(jnp.int32),
+        steps=steps,
+        probability=prob,
+    )
+    return new_state, Detection(prob, declared & full, when)

@@ -14,7 +14,7 @@ from benchmarks import changepoints as cp
 D, L = 3, 2
 
 
-def config(scale=(1.0, 1.0, 1.0), tracking=0.0, threshold=0.9, window=5, refractory=5):
+def config(scale=(1.0, 1.0, 1.0), tracking=0.0, threshold=0.9, window=5, refractory=5, block=1):
     beam = adaptation.AdaptationConfig(
         K=8, pi=0.01, beta=0.05, tau2=1.0, sigma2=1.0, prior_floor=1.0, score="joint"
     )
@@ -25,6 +25,7 @@ def config(scale=(1.0, 1.0, 1.0), tracking=0.0, threshold=0.9, window=5, refract
         window=window,
         threshold=threshold,
         refractory_steps=refractory,
+        block=block,
     )
 
 
@@ -119,6 +120,60 @@ def test_tracking_follows_a_noisier_output():
     _, untracked = run(config(threshold=0.5), theta0, z, y, s2)
     _, tracked = run(config(tracking=0.05, threshold=0.5), theta0, z, y, s2)
     assert declared_steps(tracked).size <= declared_steps(untracked).size
+
+
+def test_a_block_is_the_beam_learning_the_sums_of_its_transitions():
+    """Brute force: with ``block = 3`` the beam is, after every third transition, the one
+    that learns each block's sums with the sums of the noise; the probability is held
+    between blocks, and a declaration is dated in transitions."""
+    shift = np.zeros((D, L))
+    shift[0, 0] = 1.5
+    theta0, z, y, s2 = sequence(60, shift, n=90)
+    b = 3
+    # The refractory period counts transitions: 5 blocks are 15 of them.
+    state, det = run(config(block=b, refractory=5 * b), theta0, z, y, s2)
+    sums = [a.reshape(-1, b, a.shape[1]).sum(1) for a in (z, y, s2)]
+    ref_state, ref = run(config(), theta0, *sums)
+    np.testing.assert_allclose(state.beam.means, ref_state.beam.means, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(state.beam.log_scores, ref_state.beam.log_scores, atol=1e-9)
+    prob = np.asarray(det.probability)
+    np.testing.assert_allclose(prob[b - 1 :: b], np.asarray(ref.probability), atol=1e-12)
+    assert np.all(prob[b::b] == prob[b - 1 : -1 : b])  # held until the next block
+    (blocks,) = np.nonzero(np.asarray(ref.declared))
+    np.testing.assert_array_equal(declared_steps(det), blocks * b + b - 1)
+    # Block k (from 0) holds transitions 3k + 1 .. 3k + 3, counted from 1.
+    assert np.array_equal(
+        np.asarray(det.dated)[declared_steps(det)], (np.asarray(ref.dated)[blocks] - 1) * b + 1
+    )
+    assert int(state.steps) == 90 and int(state.beam.step) == 30
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_blocks_see_a_shift_through_the_noise_of_a_state_estimate(seed):
+    """Residuals of estimated states, ``delta_k = theta z_k + e_{k+1} - e_k``, and a shift of
+    the intercept by 1.4 times a residual's noise at step 250: a detector learning blocks
+    of 4 (their noise calibrated: a block's sum carries ``e`` of its two ends only, so
+    ``noise_scale = 1 / 4`` of four transitions' noise) declares it once, within 3 blocks;
+    one learning every transition does not (its probability at the change stays below
+    the threshold that the block detector clears)."""
+    rng = np.random.default_rng(seed)
+    n, change, e_std = 400, 250, 0.1
+    theta = np.array([[1.0, 0.5], [-0.3, 0.2], [0.0, 1.0]])
+    z = np.stack([np.ones(n), rng.normal(size=n)], 1)
+    e = e_std * rng.normal(size=(n + 1, D))
+    y = z @ theta.T + e[1:] - e[:-1]
+    y[change:, 0] += 0.2
+    s2 = np.full((n, D), 2 * e_std**2)  # a one-step residual's variance
+
+    def detect(b):
+        cfg = config(block=b, threshold=0.7, refractory=40, window=8 // b)
+        _, det = run(cfg._replace(noise_scale=jnp.full(D, 1.0 / b)), theta, z, y, s2)
+        return declared_steps(det)
+
+    blocks = detect(4)
+    assert blocks.size == 1 and change <= blocks[0] < change + 12, blocks
+    single = detect(1)
+    assert not np.any((single >= change) & (single < change + 12)), single
 
 
 def test_numpy_declaration_matches_the_library():
