@@ -234,7 +234,7 @@ def tune(vld, flights, inputs, progress) -> tuple[dict[str, Any], list[dict[str,
                     | score(flights, declared)
                 )
         progress(f"tuning: the detectors watching the {outputs} outputs replayed")
-    best = max(rows, key=lambda r: (np.nan_to_num(r["f1"]), -r["false_alarms_per_flight"]))
+    best = max(rows, key=_rank)
     knobs = dict(best["knobs"])
     # Numeric knobs whose best value is the grid's first or last (reported, not hidden).
     knobs["on_grid_edge"] = [
@@ -245,6 +245,20 @@ def tune(vld, flights, inputs, progress) -> tuple[dict[str, Any], list[dict[str,
         and RANGE_BOTTOM.get(k) != knobs[k]
     ]
     return knobs, rows
+
+
+#: Rows of the tuning grid stored in the results (the best by F1; the grid has thousands).
+STORED_ROWS = 100
+
+
+def _rank(row: dict[str, Any]) -> tuple[float, float]:
+    """The order of :func:`tune`: F1, then fewer false alarms per flight."""
+    return (float(np.nan_to_num(row["f1"])), -row["false_alarms_per_flight"])
+
+
+def best_rows(rows: list[dict[str, Any]], n: int = STORED_ROWS) -> list[dict[str, Any]]:
+    """The ``n`` best tuning rows, best first (ties keep the grid's order)."""
+    return sorted(rows, key=_rank, reverse=True)[:n]
 
 
 def run_changepoints(
@@ -299,7 +313,8 @@ def run_changepoints(
         "knobs": knobs,
         "stored_knobs": dict(DETECTION_DEFAULTS),
         "tuned": tuning,
-        "tuning_grid": grid,
+        "tuning_grid": best_rows(grid),
+        "tuning_settings": len(grid),
         "crashed": sum(f["crashed"] for f in flights),
         "seeds": list(seeds),
         "tuning_seeds": list(TUNING_SEEDS) if tuning else [],
