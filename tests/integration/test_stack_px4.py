@@ -52,6 +52,8 @@ pytestmark = pytest.mark.realtime
 
 PLAN = {"speed": 1.0, "duration": 14.0, "release": 0.3, "seed": 0, "rate": 20.0, "method": "ours"}
 FLIGHTS = 3
+#: Each profile's median tracking RMSE over the figure-eight must stay below this [m].
+MAX_RMSE_M = 0.25
 COM_OF_LOSS_T = 1.0
 HEARTBEAT_S = 1.0
 #: The simulated PX4's MAVLink system id (simulator.px4.mavlink_vehicle, as PX4's).
@@ -145,7 +147,17 @@ def test_figure_eight_through_px4_tracks_like_the_sim_profile(tmp_path):
         f"{np.round(sim, 3).tolist()}, through PX4 {rmse_px4:.3f} m "
         f"{np.round(px4, 3).tolist()} ({100 * (rmse_px4 / rmse_sim - 1):+.1f} %)"
     )
-    assert rmse_px4 <= 1.15 * rmse_sim
+    # Both profiles track: an adapter starved on a loaded host made both fly the nominal
+    # model (0.37-0.66 m), which a comparison of the two alone did not catch.
+    assert rmse_sim <= MAX_RMSE_M and rmse_px4 <= MAX_RMSE_M
+    # Through PX4 no worse than in the sim profile: by at most 15 %, or by what tells apart
+    # two sets of FLIGHTS realtime flights of one profile (2.5 standard errors of the
+    # difference of their means). At about 0.1 m a single flight varies by +-5 cm (sim
+    # 0.068-0.128 m and PX4 0.046-0.166 m in one CI run), so 15 % of a median of three is
+    # within the noise and failed on equal profiles.
+    diff = float(np.mean(px4) - np.mean(sim))
+    se = float(np.sqrt((np.var(px4, ddof=1) + np.var(sim, ddof=1)) / FLIGHTS))
+    assert diff <= max(0.15 * float(np.mean(sim)), 2.5 * se), (diff, se)
 
 
 def _wait(events: EventWaiter, pred, timeout: float, after: int, what: str) -> dict:
