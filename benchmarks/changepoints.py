@@ -204,7 +204,7 @@ def _watching(config, watched):
 
 def tune(vld, flights, inputs, progress) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """The grid point with the best F1 on ``flights`` (their replay ``inputs``; ties: fewer
-    declarations)."""
+    false alarms per flight, :func:`_rank`)."""
     rows = []
     beam_keys = ("pi", "tracking", "beta", "window", "block", "noise")
     for outputs in GRID["outputs"]:

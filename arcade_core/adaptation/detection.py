@@ -182,7 +182,8 @@ class DetectionConfig(NamedTuple):
             ``e_{k+1} - e_k`` (a lag-one autocorrelation near ``-1/2``), so in a block's
             sum that error telescopes to its two ends while a change of ``theta`` adds up
             ``b`` times. The block's noise is the sum of its transitions' noise times
-            ``noise_scale``, which a calibration for that ``b`` sets.
+            ``noise_scale``, so a block needs its own scale (``arcade eval
+            changepoints`` tunes it with ``b``).
     """
 
     beam: AdaptationConfig
