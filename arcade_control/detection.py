@@ -35,7 +35,8 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
     the hypothesis score (``"algorithm1"`` only to compare, see ``docs/changepoints.md``).
     A knob ``nu`` gives the scores Student-t tails (``AdaptationConfig.nu``, static; default
     ``inf``, the Gaussian of Eq. 8). ``noise`` scales the noise of the watched outputs
-    (``DetectionConfig.noise_scale``), ``block`` is ``DetectionConfig.block``."""
+    (``DetectionConfig.noise_scale``); ``block`` and ``whiten`` are
+    ``DetectionConfig.block`` and ``DetectionConfig.whiten``."""
     k = {**DETECTION_DEFAULTS, **(knobs or {})}
     if k["outputs"] not in DETECTION_OUTPUTS:
         raise ValueError(f"unknown detector outputs {k['outputs']!r}")
@@ -61,4 +62,5 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
         threshold=f(k["threshold"]),
         refractory_steps=jnp.asarray(k["refractory_steps"], jnp.int32),
         block=jnp.asarray(k["block"], jnp.int32),
+        whiten=f(k["whiten"]),
     )

@@ -172,6 +172,7 @@ DETECTION_DEFAULTS = {
     "refractory_steps": 20,
     "block": 1,
     "noise": 1.0,
+    "whiten": 0.0,
 }
 
 

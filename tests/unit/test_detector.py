@@ -14,7 +14,9 @@ from benchmarks import changepoints as cp
 D, L = 3, 2
 
 
-def config(scale=(1.0, 1.0, 1.0), tracking=0.0, threshold=0.9, window=5, refractory=5, block=1):
+def config(
+    scale=(1.0, 1.0, 1.0), tracking=0.0, threshold=0.9, window=5, refractory=5, block=1, whiten=0.0
+):
     beam = adaptation.AdaptationConfig(
         K=8, pi=0.01, beta=0.05, tau2=1.0, sigma2=1.0, prior_floor=1.0, score="joint"
     )
@@ -26,6 +28,7 @@ def config(scale=(1.0, 1.0, 1.0), tracking=0.0, threshold=0.9, window=5, refract
         threshold=threshold,
         refractory_steps=refractory,
         block=block,
+        whiten=whiten,
     )
 
 
@@ -174,6 +177,58 @@ def test_blocks_see_a_shift_through_the_noise_of_a_state_estimate(seed):
     assert blocks.size == 1 and change <= blocks[0] < change + 12, blocks
     single = detect(1)
     assert not np.any((single >= change) & (single < change + 12)), single
+
+
+def test_whitening_is_the_plain_detector_on_the_filtered_sequence():
+    """Brute force: with ``whiten = c`` (and blocks of 2) the detector is the one with
+    ``whiten = 0`` fed ``x~_k = x_k + c x~_{k-1}`` of the features and the residuals over
+    the transitions learned, with the noise divided by ``1 + c^2``; a transition not
+    learned leaves the filter as it was."""
+    shift = np.zeros((D, L))
+    shift[1, 1] = 1.0
+    theta0, z, y, s2 = sequence(50, shift, n=90)
+    learn = np.ones(len(z), bool)
+    learn[[10, 11, 40]] = False
+    c = 0.8
+    state, det = run(config(whiten=c, block=2), theta0, z, y, s2, learn)
+    zf, yf = np.zeros_like(z), np.zeros_like(y)
+    pz, py = np.zeros(L), np.zeros(D)
+    for k in range(len(z)):
+        if learn[k]:
+            pz, py = z[k] + c * pz, y[k] + c * py
+        zf[k], yf[k] = pz, py
+    ref_state, ref = run(config(block=2), theta0, zf, yf, s2 / (1 + c * c), learn)
+    np.testing.assert_allclose(state.beam.means, ref_state.beam.means, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(state.beam.log_scores, ref_state.beam.log_scores, atol=1e-9)
+    np.testing.assert_allclose(det.probability, ref.probability, atol=1e-12)
+    np.testing.assert_array_equal(det.declared, ref.declared)
+    np.testing.assert_array_equal(det.dated, ref.dated)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_whitening_sees_a_shift_through_the_noise_of_a_state_estimate(seed):
+    """The residuals of the block test above (``e_{k+1} - e_k`` noise, an intercept shift
+    of 1.4 times a residual's noise at step 250): the detector that whitens them with
+    ``c = 0.8`` (the moving average's own ``c`` is 1) declares the shift once, within 12
+    transitions, each transition its own update; the plain one does not."""
+    rng = np.random.default_rng(seed)
+    n, change, e_std = 400, 250, 0.1
+    theta = np.array([[1.0, 0.5], [-0.3, 0.2], [0.0, 1.0]])
+    z = np.stack([np.ones(n), rng.normal(size=n)], 1)
+    e = e_std * rng.normal(size=(n + 1, D))
+    y = z @ theta.T + e[1:] - e[:-1]
+    y[change:, 0] += 0.2
+    s2 = np.full((n, D), 2 * e_std**2)  # a one-step residual's variance
+
+    def detect(c):
+        cfg = config(whiten=c, threshold=0.7, refractory=40, window=8)
+        _, det = run(cfg, theta, z, y, s2)
+        return declared_steps(det)
+
+    white = detect(0.8)
+    assert white.size == 1 and change <= white[0] < change + 12, white
+    plain = detect(0.0)
+    assert not np.any((plain >= change) & (plain < change + 12)), plain
 
 
 def test_numpy_declaration_matches_the_library():
