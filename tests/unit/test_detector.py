@@ -151,6 +151,23 @@ def test_a_block_is_the_beam_learning_the_sums_of_its_transitions():
     assert int(state.steps) == 90 and int(state.beam.step) == 30
 
 
+#: Step of the shift in :func:`estimated_states`.
+CHANGE = 250
+
+
+def estimated_states(seed, n=400, e_std=0.1):
+    """Residuals of estimated states, ``delta_k = theta z_k + e_{k+1} - e_k`` (features: an
+    intercept and a random one), whose intercept shifts by 1.4 times a residual's noise at
+    step :data:`CHANGE`: ``(theta, z, y, s2)`` with ``s2`` a one-step residual's variance."""
+    rng = np.random.default_rng(seed)
+    theta = np.array([[1.0, 0.5], [-0.3, 0.2], [0.0, 1.0]])
+    z = np.stack([np.ones(n), rng.normal(size=n)], 1)
+    e = e_std * rng.normal(size=(n + 1, D))
+    y = z @ theta.T + e[1:] - e[:-1]
+    y[CHANGE:, 0] += 0.2
+    return theta, z, y, np.full((n, D), 2 * e_std**2)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_blocks_see_a_shift_through_the_noise_of_a_state_estimate(seed):
     """Residuals of estimated states, ``delta_k = theta z_k + e_{k+1} - e_k``, and a shift of
@@ -159,14 +176,8 @@ def test_blocks_see_a_shift_through_the_noise_of_a_state_estimate(seed):
     ``noise_scale = 1 / 4`` of four transitions' noise) declares it once, within 3 blocks;
     one learning every transition does not (its probability at the change stays below
     the threshold that the block detector clears)."""
-    rng = np.random.default_rng(seed)
-    n, change, e_std = 400, 250, 0.1
-    theta = np.array([[1.0, 0.5], [-0.3, 0.2], [0.0, 1.0]])
-    z = np.stack([np.ones(n), rng.normal(size=n)], 1)
-    e = e_std * rng.normal(size=(n + 1, D))
-    y = z @ theta.T + e[1:] - e[:-1]
-    y[change:, 0] += 0.2
-    s2 = np.full((n, D), 2 * e_std**2)  # a one-step residual's variance
+    theta, z, y, s2 = estimated_states(seed)
+    change = CHANGE
 
     def detect(b):
         cfg = config(block=b, threshold=0.7, refractory=40, window=8 // b)
@@ -211,14 +222,8 @@ def test_whitening_sees_a_shift_through_the_noise_of_a_state_estimate(seed):
     of 1.4 times a residual's noise at step 250): the detector that whitens them with
     ``c = 0.8`` (the moving average's own ``c`` is 1) declares the shift once, within 12
     transitions, each transition its own update; the plain one does not."""
-    rng = np.random.default_rng(seed)
-    n, change, e_std = 400, 250, 0.1
-    theta = np.array([[1.0, 0.5], [-0.3, 0.2], [0.0, 1.0]])
-    z = np.stack([np.ones(n), rng.normal(size=n)], 1)
-    e = e_std * rng.normal(size=(n + 1, D))
-    y = z @ theta.T + e[1:] - e[:-1]
-    y[change:, 0] += 0.2
-    s2 = np.full((n, D), 2 * e_std**2)  # a one-step residual's variance
+    theta, z, y, s2 = estimated_states(seed)
+    change = CHANGE
 
     def detect(c):
         cfg = config(whiten=c, threshold=0.7, refractory=40, window=8)
