@@ -177,7 +177,6 @@ def test_blocks_see_a_shift_through_the_noise_of_a_state_estimate(seed):
     one learning every transition does not (its probability at the change stays below
     the threshold that the block detector clears)."""
     theta, z, y, s2 = estimated_states(seed)
-    change = CHANGE
 
     def detect(b):
         cfg = config(block=b, threshold=0.7, refractory=40, window=8 // b)
@@ -185,9 +184,9 @@ def test_blocks_see_a_shift_through_the_noise_of_a_state_estimate(seed):
         return declared_steps(det)
 
     blocks = detect(4)
-    assert blocks.size == 1 and change <= blocks[0] < change + 12, blocks
+    assert blocks.size == 1 and CHANGE <= blocks[0] < CHANGE + 12, blocks
     single = detect(1)
-    assert not np.any((single >= change) & (single < change + 12)), single
+    assert not np.any((single >= CHANGE) & (single < CHANGE + 12)), single
 
 
 def test_whitening_is_the_plain_detector_on_the_filtered_sequence():
@@ -223,7 +222,6 @@ def test_whitening_sees_a_shift_through_the_noise_of_a_state_estimate(seed):
     ``c = 0.8`` (the moving average's own ``c`` is 1) declares the shift once, within 12
     transitions, each transition its own update; the plain one does not."""
     theta, z, y, s2 = estimated_states(seed)
-    change = CHANGE
 
     def detect(c):
         cfg = config(whiten=c, threshold=0.7, refractory=40, window=8)
@@ -231,9 +229,9 @@ def test_whitening_sees_a_shift_through_the_noise_of_a_state_estimate(seed):
         return declared_steps(det)
 
     white = detect(0.8)
-    assert white.size == 1 and change <= white[0] < change + 12, white
+    assert white.size == 1 and CHANGE <= white[0] < CHANGE + 12, white
     plain = detect(0.0)
-    assert not np.any((plain >= change) & (plain < change + 12)), plain
+    assert not np.any((plain >= CHANGE) & (plain < CHANGE + 12)), plain
 
 
 def test_numpy_declaration_matches_the_library():
