@@ -48,7 +48,7 @@ PROFILES = ("sim", "px4")
 #: recorder niced last. Without the privilege a service warns and keeps the normal policy.
 REALTIME_PRIORITY = {"sim": 30, "estimator": 25, "controller": 20}
 NICE = {"recorder": 5, "ros2": 5}
-#: ... and idle CPUs that poll instead of sleeping (PM QoS; ``runtime.cpu_wakeup_latency``).
+#: ... and idle CPUs that poll instead of sleeping (PM QoS; ``timing.cpu_wakeup_latency``).
 CPU_WAKEUP_LATENCY_US = 0
 #: The services that take ``--mocap-body`` (the PX4 bridge too, and the simulated PX4 as
 #: ``sim``): one name on all of them.

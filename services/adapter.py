@@ -90,7 +90,7 @@ from typing import Any
 import numpy as np
 
 from arcade_io.traced import load_or_trace
-from services import options, runtime
+from services import options, runtime, timing
 from services.checkpoint import load_checkpoint, save_checkpoint
 from services.messages import MAX_VARIANCE, Event, Model, Residual, Setpoint, State
 
@@ -242,7 +242,7 @@ class Adapter(runtime.Service):
         self._prev: State | None = None
         # Link delay: (stamp, state, variance) of the newest state predicted over it.
         self._predicted: tuple[float, np.ndarray, np.ndarray] | None = None
-        self._lat = runtime.LatencySamples()
+        self._lat = timing.LatencySamples()
         self.stats.update(
             steps=0,
             learned=0,

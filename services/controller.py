@@ -84,7 +84,7 @@ import numpy as np
 from arcade_control.hover import HOVER_THRUST_STEPS, level_hover
 from arcade_core import frames
 from arcade_io.traced import load_or_trace
-from services import options, runtime
+from services import options, runtime, timing
 from services.messages import MAX_STAMP_S, Model, Reference, Setpoint, State
 
 #: Shortest interval between two log lines about failing control steps [s].
@@ -237,7 +237,7 @@ class Controller(runtime.Service):
         self._stale_model = False
         self._thrust_hover = float(self.u_hover[0])  # learned while tracking
         self._thrust_samples = 0  # tracking steps averaged into it so far
-        self._solve_s = runtime.LatencySamples(skip=1)  # the first solve: warm-up
+        self._solve_s = timing.LatencySamples(skip=1)  # the first solve: warm-up
         self.stats.update(
             setpoints=0,
             deadline_misses=0,
@@ -251,7 +251,7 @@ class Controller(runtime.Service):
         )
         bus.subscribe("model", self.on_model, source="adapter")
         self._state_sub = bus.subscribe("state", self.on_state, source=self.args.state_source)
-        self._react_s = runtime.LatencySamples(skip=1)  # state received -> setpoint put
+        self._react_s = timing.LatencySamples(skip=1)  # state received -> setpoint put
         self.pub = bus.publisher("setpoint")
         self.pub_ref = bus.publisher("reference")
         self._x_ref = np.asarray(self.x_ref_all, dtype=float)
@@ -567,7 +567,7 @@ class Controller(runtime.Service):
         self.stats["solve_samples_ms"] = self._solve_s.samples_ms()
         # The controller's share of sense-to-actuate: the state's bus hop, and from its
         # arrival to the setpoint's put (queue hand-over, solve, encode).
-        self.stats["hop_state"] = runtime.percentiles_ms(list(self._state_sub.transit_s))
+        self.stats["hop_state"] = timing.percentiles_ms(list(self._state_sub.transit_s))
         self.stats["react"] = self._react_s.summary()
 
 

@@ -56,7 +56,7 @@ from typing import Any
 
 import numpy as np
 
-from services import options, runtime
+from services import options, runtime, timing
 from services.messages import MAX_VARIANCE, Imu, MessageError, Mocap, State
 
 #: Frames kept while waiting for the next ``imu`` sample (~2 s of 120 Hz mocap).
@@ -129,7 +129,7 @@ class Estimator(runtime.Service):
         self._requeued: list[Mocap] = []
         self._lock = threading.Lock()
         self._transit: dict[str, Any] = {}  # bus transit times per topic
-        self._proc = runtime.LatencySamples()  # time spent per control instant [s]
+        self._proc = timing.LatencySamples()  # time spent per control instant [s]
         self._dropout_reported = False
         self._last_pose: tuple[np.ndarray, np.ndarray] | None = None
         self._frozen = False
@@ -381,7 +381,7 @@ class Estimator(runtime.Service):
         # One bus hop, simulator -> estimator: put to callback of the control-instant
         # samples (lockstep too: the hop does not depend on the clock mode).
         hops = list(self._transit.get("imu", ()))
-        self.stats["hop_imu"] = runtime.percentiles_ms(hops)
+        self.stats["hop_imu"] = timing.percentiles_ms(hops)
         self.stats["hop_samples_ms"] = [1e3 * h for h in hops[-20000:]]
         self.stats["process"] = self._proc.summary()
         self.stats["outliers_rejected"] = int(self.filter.rejected)

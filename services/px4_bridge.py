@@ -41,7 +41,7 @@ import numpy as np
 from arcade_core import frames
 from arcade_core.px4_command import Geofence, Limits, attitude_rate_command
 from arcade_io.vehicle import load_vehicle
-from services import runtime
+from services import runtime, timing
 from services.messages import Command, Event, Imu, Mocap, Setpoint
 from services.px4_bridge_options import add_arguments
 from services.px4_offboard import OFFBOARD, OffboardControl
@@ -113,7 +113,7 @@ class Px4Bridge(OffboardControl, runtime.Service):
             connect=a.connect,
             forward=list(a.forward),
         )
-        self._fwd = runtime.LatencySamples()
+        self._fwd = timing.LatencySamples()
 
     def _connect(self) -> None:
         # MAVSDK (gRPC, protobuf) loads here, not at import: start-up cost.

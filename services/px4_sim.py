@@ -43,7 +43,7 @@ import time
 
 from arcade_io.px4_failsafe import add_failsafe_arguments, failsafe_settings
 from arcade_io.runs import number
-from services import runtime
+from services import runtime, timing
 from services.messages import Command, Setpoint
 from services.sim_node import SimNode
 from services.sim_node import _extra as _sim_options
@@ -145,7 +145,7 @@ class Px4SimNode(SimNode):
             "seen_sp": None,
             "linger_until": math.inf,
         }
-        delays = runtime.LatencySamples()  # control instant -> first new SET_ATTITUDE_TARGET [s]
+        delays = timing.LatencySamples()  # control instant -> first new SET_ATTITUDE_TARGET [s]
 
         def mono(t_sim: float) -> float:
             return px4.epoch + t_sim  # the vehicle's wall clock, re-anchored after a stall

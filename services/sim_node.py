@@ -93,7 +93,7 @@ from arcade_control.scenario import trial
 from arcade_io import flightlog, hostcpu
 from arcade_io.traced import load_or_trace
 from arcade_io.vehicle import PAYLOAD_RELEASED
-from services import options, runtime
+from services import options, runtime, timing
 from services.csvlog import StreamedCsv
 from services.messages import Command, Event, Imu, Setpoint, State
 from services.sim_mocap import MocapStream
@@ -150,7 +150,7 @@ class SimNode(runtime.Service):
         self._latest: Setpoint | None = None
         self._tick_wall: dict[float, float] = {}
         self._answered: set[float] = set()
-        self._s2a = runtime.LatencySamples()  # of the answers to the mission's instants
+        self._s2a = timing.LatencySamples()  # of the answers to the mission's instants
         self._steal0: float | None = None  # host steal time when the realtime loop began
         self._flight_stamp = -math.inf  # stamp of the first mission tick
         self._release_at = math.inf  # stamp of a release_payload command
@@ -192,7 +192,7 @@ class SimNode(runtime.Service):
         self._sp_sub = bus.subscribe("setpoint", self.on_setpoint, source="controller")
         # Events come from several publishers, each with its own clock: no order check.
         bus.subscribe("event", self.on_event, check_order=False)
-        self._publish_lag = runtime.LatencySamples()  # sample instant -> imu put (realtime)
+        self._publish_lag = timing.LatencySamples()  # sample instant -> imu put (realtime)
         bus.on_alive_change(self._on_alive)
 
     # -- inputs
@@ -339,7 +339,7 @@ class SimNode(runtime.Service):
         the answers to the mission's instants only (not the pre-roll's)."""
         with self._cond:
             self._flight_stamp = stamp
-            self._s2a = runtime.LatencySamples()
+            self._s2a = timing.LatencySamples()
 
     def _maybe_release(self, k: int, stamp: float) -> None:
         if (k == self.k_release or stamp >= self._release_at) and self.sim.payload_attached:
@@ -605,7 +605,7 @@ class SimNode(runtime.Service):
         # Shares of sense-to-actuate at the vehicle: sample instant -> imu put, and the
         # setpoint's bus hop back.
         self.stats["publish_lag"] = self._publish_lag.summary()
-        self.stats["hop_setpoint"] = runtime.percentiles_ms(list(self._sp_sub.transit_s))
+        self.stats["hop_setpoint"] = timing.percentiles_ms(list(self._sp_sub.transit_s))
         self.stats["k_release"] = self.k_release
         if self.truth is not None:
             self.truth.close()

@@ -14,7 +14,7 @@ import threading
 
 import pytest
 
-from services import runtime
+from services import timing
 
 
 def _policies() -> dict[int, int]:
@@ -38,8 +38,8 @@ def test_realtime_scheduling_covers_every_thread_or_says_it_did_not(caplog):
     worker.start()
     before = _scheduling()
     try:
-        with caplog.at_level(logging.INFO, logger=runtime.log.name):
-            result = runtime.realtime_scheduling(1)
+        with caplog.at_level(logging.INFO, logger=timing.log.name):
+            result = timing.realtime_scheduling(1)
         after = _policies()
         assert result["priority"] == 1
         if result["refused"] == 0:
@@ -63,7 +63,7 @@ def test_realtime_scheduling_covers_every_thread_or_says_it_did_not(caplog):
 
 
 def test_gc_pauses_are_measured_per_generation():
-    pauses = runtime.GcPauses()
+    pauses = timing.GcPauses()
     try:
         gc.collect(2)
         gc.collect(0)
@@ -82,25 +82,25 @@ def test_cpu_wakeup_latency_request_is_held_until_closed_or_refused_aloud(tmp_pa
     warning and ``applied: False``, never a silent fallback."""
     device = tmp_path / "cpu_dma_latency"
     device.write_bytes(b"")
-    fd, result = runtime.cpu_wakeup_latency(0, device=str(device))
+    fd, result = timing.cpu_wakeup_latency(0, device=str(device))
     try:
         assert fd is not None and result == {"requested_us": 0, "applied": True}
         assert os.fstat(fd).st_ino == device.stat().st_ino  # the request lives with this fd
     finally:
         os.close(fd)
     assert device.read_bytes() == struct.pack("i", 0)
-    with caplog.at_level(logging.WARNING, logger=runtime.log.name):
-        fd, result = runtime.cpu_wakeup_latency(5, device=str(tmp_path / "missing"))
+    with caplog.at_level(logging.WARNING, logger=timing.log.name):
+        fd, result = timing.cpu_wakeup_latency(5, device=str(tmp_path / "missing"))
     assert fd is None and result["applied"] is False and result["requested_us"] == 5
     assert any("wake-up latency" in r.getMessage() for r in caplog.records)
 
 
 def test_latency_samples_are_exact_below_the_cap():
     values = [0.001 * (i % 37) for i in range(1000)]
-    lat = runtime.LatencySamples(cap=1000)
+    lat = timing.LatencySamples(cap=1000)
     for v in values:
         lat.append(v)
-    assert lat.summary() == {**runtime.percentiles_ms(values), "kept": 1000}
+    assert lat.summary() == {**timing.percentiles_ms(values), "kept": 1000}
     assert lat.samples_ms() == [1e3 * v for v in values]  # in arrival order
 
 
@@ -109,7 +109,7 @@ def test_latency_samples_stay_bounded_and_unbiased_over_a_long_run():
     the whole run, not its first or last ``cap``, so the median is the run's (0.5 s);
     count and maximum are exact, whenever the maximum came."""
     n, cap = 200_000, 5_000
-    lat = runtime.LatencySamples(cap=cap, seed=3)
+    lat = timing.LatencySamples(cap=cap, seed=3)
     for i in range(n):
         lat.append(i / n)
     lat.append(7.0)  # one outlier after the cap: exact max, at most one kept sample
@@ -122,11 +122,11 @@ def test_latency_samples_stay_bounded_and_unbiased_over_a_long_run():
 
 
 def test_latency_samples_skip_the_warm_up():
-    lat = runtime.LatencySamples(skip=1)
+    lat = timing.LatencySamples(skip=1)
     for v in (5.0, 0.002, 0.004):
         lat.append(v)
     assert lat.summary() == {"n": 2, "p50_ms": 3.0, "p99_ms": 3.98, "max_ms": 4.0, "kept": 2}
-    assert runtime.LatencySamples().summary() == {
+    assert timing.LatencySamples().summary() == {
         "n": 0, "p50_ms": 0.0, "p99_ms": 0.0, "max_ms": 0.0, "kept": 0
     }  # fmt: skip
 
