@@ -14,7 +14,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_OUTPUTS
+from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_ENERGY_OUTPUTS, DETECTION_OUTPUTS
 from arcade_core import adaptation
 
 
@@ -36,13 +36,17 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
     A knob ``nu`` gives the scores Student-t tails (``AdaptationConfig.nu``, static; default
     ``inf``, the Gaussian of Eq. 8). ``noise`` scales the noise of the watched outputs
     (``DetectionConfig.noise_scale``); ``block`` and ``whiten`` are
-    ``DetectionConfig.block`` and ``DetectionConfig.whiten``."""
+    ``DetectionConfig.block`` and ``DetectionConfig.whiten``; ``energy`` and
+    ``energy_rate`` are ``DetectionConfig.energy_gain`` and ``energy_rate``, on the
+    horizontal velocities (:data:`arcade_control.knobs.DETECTION_ENERGY_OUTPUTS`)."""
     k = {**DETECTION_DEFAULTS, **(knobs or {})}
     if k["outputs"] not in DETECTION_OUTPUTS:
         raise ValueError(f"unknown detector outputs {k['outputs']!r}")
     dtype = dtype or jnp.result_type(float)
     scale = np.full(13, np.inf)
     scale[list(DETECTION_OUTPUTS[k["outputs"]])] = k["noise"]
+    energy = np.zeros(13)
+    energy[list(DETECTION_ENERGY_OUTPUTS)] = 1.0
     beam = adaptation.quadrotor_config()._replace(pi=k["pi"], beta=k["beta"], score="joint")
     f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
     return adaptation.DetectionConfig(
@@ -63,4 +67,7 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
         refractory_steps=jnp.asarray(k["refractory_steps"], jnp.int32),
         block=jnp.asarray(k["block"], jnp.int32),
         whiten=f(k["whiten"]),
+        energy_outputs=f(energy),
+        energy_gain=f(k["energy"]),
+        energy_rate=f(k["energy_rate"]),
     )

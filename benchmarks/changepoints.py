@@ -34,7 +34,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from arcade_control.detection import detection_config
-from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_OUTPUTS
+from arcade_control.knobs import (
+    DETECTION_DEFAULTS,
+    DETECTION_ENERGY_OUTPUTS,
+    DETECTION_OUTPUTS,
+)
 from arcade_control.methods import clipped_features
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import f_nom
@@ -56,25 +60,25 @@ STEADY_S = 60.0
 #: vertical outputs: of the stored runs of the earlier grids, watching all 13 outputs scored
 #: F1 0.39, the translational ones 0.62 and the vertical ones 0.65 (and the translational
 #: ones cost three times as much to replay). The estimate's error enters a residual twice,
-#: ``e_{k+1} - e_k`` (docs/changepoints.md): ``block`` sums transitions, ``whiten`` filters
-#: them (0.8: the moving average of the measured lag-one autocorrelation -0.49); the grid
-#: tries each treatment alone (:data:`EXCLUSIVE`). The last grid's choice sat on the bottom
-#: edges of ``beta`` (0.01), ``window`` (2) and ``noise`` (0.5), hence 0.005, 1 and 0.25,
-#: and on the top edges of ``pi`` (0.5) and ``block`` (3), which this grid does not extend;
-#: to keep the run near 50 minutes it drops ``tracking`` 0.05, ``noise`` 2 and 4 and
-#: ``block`` 2, none of them chosen by the last grid though all among its 100 best rows.
-#: ``tracking = 0`` (no tracking), ``window = 1``, ``block = 1`` (every transition) and
-#: ``whiten = 0`` are the bottoms of their ranges, not edges to extend.
+#: ``e_{k+1} - e_k`` (docs/changepoints.md): ``whiten`` filters it out (0.8: the moving
+#: average of the measured lag-one autocorrelation -0.49). The last grid chose whitening
+#: at the top edges of ``beta`` (0.05), ``whiten`` (0.8) and ``threshold`` (0.999), hence
+#: 0.1, 0.9 and 0.9999, and restores ``noise`` 2 and 4 and ``window`` 3. It drops what no
+#: grid chose, to keep the run near an hour: ``block`` 3 (summing blocks of transitions,
+#: the other treatment of that noise: the last grid's best block row scored a lower F1
+#: than its best whitening row), ``tracking`` 0.5, ``beta`` 0.005, ``noise`` 0.25 and
+#: ``threshold`` 0.5. ``tracking = 0`` (no tracking), ``window = 1``, ``block = 1`` (every
+#: transition) and ``whiten = 0`` are the bottoms of their ranges, not edges to extend.
 GRID = {
     "outputs": ("vertical",),
     "pi": (0.05, 0.2, 0.5),
-    "tracking": (0.0, 0.2, 0.5),
-    "beta": (0.005, 0.01, 0.05),
-    "window": (1, 2, 5),
-    "block": (1, 3),
-    "whiten": (0.0, 0.8),
-    "noise": (0.25, 0.5, 1.0),
-    "threshold": (0.5, 0.8, 0.95, 0.99, 0.999),
+    "tracking": (0.0, 0.2),
+    "beta": (0.01, 0.05, 0.1),
+    "window": (1, 2, 3, 5),
+    "block": (1,),
+    "whiten": (0.0, 0.8, 0.9),
+    "noise": (0.5, 1.0, 2.0, 4.0),
+    "threshold": (0.8, 0.95, 0.99, 0.999, 0.9999),
     "refractory_steps": (5, 20, 50, 100),
 }
 #: Pairs of knobs that the grid does not combine (the other's bottom value only).
@@ -209,7 +213,9 @@ def _probabilities(theta0, configs, z, dn, s2, learned):
 
 def _watching(config, watched):
     """``config`` restricted to the outputs ``watched`` (its noise scale's finite ones)."""
-    return config._replace(noise_scale=config.noise_scale[watched])
+    return config._replace(
+        noise_scale=config.noise_scale[watched], energy_outputs=config.energy_outputs[watched]
+    )
 
 
 def tune(vld, flights, inputs, progress) -> tuple[dict[str, Any], list[dict[str, Any]]]:
@@ -234,7 +240,9 @@ def tune(vld, flights, inputs, progress) -> tuple[dict[str, Any], list[dict[str,
         # Replayed on the watched outputs only: the others carry a noise variance of 1e12
         # in the detector (no evidence), so their rows change the probabilities by about
         # 1e-5 and cost most of the time. The evaluation replays the full detector.
-        watched = jnp.asarray(DETECTION_OUTPUTS[outputs])
+        # With the energy knob on, the outputs whose energy it reads go along (no evidence).
+        extra = DETECTION_ENERGY_OUTPUTS if any(k["energy"] > 0 for k in knobs) else ()
+        watched = jnp.asarray(sorted({*DETECTION_OUTPUTS[outputs], *extra}))
         batch = jax.tree.map(
             lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]),
             *[_watching(detection_config(k), watched) for k in knobs],

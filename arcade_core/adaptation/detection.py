@@ -192,6 +192,20 @@ class DetectionConfig(NamedTuple):
             ``sigma^2`` becomes ``sigma^2 / (1 + c^2)``. A lag-one autocorrelation of
             ``-0.49`` is ``c = 0.82``. The filter runs over the transitions learned,
             before the blocks.
+        energy_outputs: ``(d,)`` weights (default 0: off) of the outputs whose
+            innovation energy inflates the noise of the watched ones: ``h``, an
+            exponential average (rate ``energy_rate``) of ``sum_j w_j (delta_j -
+            theta_0 z)_j^2 / sigma_j^2 / sum_j w_j`` (the residual the offline decoder
+            leaves, over the learner's noise), multiplies the noise by ``1 + energy_gain
+            max(0, h - 1)``. For outputs the detector does not watch (an infinite
+            ``noise_scale``): a payload swinging on its cable pulls the vehicle sideways
+            as much as it changes the vertical force, so while the horizontal residuals
+            are large the vertical ones are discounted, while a release, a step of the
+            vertical force, shows in the vertical residuals first. ``h`` is taken before
+            each update (the transitions before the current one) and is computed from the
+            features and residuals as given, before the whitening.
+        energy_gain: ``kappa >= 0`` above (0: off).
+        energy_rate: rate of ``h`` in ``(0, 1]``.
     """
 
     beam: AdaptationConfig
@@ -202,6 +216,9 @@ class DetectionConfig(NamedTuple):
     refractory_steps: ArrayLike
     block: ArrayLike = 1
     whiten: ArrayLike = 0.0
+    energy_outputs: ArrayLike = 0.0
+    energy_gain: ArrayLike = 0.0
+    energy_rate: ArrayLike = 0.2
 
 
 class DetectionState(NamedTuple):
@@ -219,6 +236,8 @@ class DetectionState(NamedTuple):
         white_z: ``(l,)`` the filtered features of the latest transition learned
             (``DetectionConfig.whiten``; zeros at first).
         white_delta: ``(d,)`` its filtered residuals.
+        energy: ``()`` the innovation energy ``h`` of ``DetectionConfig.energy_outputs``
+            (1 at first).
     """
 
     beam: BeamState
@@ -232,6 +251,7 @@ class DetectionState(NamedTuple):
     probability: Array
     white_z: Array
     white_delta: Array
+    energy: Array
 
 
 class Detection(NamedTuple):
@@ -263,6 +283,7 @@ def init_detection(theta0: ArrayLike, config: DetectionConfig) -> DetectionState
         probability=jnp.zeros((), theta0.dtype),
         white_z=jnp.zeros(l, theta0.dtype),
         white_delta=jnp.zeros(d, theta0.dtype),
+        energy=jnp.ones((), theta0.dtype),
     )
 
 
@@ -288,11 +309,26 @@ def detection_step(
     delta = jnp.asarray(delta, dtype)
     learn = jnp.asarray(learn, bool) & jnp.all(jnp.isfinite(delta)) & jnp.all(jnp.isfinite(z))
     size = jnp.asarray(config.block, jnp.int32)
+    # Innovation energy of the outputs named (before the whitening), taken before this update.
+    weights = jnp.broadcast_to(jnp.asarray(config.energy_outputs, dtype), delta.shape)
+    lean = (delta - beam.prior_mean @ z) ** 2 / jnp.asarray(sigma2, dtype)
+    total = jnp.sum(weights)
+    q_energy = jnp.sum(jnp.where(weights > 0, weights * lean, 0.0)) / jnp.maximum(total, 1e-30)
+    rate = jnp.asarray(config.energy_rate, dtype)
+    energy = jnp.where(
+        learn & (total > 0), (1.0 - rate) * state.energy + rate * q_energy, state.energy
+    )
+    inflate = 1.0 + jnp.asarray(config.energy_gain, dtype) * jnp.maximum(state.energy - 1.0, 0.0)
     c = jnp.asarray(config.whiten, dtype)
     white_z = jnp.where(learn, z + c * state.white_z, state.white_z)
     white_delta = jnp.where(learn, delta + c * state.white_delta, state.white_delta)
     z, delta = white_z, white_delta
-    base_k = jnp.asarray(sigma2, dtype) * jnp.asarray(config.noise_scale, dtype) / (1.0 + c * c)
+    base_k = (
+        jnp.asarray(sigma2, dtype)
+        * jnp.asarray(config.noise_scale, dtype)
+        * inflate
+        / (1.0 + c * c)
+    )
     block_z = state.block_z + jnp.where(learn, z, 0.0)
     block_delta = state.block_delta + jnp.where(learn, delta, 0.0)
     block_noise = state.block_noise + jnp.where(learn, base_k, 0.0)
@@ -345,5 +381,6 @@ def detection_step(
         probability=prob,
         white_z=white_z,
         white_delta=white_delta,
+        energy=energy,
     )
     return new_state, Detection(prob, declared & full, when)

@@ -15,7 +15,16 @@ D, L = 3, 2
 
 
 def config(
-    scale=(1.0, 1.0, 1.0), tracking=0.0, threshold=0.9, window=5, refractory=5, block=1, whiten=0.0
+    scale=(1.0, 1.0, 1.0),
+    tracking=0.0,
+    threshold=0.9,
+    window=5,
+    refractory=5,
+    block=1,
+    whiten=0.0,
+    energy=(0.0, 0.0, 0.0),
+    gain=0.0,
+    rate=0.2,
 ):
     beam = adaptation.AdaptationConfig(
         K=8, pi=0.01, beta=0.05, tau2=1.0, sigma2=1.0, prior_floor=1.0, score="joint"
@@ -29,6 +38,9 @@ def config(
         refractory_steps=refractory,
         block=block,
         whiten=whiten,
+        energy_outputs=jnp.asarray(energy, jnp.float64),
+        energy_gain=gain,
+        energy_rate=rate,
     )
 
 
@@ -232,6 +244,65 @@ def test_whitening_sees_a_shift_through_the_noise_of_a_state_estimate(seed):
     assert white.size == 1 and CHANGE <= white[0] < CHANGE + 12, white
     plain = detect(0.0)
     assert not np.any((plain >= CHANGE) & (plain < CHANGE + 12)), plain
+
+
+def energy_sequence(seed=0, n=200, burst=(60, 100), change=150):
+    """Outputs 0 and 1 watched, output 2 left out (an infinite noise scale) and read for
+    its energy: a burst of output 2 (ten times its noise) over ``burst`` with a shift of
+    output 0 inside it (a transient the vehicle's own motion explains), and a lasting
+    shift of output 0 at ``change`` with output 2 quiet."""
+    theta0, z, y, s2 = sequence(None, 0.0, n=n, seed=seed)
+    rng = np.random.default_rng(seed + 10)
+    y = y.copy()
+    a, b = burst
+    y[a:b, 2] += 1.0 * rng.normal(size=b - a)
+    y[a + 10 : b - 10, 0] += 0.4
+    y[change:, 0] += 0.4
+    return theta0, z, y, s2
+
+
+def test_energy_is_the_plain_detector_with_the_noise_scaled_by_it():
+    """Brute force: with ``energy_gain = kappa`` the detector is the one without, fed the
+    learner's noise times ``1 + kappa max(0, h_{k-1} - 1)`` at each step, ``h`` the
+    exponential average (rate ``a``) over the transitions learned of ``(delta - theta_0
+    z)^2 / sigma^2`` on the outputs named (weights), taken before the whitening."""
+    theta0, z, y, s2 = energy_sequence()
+    learn = np.ones(len(z), bool)
+    learn[[30, 31, 90]] = False
+    kappa, a, w = 3.0, 0.3, np.array([0.0, 0.5, 1.0])
+    scale = (1.0, 1.0, np.inf)
+    cfg = config(scale=scale, whiten=0.5, energy=w, gain=kappa, rate=a)
+    state, det = run(cfg, theta0, z, y, s2, learn)
+    h, factor = 1.0, np.ones(len(z))
+    for k in range(len(z)):
+        factor[k] = 1.0 + kappa * max(0.0, h - 1.0)
+        if learn[k]:
+            q = (y[k] - theta0 @ z[k]) ** 2 / s2[k]
+            h = (1 - a) * h + a * float(np.sum(w * q) / np.sum(w))
+    ref_state, ref = run(config(scale=scale, whiten=0.5), theta0, z, y, s2 * factor[:, None], learn)
+    assert float(state.energy) == pytest.approx(h, rel=1e-12)
+    assert factor.max() > 10.0  # the burst did inflate the noise
+    np.testing.assert_allclose(state.beam.means, ref_state.beam.means, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(det.probability, ref.probability, atol=1e-12)
+    np.testing.assert_array_equal(det.declared, ref.declared)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_energy_discounts_a_shift_inside_a_burst_and_keeps_a_lasting_one(seed):
+    """The shift of output 0 inside the burst of output 2 is declared without the energy
+    knob and not with it; the lasting shift with output 2 quiet is declared by both."""
+    theta0, z, y, s2 = energy_sequence(seed)
+    scale = (1.0, 1.0, np.inf)
+
+    def detect(gain):
+        cfg = config(scale=scale, energy=(0.0, 0.0, 1.0), gain=gain, threshold=0.9, refractory=20)
+        return declared_steps(run(cfg, theta0, z, y, s2)[1])
+
+    plain, discounted = detect(0.0), detect(1.0)
+    assert np.any((plain >= 70) & (plain < 90)), plain
+    assert not np.any((discounted >= 60) & (discounted < 140)), discounted
+    for steps in (plain, discounted):
+        assert np.sum((steps >= 150) & (steps < 160)) == 1, steps
 
 
 def test_numpy_declaration_matches_the_library():
