@@ -69,6 +69,8 @@ STEADY_S = 60.0
 #: than its best whitening row), ``tracking`` 0.5, ``beta`` 0.005, ``noise`` 0.25 and
 #: ``threshold`` 0.5. ``tracking = 0`` (no tracking), ``window = 1``, ``block = 1`` (every
 #: transition) and ``whiten = 0`` are the bottoms of their ranges, not edges to extend.
+#: This grid's stored run chose ``tracking`` 0.2, ``beta`` 0.01 and ``refractory_steps`` 5,
+#: edges of it: the next grid extends them.
 GRID = {
     "outputs": ("vertical",),
     "pi": (0.05, 0.2, 0.5),
