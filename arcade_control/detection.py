@@ -14,7 +14,12 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_ENERGY_OUTPUTS, DETECTION_OUTPUTS
+from arcade_control.knobs import (
+    DETECTION_DEFAULTS,
+    DETECTION_ENERGY_OUTPUTS,
+    DETECTION_OUTPUTS,
+    DETECTION_TRUE_STATE,
+)
 from arcade_core import adaptation
 
 
@@ -27,9 +32,17 @@ def detector_noise(sigma2: Any) -> Any:
     )
 
 
-def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, score: str = "joint"):
+def detection_config(
+    knobs: dict[str, Any] | None = None,
+    dtype: Any = None,
+    score: str = "joint",
+    *,
+    estimated: bool,
+):
     """The adapter's changepoint detector (:class:`arcade_core.adaptation.DetectionConfig`)
-    from :data:`arcade_control.knobs.DETECTION_DEFAULTS` updated with ``knobs``: a beam of
+    from :data:`arcade_control.knobs.DETECTION_DEFAULTS` (``estimated``: the state is an
+    estimate) or :data:`arcade_control.knobs.DETECTION_TRUE_STATE` (the ground truth)
+    updated with ``knobs``: a beam of
     ``K = 15`` scored as the exact joint, at the quadrotor preset's ``tau^2`` and offline
     prior floor, watching the outputs the knob names with the learner's noise. ``score``:
     the hypothesis score (``"algorithm1"`` only to compare, see ``docs/changepoints.md``).
@@ -39,7 +52,7 @@ def detection_config(knobs: dict[str, Any] | None = None, dtype: Any = None, sco
     ``DetectionConfig.block`` and ``DetectionConfig.whiten``; ``energy`` and
     ``energy_rate`` are ``DetectionConfig.energy_gain`` and ``energy_rate``, on the
     horizontal velocities (:data:`arcade_control.knobs.DETECTION_ENERGY_OUTPUTS`)."""
-    k = {**DETECTION_DEFAULTS, **(knobs or {})}
+    k = {**(DETECTION_DEFAULTS if estimated else DETECTION_TRUE_STATE), **(knobs or {})}
     if k["outputs"] not in DETECTION_OUTPUTS:
         raise ValueError(f"unknown detector outputs {k['outputs']!r}")
     dtype = dtype or jnp.result_type(float)

@@ -88,8 +88,10 @@ def scale_gp_noise(model: gp.GPModel, scale: float) -> gp.GPModel:
     return model._replace(hyper=h._replace(log_noise_var=h.log_noise_var + np.log(scale)))
 
 
-def initial_learner(name: str, models, dtype) -> Any:
-    """The method's adaptive state at take-off (arrays in ``dtype``)."""
+def initial_learner(name: str, models, dtype, estimated: bool = False) -> Any:
+    """The method's adaptive state at take-off (arrays in ``dtype``); ``estimated``: it
+    learns from a state estimate, not the ground truth (the knobs of the flagship's
+    changepoint detector, :func:`arcade_control.detection.detection_config`)."""
 
     def cast(tree):
         return _cast(tree, dtype)
@@ -148,7 +150,7 @@ def initial_learner(name: str, models, dtype) -> Any:
         l1_state = _l1_state(tuned["arcade_l1_cutoff"], 0.0, tuned["arcade_l1_a_s"], dtype)
         learner = learner._replace(l1=l1_state)
     if name in RESTARTING:  # the detector at the VLD's prior, the learner's noise
-        det = detection_config(dtype=dtype)
+        det = detection_config(dtype=dtype, estimated=estimated)
         scale = jnp.asarray(tuned["arcade_restart_scale"], dtype)
         learner = learner._replace(
             restart=Restart(

@@ -92,19 +92,24 @@ def stack_knobs(method: str = "ours") -> dict[str, Any]:
 
 
 def load_learner(
-    weights: str | Path, dtype: Any, method: str = "ours", knobs: dict[str, Any] | None = None
+    weights: str | Path,
+    dtype: Any,
+    method: str = "ours",
+    knobs: dict[str, Any] | None = None,
+    estimated: bool = True,
 ) -> tuple[Any, Any]:
     """The adaptive state at take-off of ``method`` (one of :data:`STACK_METHODS`) and the
     method, as the in-process evaluation builds them
     (:func:`arcade_control.learners.initial_learner`) with :func:`stack_knobs` (ours: the
     calibrated ``sigma^2`` and the ``beta`` tuned at it), the feature/residual guard of the
     training data, the beam at the prior. ``knobs`` override :func:`stack_knobs`
-    (:data:`arcade_control.knobs.TUNING_METHOD` names). A file that is not a quadrotor VLD
-    raises ``WeightFileError``."""
+    (:data:`arcade_control.knobs.TUNING_METHOD` names). ``estimated``: the states it learns
+    from are an estimate (False: the simulator's ground truth, ``--truth-state``). A file
+    that is not a quadrotor VLD raises ``WeightFileError``."""
     vld, _, extra = load_model(weights, system="quadrotor")
     tuned = {**stack_knobs(method), **(knobs or {})}
     models = SimpleNamespace(vld=vld, guard=guard_from_metadata(extra), closedloop=tuned)
-    learner = initial_learner(adapter_method(method), models, dtype)
+    learner = initial_learner(adapter_method(method), models, dtype, estimated)
     if method == "l1":  # ours' beam (what the model messages hold) and L1's state
         learner = learner._replace(l1=initial_learner("l1", models, dtype))
     return learner, make_method(method)
@@ -119,14 +124,18 @@ def controller_learner(weights: str | Path, dtype: Any, method: str = "ours") ->
 
 
 def adapter_learner(
-    weights: str | Path, dtype: Any, method: str = "ours", knobs: dict[str, Any] | None = None
+    weights: str | Path,
+    dtype: Any,
+    method: str = "ours",
+    knobs: dict[str, Any] | None = None,
+    estimated: bool = True,
 ) -> tuple[Any, Any]:
     """:func:`load_learner` with one noise variance per output (the state estimate's
     variance differs per component, see :class:`Adapter`): one covariance per output row,
     at the prior (Algorithm 1 line 1). Mathematically the same beam while all variances
     are equal. The flagship's adapter learns its model only (``arcade_no_l1``'s update,
     the learner without its L1 state): the controller runs the augmentation."""
-    learner, method_ = load_learner(weights, dtype, method, knobs)
+    learner, method_ = load_learner(weights, dtype, method, knobs, estimated)
     if method == FLAGSHIP:
         learner, method_ = learner._replace(l1=None), make_method("arcade_no_l1")
     elif method == "l1":

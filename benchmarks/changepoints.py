@@ -247,7 +247,7 @@ def tune(vld, flights, inputs, progress) -> tuple[dict[str, Any], list[dict[str,
         watched = jnp.asarray(sorted({*DETECTION_OUTPUTS[outputs], *extra}))
         batch = jax.tree.map(
             lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]),
-            *[_watching(detection_config(k), watched) for k in knobs],
+            *[_watching(detection_config(k, estimated=True), watched) for k in knobs],
         )
         theta0 = vld.theta0[watched]
         probs = [
@@ -320,10 +320,12 @@ def run_changepoints(
     flights = fly(runner, seeds, progress)
     chosen = {k: v for k, v in knobs.items() if k != "on_grid_edge"}
     inputs = [_inputs(m.vld, m.guard, f) for f in flights]
-    declared = [replay(m.vld.theta0, detection_config(chosen), i)[1] for i in inputs]
+    declared = [
+        replay(m.vld.theta0, detection_config(chosen, estimated=True), i)[1] for i in inputs
+    ]
     # The same detector scoring its hypotheses as Algorithm 1 writes it (the data term
     # twice): its weights are no posterior, and the same threshold means something else.
-    literal = detection_config(chosen, score="algorithm1")
+    literal = detection_config(chosen, score="algorithm1", estimated=True)
     declared_literal = [replay(m.vld.theta0, literal, i)[1] for i in inputs]
     # What the stack flies (the stored knobs) when the tuning chose others: the adapter
     # keeps its knobs until a tuning that generalises better replaces them.
@@ -331,7 +333,7 @@ def run_changepoints(
     declared_stored = (
         declared
         if stored == chosen
-        else [replay(m.vld.theta0, detection_config(stored), i)[1] for i in inputs]
+        else [replay(m.vld.theta0, detection_config(stored, estimated=True), i)[1] for i in inputs]
     )
     result = {
         "detector": score(flights, declared),

@@ -189,7 +189,7 @@ class Runner:
         x = sim.reset(np.asarray(scenario.start) + offset)
         step = self.step_fn(name, delay)
         dt = self.dtype
-        learner = initial_learner(name, self.models, dt)
+        learner = initial_learner(name, self.models, dt, estimated)
         estimate = state_noise = None
         if estimated:
             estimate_step, jacobian = self._estimation()

@@ -145,9 +145,13 @@ class Adapter(runtime.Service):
         self.weights = weights
         self.learner = None
         self.meta: dict[str, Any] = {}
+        # The simulator's state is the ground truth (``--truth-state``); any other source
+        # is an estimate, whose error the detector's knobs whiten
+        # (:data:`arcade_control.knobs.DETECTION_DEFAULTS`).
+        self.estimated = estimated = a.state_source != "sim"
         if weights.is_file():
             self.learner, self.method = adapter_learner(
-                weights, self.dtype, a.method, learner_knobs
+                weights, self.dtype, a.method, learner_knobs, estimated
             )
             self.meta = {"weights_sha256": hashlib.sha256(weights.read_bytes()).hexdigest()}
         params = quadrotor_params(load_vehicle())
@@ -180,7 +184,7 @@ class Adapter(runtime.Service):
         )
         if self.learner is not None:
             if self.learner.restart is not None and detector_knobs:  # the flagship's own
-                cfg = detection_config(detector_knobs, dtype=self.dtype)
+                cfg = detection_config(detector_knobs, dtype=self.dtype, estimated=estimated)
                 det0 = adaptation.init_detection(detector_prior(self.learner), cfg)
                 restart = self.learner.restart._replace(config=cfg, detection=det0)
                 self.learner = self.learner._replace(restart=restart)
@@ -199,7 +203,9 @@ class Adapter(runtime.Service):
             # A learner that restarts at a declared change (the flagship) runs the detector
             # inside its own step: its declarations are the events, with no second detector.
             if self.learner.restart is None:
-                self._detect_config = detection_config(detector_knobs, dtype=self.dtype)
+                self._detect_config = detection_config(
+                    detector_knobs, dtype=self.dtype, estimated=estimated
+                )
                 self._detection0 = adaptation.init_detection(
                     detector_prior(self.learner), self._detect_config
                 )

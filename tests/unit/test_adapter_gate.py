@@ -254,6 +254,15 @@ def test_with_a_link_delay_it_learns_between_the_states_predicted_over_it():
     assert seen[0][0][0] > xs[1][0] + 0.015
 
 
+def test_the_detector_knobs_follow_where_the_state_comes_from():
+    # The estimator's state (the default) is an estimate; the simulator's (--truth-state
+    # stacks) is the ground truth: the flagship's learner and the detector take their
+    # knobs accordingly (arcade_control.knobs.DETECTION_DEFAULTS, DETECTION_TRUE_STATE).
+    assert make_adapter().estimated
+    assert make_adapter("--state-source", "px4bridge").estimated
+    assert not make_adapter("--state-source", "sim").estimated
+
+
 def test_link_delay_must_be_shorter_than_the_control_period(capsys):
     with pytest.raises(SystemExit) as exit_:
         runtime.main_for(mod.Adapter, ["--rate", "50", "--link-delay", "0.02"], mod._extra)

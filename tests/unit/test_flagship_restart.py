@@ -14,6 +14,7 @@ import pytest
 from arcade.training_quadrotor import QUADROTOR_WEIGHTS
 from arcade_control.detection import detection_config
 from arcade_control.guard import guard_from_metadata
+from arcade_control.knobs import DETECTION_DEFAULTS, DETECTION_TRUE_STATE
 from arcade_control.learners import initial_learner, per_output_noise
 from arcade_control.methods import make_method, restart_at_change
 from arcade_control.nominal import CONTROL_DT, f_nom, nominal_params
@@ -47,7 +48,12 @@ def test_the_flagship_carries_the_adapters_detector_and_a_scaled_prior(models):
     r = a.restart
     assert r is not None
     assert initial_learner("arcade_no_restart", models, jnp.float64).restart is None
-    _close(r.config, detection_config(dtype=jnp.float64))
+    _close(r.config, detection_config(dtype=jnp.float64, estimated=False))
+    # On a state estimate it flies the whitening detector, on the ground truth the plain one.
+    on_estimate = initial_learner("arcade", models, jnp.float64, estimated=True).restart
+    _close(on_estimate.config, detection_config(dtype=jnp.float64, estimated=True))
+    assert float(on_estimate.config.whiten) == DETECTION_DEFAULTS["whiten"] > 0
+    assert float(r.config.whiten) == DETECTION_TRUE_STATE["whiten"] == 0
     np.testing.assert_allclose(r.prior.means, a.beam.means)
     np.testing.assert_allclose(r.prior.sqrt_covariances, a.beam.sqrt_covariances * np.sqrt(SCALE))
     # One noise per output: the prior it restarts to has the learner's layout.
