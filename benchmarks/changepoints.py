@@ -51,8 +51,10 @@ from benchmarks.quadrotor_protocol import LINK_DELAY_S
 HIT_S = 0.25
 PAYLOADS_G = (75.0, 125.0, 175.0)
 SPEEDS_MPS = (0.5, 1.5, 2.5)
-#: Seeds of the tuning flights (the evaluation flies 0, 1, ...).
-TUNING_SEEDS = (100, 101, 102)
+#: Seeds of the tuning flights (the evaluation flies 0, 1, ...): six, since the stored run
+#: tuned on three overfitted a surface flat near its top (F1 0.86 on its tuning seeds,
+#: 0.77 on the evaluation seeds; a row 0.006 lower on the tuning seeds scored 0.84).
+TUNING_SEEDS = (100, 101, 102, 103, 104, 105)
 #: Length of a steady flight [s].
 STEADY_S = 60.0
 #: The detector's grid: beam knobs, the treatment of the residual's noise and the noise
@@ -61,27 +63,26 @@ STEADY_S = 60.0
 #: F1 0.39, the translational ones 0.62 and the vertical ones 0.65 (and the translational
 #: ones cost three times as much to replay). The estimate's error enters a residual twice,
 #: ``e_{k+1} - e_k`` (docs/changepoints.md): ``whiten`` filters it out (0.8: the moving
-#: average of the measured lag-one autocorrelation -0.49). The last grid chose whitening
-#: at the top edges of ``beta`` (0.05), ``whiten`` (0.8) and ``threshold`` (0.999), hence
-#: 0.1, 0.9 and 0.9999, and restores ``noise`` 2 and 4 and ``window`` 3. It drops what no
-#: grid chose, to keep the run near an hour: ``block`` 3 (summing blocks of transitions,
-#: the other treatment of that noise: the last grid's best block row scored a lower F1
-#: than its best whitening row), ``tracking`` 0.5, ``beta`` 0.005, ``noise`` 0.25 and
-#: ``threshold`` 0.5. ``tracking = 0`` (no tracking), ``window = 1``, ``block = 1`` (every
-#: transition) and ``whiten = 0`` are the bottoms of their ranges, not edges to extend.
-#: This grid's stored run chose ``tracking`` 0.2, ``beta`` 0.01 and ``refractory_steps`` 5,
-#: edges of it: the next grid extends them.
+#: average of the measured lag-one autocorrelation -0.49). The last grid (three tuning
+#: seeds, 17,280 settings) chose ``tracking`` 0.2, ``beta`` 0.01 and ``refractory_steps``
+#: 5, edges of it, so this one extends them (``tracking`` 0.5, ``beta`` 0.005,
+#: ``refractory_steps`` 2). With twice the tuning flights it keeps the values its 100 best
+#: rows used and drops the others to keep the run near an hour: ``whiten`` 0 (none of the
+#: 100 best; blocks, the other treatment, scored below whitening the time before),
+#: ``noise`` 0.5 and 4 (14 of them), ``threshold`` 0.8 (6) and ``refractory_steps`` 100
+#: (9). ``tracking = 0`` (no tracking) and ``block = 1`` are the bottoms of their ranges,
+#: not edges to extend.
 GRID = {
     "outputs": ("vertical",),
     "pi": (0.05, 0.2, 0.5),
-    "tracking": (0.0, 0.2),
-    "beta": (0.01, 0.05, 0.1),
-    "window": (1, 2, 3, 5),
+    "tracking": (0.0, 0.2, 0.5),
+    "beta": (0.005, 0.01, 0.05),
+    "window": (2, 3, 5),
     "block": (1,),
-    "whiten": (0.0, 0.8, 0.9),
-    "noise": (0.5, 1.0, 2.0, 4.0),
-    "threshold": (0.8, 0.95, 0.99, 0.999, 0.9999),
-    "refractory_steps": (5, 20, 50, 100),
+    "whiten": (0.8, 0.9),
+    "noise": (1.0, 2.0),
+    "threshold": (0.95, 0.99, 0.999, 0.9999),
+    "refractory_steps": (2, 5, 20, 50),
 }
 #: Pairs of knobs that the grid does not combine (the other's bottom value only).
 EXCLUSIVE = (("block", "whiten"),)

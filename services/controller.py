@@ -85,6 +85,7 @@ from arcade_control.hover import HOVER_THRUST_STEPS, level_hover
 from arcade_core import frames
 from arcade_io.traced import load_or_trace
 from services import options, runtime, timing
+from services.controller_options import add_controller_arguments as _extra
 from services.messages import MAX_STAMP_S, Model, Reference, Setpoint, State
 
 #: Shortest interval between two log lines about failing control steps [s].
@@ -569,52 +570,6 @@ class Controller(runtime.Service):
         # arrival to the setpoint's put (queue hand-over, solve, encode).
         self.stats["hop_state"] = timing.percentiles_ms(list(self._state_sub.transit_s))
         self.stats["react"] = self._react_s.summary()
-
-
-def _extra(p) -> None:
-    options.add_plan_arguments(p)
-    options.add_weights_argument(p)
-    options.add_method_argument(p)
-    options.add_link_delay_argument(p)
-    options.add_state_source_argument(p)
-    p.add_argument(
-        "--model-timeout",
-        type=float,
-        default=5.0,
-        help="lockstep: longest wait for the model of the current state [s]",
-    )
-    p.add_argument(
-        "--max-model-age",
-        type=float,
-        default=0.5,
-        help="older models are not used (nominal MPC instead) [s]",
-    )
-    p.add_argument(
-        "--stale-model-s",
-        type=float,
-        default=0.15,
-        help="older models are still used but flagged (stale_model event) [s]",
-    )
-    p.add_argument(
-        "--max-state-age",
-        type=float,
-        default=0.1,
-        help="realtime: older states on arrival give a hover setpoint [s]",
-    )
-    p.add_argument(
-        "--max-meas-age",
-        type=float,
-        default=0.2,
-        help="states whose newest mocap frame is older give a hover setpoint [s]",
-    )
-    p.add_argument(
-        "--max-hover-s",
-        type=float,
-        default=1.0,
-        help="longest uninterrupted hover (no position feedback) before a failsafe event "
-        "asks the vehicle link to fail safe (the PX4 bridge leaves offboard, the "
-        "simulator holds position) [s]",
-    )
 
 
 def main(argv: list[str] | None = None) -> int:

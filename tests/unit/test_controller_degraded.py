@@ -166,7 +166,7 @@ def test_a_link_delay_plans_from_the_predicted_state_against_the_later_reference
     parser, monkeypatch
 ):
     """``--link-delay``: the controller's step is the in-process compensated step
-    (``make_controller_step``'s ``delay_s``, tested in test_quadrotor_pipeline) and its
+    (``make_controller_step``'s ``delay_s``, tested in test_quadrotor_closedloop_links) and its
     reference the plan that much later."""
     from arcade_control import step as control_step
     from arcade_control.scenario import reference
