@@ -22,8 +22,9 @@ A payload is one msgpack map with string keys::
 
 Everything that is wrong with a payload raises :class:`MessageError` with a
 :class:`Reason`; records built in Python are validated by the same code, so a record that
-exists is a record that would be accepted on receipt. The field types, the limits and the
-error are in :mod:`services.message_fields`; what a receiving service does with a stream
+exists is a record that would be accepted on receipt. The base class is in
+:mod:`services.message_record`; the field types, the limits and the error are in
+:mod:`services.message_fields`; what a receiving service does with a stream
 of records (order and staleness checks per publisher, reject counts, handlers that never
 raise) is :mod:`services.reception`.
 
@@ -35,11 +36,10 @@ body-rate setpoints rad/s (3)]``.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import types
 from collections.abc import Mapping
 from dataclasses import field
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar
 
 import msgpack
 import numpy as np
@@ -67,7 +67,6 @@ from services.message_fields import (
     QUAT_NORM_TOL,
     SERVICE,
     SEVERITIES,
-    SRC,
     BoolSpec,
     FloatSpec,
     IntSpec,
@@ -79,6 +78,7 @@ from services.message_fields import (
     spec_meta,
     type_name,
 )
+from services.message_record import Message, _specs
 
 __all__ = [
     "COMMANDS",
@@ -119,84 +119,6 @@ __all__ = [
 ]
 
 # -------------------------------------------------------------------------- records
-
-M = TypeVar("M", bound="Message")
-
-
-@dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
-class Message:
-    """Common header of every wire message.
-
-    Attributes:
-        seq: per-publisher sequence number (uint64), assigned by the bus publisher.
-        stamp: seconds; simulated time in lockstep mode, ``time.monotonic()``-based otherwise.
-        src: publisher id, ``"<service>/<session id>"`` when sent through the bus.
-    """
-
-    SCHEMA: ClassVar[str] = ""
-    VERSION: ClassVar[int] = 1
-    TOPIC: ClassVar[str] = ""
-    MAX_BYTES: ClassVar[int] = 4096
-
-    seq: int = field(default=0, metadata=spec_meta(IntSpec()))
-    stamp: float = field(metadata=spec_meta(FloatSpec(0.0, MAX_STAMP_S)))
-    src: str = field(default="", metadata=spec_meta(StrSpec(pattern=SRC, max_len=128)))
-
-    def __post_init__(self) -> None:
-        dims: dict[str, int] = {}
-        for name, spec in _specs(type(self)).items():
-            object.__setattr__(self, name, spec.coerce(name, getattr(self, name), dims))
-        self._check()
-
-    def _check(self) -> None:
-        """Cross-field checks of a subclass (after every field is valid on its own)."""
-
-    def __eq__(self, other: object) -> bool:
-        if type(other) is not type(self):
-            return NotImplemented
-        for name in _specs(type(self)):
-            a, b = getattr(self, name), getattr(other, name)
-            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-                if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
-                    return False
-                if a.shape != b.shape or not np.array_equal(a, b):
-                    return False
-            elif a != b:
-                return False
-        return True
-
-    __hash__ = None  # type: ignore[assignment]  # arrays inside
-
-    def replace(self: M, **changes: Any) -> M:
-        """A copy with ``changes`` applied (validated like any new record)."""
-        return dataclasses.replace(self, **changes)
-
-    def to_wire(self) -> dict[str, Any]:
-        """The msgpack map of this record (plain Python values, also fine for JSON logs)."""
-        out: dict[str, Any] = {"schema": self.SCHEMA, "version": self.VERSION}
-        for name, spec in _specs(type(self)).items():
-            out[name] = spec.to_wire(getattr(self, name))
-        return out
-
-    @classmethod
-    def from_wire(cls: type[M], data: Mapping[str, Any]) -> M:
-        """Validate an unpacked map (schema and version already checked) into a record."""
-        names = _specs(cls)
-        keys = set(data) - {"schema", "version"}
-        if missing := names.keys() - keys:
-            raise MessageError(Reason.MISSING_FIELD, f"missing {sorted(missing)}")
-        if extra := keys - names.keys():
-            raise MessageError(Reason.EXTRA_FIELD, f"unexpected {sorted(map(repr, extra))}")
-        return cls(**{name: data[name] for name in names})
-
-    def encode(self) -> bytes:
-        """msgpack bytes of this record (see :func:`encode`)."""
-        return encode(self)
-
-
-@functools.cache
-def _specs(cls: type[Message]) -> Mapping[str, Any]:
-    return types.MappingProxyType({f.name: f.metadata["spec"] for f in dataclasses.fields(cls)})
 
 
 def field_specs(cls: type[Message]) -> Mapping[str, Any]:
@@ -599,10 +521,7 @@ def message_type(topic_or_schema: str | type[Message]) -> type[Message]:
 
 def encode(record: Message) -> bytes:
     """msgpack bytes of ``record``; raises :class:`MessageError` if above ``MAX_BYTES``."""
-    payload = msgpack.packb(record.to_wire(), use_bin_type=True)
-    if len(payload) > record.MAX_BYTES:
-        raise MessageError(Reason.OVERSIZE, f"{len(payload)} > {record.MAX_BYTES} bytes")
-    return payload
+    return record.encode()
 
 
 def decode(topic_or_schema: str | type[Message] | None, payload: Any) -> Message:

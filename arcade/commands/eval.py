@@ -137,6 +137,7 @@ def _cartpole(args, out, progress):
 
 
 def _quadrotor(args, out, progress):
+    from benchmarks import quadrotor_ablations as qa
     from benchmarks import quadrotor_closedloop as qc
     from benchmarks import quadrotor_openloop as qo
     from benchmarks.quadrotor_protocol import stored_knobs
@@ -166,9 +167,9 @@ def _quadrotor(args, out, progress):
     )
     if not args.quick:
         progress("beam ablation (Table V)")
-        result["beam_ablation"] = qc.run_beam_ablation(models=models, progress=progress)
+        result["beam_ablation"] = qa.run_beam_ablation(models=models, progress=progress)
         progress("residual held along the warm start vs inside the rollout")
-        result["residual_ablation"] = qc.run_residual_ablation(models=models, progress=progress)
+        result["residual_ablation"] = qa.run_residual_ablation(models=models, progress=progress)
     return result, qc.format_table(result)
 
 
