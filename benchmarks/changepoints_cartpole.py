@@ -30,9 +30,9 @@ delay, then to the setting nearest the centre of the tied ones (:func:`_best`).
 score ``"joint"``) and tunes ``m``, ``threshold`` and ``refractory`` on
 :data:`DECLARATION_GRID`; the headline also tunes ``beta``, ``pi``, ``tau2`` and ``sigma2``
 on :data:`BEAM_GRID`, all in one compiled program. A grid edge on which a best setting lies
-(chosen or tied with it) is extended by the value in :data:`EXTENSIONS` and the tuning
-redone, at most once per edge; ``knobs["still_on_edge"]`` lists the knobs whose best value
-is still on an edge.
+(chosen or tied with it) is extended by the next value in :data:`EXTENSIONS` and the
+tuning redone, until no best setting lies on an edge that has a value left;
+``knobs["still_on_edge"]`` lists the knobs whose best value is still on an edge.
 ``map_flags_paper_settings`` scores the evaluation's MAP-path flags (score
 ``"algorithm1"``, paper config) the same way.
 """
@@ -66,15 +66,22 @@ BEAM_GRID = {
 }
 #: Declaration knobs: window ``m`` of the probability, threshold, refractory steps.
 DECLARATION_GRID = {"m": (1, 2, 3, 4), "threshold": (0.3, 0.5, 0.7, 0.9), "refractory": (3, 5)}
-#: Value added below / above a grid whose lowest / highest value is best (None: none).
+#: Largest grid the extensions may make (settings; the declarations of all of them are held
+#: in memory at once, one byte per setting, trajectory and step).
+MAX_SETTINGS = 400_000
+#: Values added, one at a time, below / above a grid whose lowest / highest value is best,
+#: in this order (within each knob's range: ``beta`` and ``pi`` in (0, 1), a threshold
+#: below 1; ``refractory`` at most 20 steps, half the spacing of the interventions, so that
+#: the rule cannot learn their schedule). A stored run that extended each edge once tuned
+#: ``beta`` 0.1, ``pi`` 0.4, ``tau2`` 0.01 and ``refractory`` 8, the first values added.
 EXTENSIONS = {
-    "beta": (0.1, 0.97),
-    "pi": (0.001, 0.4),
-    "tau2": (0.01, 100.0),
-    "sigma2": (0.02, 0.5),
-    "m": (None, 6),
-    "threshold": (0.15, 0.97),
-    "refractory": (1, 8),
+    "beta": ((0.1, 0.03, 0.01, 0.003), (0.97,)),
+    "pi": ((0.001,), (0.4, 0.6, 0.8)),
+    "tau2": ((0.01, 0.001, 0.0001, 0.00001), (100.0, 1000.0)),
+    "sigma2": ((0.02, 0.01), (0.5, 1.0)),
+    "m": ((), (6, 8, 12)),
+    "threshold": ((0.15, 0.05, 0.02), (0.97, 0.99)),
+    "refractory": ((1,), (8, 12, 20)),
 }
 
 
@@ -179,9 +186,9 @@ def _scored(flags) -> dict[str, Any]:
 
 def tune_and_evaluate(model, base, tune, evaluation, grid, progress) -> dict[str, Any]:
     """Choose the knobs of ``grid`` on ``tune`` (``(X, U)``) by :func:`_best`, extending
-    each grid edge at most once where a best setting lies on it (:func:`_edges`), and
-    score them on ``evaluation``."""
-    grid, extended, done = dict(grid), {}, set()
+    a grid edge by its next value in :data:`EXTENSIONS` while a best setting lies on it
+    (:func:`_edges`), and score them on ``evaluation``."""
+    grid, extended = dict(grid), {}
     while True:
         size = math.prod(len(v) for v in grid.values())
         progress(f"tuning on {size} settings x {tune[0].shape[0]} trajectories")
@@ -190,12 +197,19 @@ def tune_and_evaluate(model, base, tune, evaluation, grid, progress) -> dict[str
         knobs = {k: grid[k][i] for k, i in zip(grid, idx)}
         edges = _edges(grid, tied)
         grow = {}
-        for knob, side in [e for e in edges if e not in done]:
-            done.add((knob, side))
-            value = EXTENSIONS[knob][side]
-            if value is not None and value not in grid[knob]:
-                grow.setdefault(knob, []).append(value)
+        for knob, side in edges:
+            beyond = [  # the extension's values past this edge, nearest first
+                v
+                for v in EXTENSIONS[knob][side]
+                if (v < min(grid[knob]) if side == 0 else v > max(grid[knob]))
+            ]
+            if beyond:
+                grow.setdefault(knob, []).append(beyond[0])
         if not grow:
+            break
+        bigger = math.prod(len(v) + len(grow.get(k, ())) for k, v in grid.items())
+        if bigger > MAX_SETTINGS:
+            progress(f"best on a grid edge, not extended: {bigger} settings > {MAX_SETTINGS}")
             break
         progress(f"best on a grid edge, extending {grow}")
         grid.update({k: tuple(sorted((*grid[k], *v))) for k, v in grow.items()})
