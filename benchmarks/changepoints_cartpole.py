@@ -184,6 +184,21 @@ def _scored(flags) -> dict[str, Any]:
     return changepoint_quality(np.asarray(flags).reshape(-1, np.shape(flags)[-1]))
 
 
+def extension(grid: dict[str, tuple], edges: list[tuple[str, int]]) -> dict[str, list]:
+    """Per knob, the values to add for the best settings on ``edges`` (:func:`_edges`):
+    past each such edge, the nearest value of :data:`EXTENSIONS` not yet passed."""
+    grow: dict[str, list] = {}
+    for knob, side in edges:
+        beyond = [
+            v
+            for v in EXTENSIONS[knob][side]
+            if (v < min(grid[knob]) if side == 0 else v > max(grid[knob]))
+        ]
+        if beyond:
+            grow.setdefault(knob, []).append(beyond[0])
+    return grow
+
+
 def tune_and_evaluate(model, base, tune, evaluation, grid, progress) -> dict[str, Any]:
     """Choose the knobs of ``grid`` on ``tune`` (``(X, U)``) by :func:`_best`, extending
     a grid edge by its next value in :data:`EXTENSIONS` while a best setting lies on it
@@ -196,15 +211,7 @@ def tune_and_evaluate(model, base, tune, evaluation, grid, progress) -> dict[str
         idx, tied = _best(q)
         knobs = {k: grid[k][i] for k, i in zip(grid, idx)}
         edges = _edges(grid, tied)
-        grow = {}
-        for knob, side in edges:
-            beyond = [  # the extension's values past this edge, nearest first
-                v
-                for v in EXTENSIONS[knob][side]
-                if (v < min(grid[knob]) if side == 0 else v > max(grid[knob]))
-            ]
-            if beyond:
-                grow.setdefault(knob, []).append(beyond[0])
+        grow = extension(grid, edges)
         if not grow:
             break
         bigger = math.prod(len(v) + len(grow.get(k, ())) for k, v in grid.items())

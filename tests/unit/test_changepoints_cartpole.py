@@ -66,3 +66,22 @@ def test_only_false_alarms_and_leading_axes():
 def test_overlapping_windows_rejected():
     with pytest.raises(ValueError):
         declaration_quality(_flags(()), (0, 3), 3)
+
+
+def test_a_grid_edge_is_extended_one_value_at_a_time_until_its_values_run_out():
+    from benchmarks.changepoints_cartpole import EXTENSIONS, extension
+
+    grid = {"beta": (0.3, 0.9), "refractory": (3, 5), "m": (1, 4)}
+    assert extension(grid, [("beta", 0), ("refractory", 1)]) == {
+        "beta": [EXTENSIONS["beta"][0][0]],
+        "refractory": [EXTENSIONS["refractory"][1][0]],
+    }
+    # Past values already in the grid: the next one out.
+    grid = {"beta": (0.03, 0.1, 0.3), "refractory": (3, 5, 8, 12)}
+    assert extension(grid, [("beta", 0), ("refractory", 1)]) == {
+        "beta": [0.01],
+        "refractory": [20],
+    }
+    # Nothing past the last value (refractory stops at 20 steps), none below m = 1.
+    grid = {"refractory": (3, 20), "m": (1, 4)}
+    assert extension(grid, [("refractory", 1), ("m", 0)]) == {}
