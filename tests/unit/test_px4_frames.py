@@ -16,18 +16,6 @@ RNG = np.random.default_rng(7)
 S = math.sqrt(0.5)
 
 
-def _rot(q):
-    """Rotation matrix of a w-first unit quaternion (body -> world)."""
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def _random_quats(n):
     q = RNG.normal(size=(n, 4))
     return q / np.linalg.norm(q, axis=1, keepdims=True)
@@ -80,7 +68,7 @@ def test_attitude_hand_cases():
     # Right wing down (FRD roll +20 deg) facing north.
     q_ned = fr.from_rpy_np(np.radians([20.0, 0.0, 0.0]))
     q_enu = fr.quat_ned_frd_to_enu_flu(q_ned)
-    right_enu = _rot(q_enu) @ [0.0, -1.0, 0.0]  # FLU -y = right wing
+    right_enu = fr.to_rotation_matrix_np(q_enu) @ [0.0, -1.0, 0.0]  # FLU -y = right wing
     assert right_enu[0] == pytest.approx(math.cos(math.radians(20)))  # points east ...
     assert right_enu[2] == pytest.approx(-math.sin(math.radians(20)))  # ... and down
 
@@ -90,8 +78,8 @@ def test_attitude_maps_vectors_consistently():
     for q in _random_quats(50):
         q2 = fr.quat_enu_flu_to_ned_frd(q)
         v_flu = RNG.normal(size=3)
-        lhs = _rot(q2) @ fr.flu_to_frd(v_flu)
-        rhs = fr.enu_to_ned(_rot(q) @ v_flu)
+        lhs = fr.to_rotation_matrix_np(q2) @ fr.flu_to_frd(v_flu)
+        rhs = fr.enu_to_ned(fr.to_rotation_matrix_np(q) @ v_flu)
         np.testing.assert_allclose(lhs, rhs, atol=1e-12)
         assert np.linalg.norm(q2) == pytest.approx(1.0)
 

@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from arcade_core import frames as fr
 from arcade_io.vehicle import load_vehicle
 from simulator import GyroConfig, MocapConfig, QuadrotorSim
 from simulator.mjcf import rotor_geometry
@@ -14,18 +15,6 @@ from simulator.rate_controller import Mixer, RateController, RateGains, Setpoint
 
 QUIET_GYRO = GyroConfig(noise_rad_s=0.0, bias_std_rad_s=0.0)
 NO_DROPS = MocapConfig(drop_probability=0.0)
-
-
-def rot(q: np.ndarray) -> np.ndarray:
-    """World-from-body rotation of a w-first unit quaternion."""
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class Cascade:
@@ -48,7 +37,7 @@ class Cascade:
         self.integral[2] += e[2] * dt
         acc = self.kp * e - self.kd * v + self.ki * self.integral + [0.0, 0.0, self.g]
         f = self.mass * acc
-        r = rot(q)
+        r = fr.to_rotation_matrix_np(q)
         z_des = f / np.linalg.norm(f)
         y_des = np.cross(z_des, [1.0, 0.0, 0.0])
         y_des /= np.linalg.norm(y_des)
@@ -332,7 +321,7 @@ def _hover_collective(sim, window=(2.0, 3.0), duration=3.0):
     log = []
     fly(sim, ctrl, sim.state()[0:3].copy(), duration, log=log)
     t = np.array([r[0] for r in log]) - log[0][0]
-    vert = np.array([r[2][0] * rot(r[1][6:10])[2, 2] for r in log])
+    vert = np.array([r[2][0] * fr.to_rotation_matrix_np(r[1][6:10])[2, 2] for r in log])
     vz = np.array([r[1][5] for r in log])
     sel = (t >= window[0]) & (t < window[1])
     return vert[sel].mean(), vz[sel][[0, -1]]
