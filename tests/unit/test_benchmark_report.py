@@ -52,9 +52,9 @@ def test_quadrotor_section_marks_the_best_method_per_cell(tmp_path, dumps):
     )
     text = "\n".join(report_quadrotor.quadrotor_section(path))
     assert "written 2026-01-01 00:00" in text and "test machine" in text
-    assert "| 75 | 0.5 | 0.300 | **0.020** | 0.030 |" in text
-    assert "| 175 | 2.5 | 0.700 | 0.080 | **0.050** |" in text
-    assert "| 75 | 0.5 | 1.30 | **0.00** | inf |" in text  # a trial that never settled
+    assert "| 75 | 0.5 | **0.020** | 0.030 | 0.300 |" in text
+    assert "| 175 | 2.5 | 0.080 | **0.050** | 0.700 |" in text
+    assert "| 75 | 0.5 | **0.00** | inf | 1.30 |" in text  # a trial that never settled
     assert "ours 90 %" in text
     assert "(150 g, 2 m/s" in text and "ours_sigma2 = 0.001" in text  # the tuned knobs
 
@@ -83,10 +83,10 @@ def test_quadrotor_section_gives_the_median_settling_and_the_trials_off_band(tmp
     path = tmp_path / "results.json"
     path.write_text(jsonout.dumps({"cells": cells, "trials": trials, "settings": {"trials": 10}}))
     text = "\n".join(report_quadrotor.quadrotor_section(path))
-    assert "| 175 | 2.5 | **0.30** | inf | 0.38 |" in text  # the mean
+    assert "| 175 | 2.5 | **0.30** | 0.38 | inf |" in text  # the mean
     # the median: six of ten GP trials never settled (null in the file, not zero)
-    assert "| 175 | 2.5 | 0.30 | inf | **0.00** |" in text
-    assert "| 175 | 2.5 | 10 | 10 | **1** |" in text and "(of 10 per cell)" in text
+    assert "| 175 | 2.5 | 0.30 | **0.00** | inf |" in text
+    assert "| 175 | 2.5 | 10 | **1** | 10 |" in text and "(of 10 per cell)" in text
 
 
 def test_quadrotor_section_tables_the_diagnostics_when_the_results_have_them(tmp_path):
@@ -106,8 +106,8 @@ def test_quadrotor_section_tables_the_diagnostics_when_the_results_have_them(tmp
     path = tmp_path / "results.json"
     path.write_text(json.dumps({"cells": cells, "settings": {"trials": 10}}))
     text = "\n".join(report_quadrotor.quadrotor_section(path))
-    assert "| 175 | 2.5 | **0.13** | 0.30 | 0.55 |" in text  # thrust increments
-    assert "| 175 | 2.5 | **0.03** | 0.20 | 0.41 |" in text  # rate increments
+    assert "| 175 | 2.5 | **0.13** | 0.55 | 0.30 |" in text  # thrust increments
+    assert "| 175 | 2.5 | **0.03** | 0.41 | 0.20 |" in text  # rate increments
     assert "| payload (g) | speed (m/s) | ours |" in text and "| 175 | 2.5 | 0.54 |" in text
     # Result files written before the diagnostics existed still give a report without them.
     path.write_text(json.dumps({"cells": [_cell(175, 2.5, "l1", 0.08, 0.3)]}))
@@ -511,3 +511,49 @@ def test_stack_section_says_how_to_produce_missing_results(tmp_path):
 
     text = "\n".join(report_stack.stack_section(tmp_path / "results.json"))
     assert "No results yet: run `arcade eval quadrotor --condition stack --out" in text
+
+
+def test_quadrotor_section_gives_the_paired_differences_to_l1_when_the_flagship_flew(tmp_path):
+    # The paper's condition renders the same verdicts and paired tables as the stack's:
+    # arcade 5 mm better than L1 on each of three seeds, ours 10 mm worse.
+    from benchmarks.quadrotor_protocol import paired_differences
+
+    trials = [
+        {
+            "payload_g": 175,
+            "speed_mps": 2.5,
+            "method": method,
+            "trial": k,
+            "rmse_m": r + 1e-4 * k,
+            "rmse_z_m": z,
+            "settling_s": 0.0,
+        }
+        for k in range(3)
+        for method, r, z in (("l1", 0.010, 0.006), ("arcade", 0.005, 0.003), ("ours", 0.02, 0.016))
+    ]
+    cells = [
+        _cell(175, 2.5, m, rmse, 0.0)
+        for m, rmse in (("l1", 0.0101), ("arcade", 0.0051), ("ours", 0.0201))
+    ]
+    path = tmp_path / "results.json"
+    path.write_text(
+        jsonout.dumps(
+            {
+                "cells": cells,
+                "trials": trials,
+                "paired": paired_differences(trials, vs="l1"),
+                "settings": {"trials": 3},
+                "tuning": {"chosen": {"arcade_lambda": 0.9}, "cell": [150.0, 2.0]},
+            }
+        )
+    )
+    text = "\n".join(report_quadrotor.quadrotor_section(path))
+    assert "`arcade` better in 1, worse in 0, no difference in 0" in text
+    assert "`ours` better in 0, worse in 1, no difference in 0" in text
+    assert "| 175 | 2.5 | **-5.0 [-5.0, -5.0]** | +10.0 [+10.0, +10.0] |" in text
+    assert "| payload (g) | speed (m/s) | arcade | l1 | ours |" in text  # the flagship first
+    assert "`ours_paper` keeps Appendix D's values" in text
+    # Without the flagship (results stored before it), no paired section and no such words.
+    path.write_text(jsonout.dumps({"cells": cells[:1] + cells[2:], "settings": {"trials": 3}}))
+    text = "\n".join(report_quadrotor.quadrotor_section(path))
+    assert "Against L1" not in text and "`arcade` is the product's controller" not in text
