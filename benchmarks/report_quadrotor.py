@@ -1,6 +1,6 @@
 """The BENCHMARKS.md section of the stored quadrotor evaluation (paper Sec. V-B, Tables II, III, V).
 
-The evaluation has its own command (about 25 minutes on 2 cores); the report renders its
+The evaluation has its own command (about 3 hours on 2 cores); the report renders its
 stored results, one table per metric with a cell per payload, speed and method.
 """
 
@@ -120,7 +120,7 @@ def provenance(path: Path, r: dict[str, Any], when: str, command: str) -> str:
 
 
 def quadrotor_section(path: Path) -> list[str]:
-    """Tables of the stored quadrotor evaluation (its own command: ~25 min on 2 cores)."""
+    """Tables of the stored quadrotor evaluation (its own command: ~3 h on 2 cores)."""
     head = [
         "## Quadrotor, the paper's condition (`arcade eval quadrotor --json`; paper Sec. V-B, "
         "Tables II, III, V)",
@@ -132,7 +132,7 @@ def quadrotor_section(path: Path) -> list[str]:
     if not path.is_file():
         return [
             *head,
-            f"No results yet: run `{QUADROTOR_COMMAND}` (about 25 minutes on 2 "
+            f"No results yet: run `{QUADROTOR_COMMAND}` (about 3 hours on 2 "
             "cores), then `make benchmarks`.",
             "",
         ]

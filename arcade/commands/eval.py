@@ -13,7 +13,8 @@ from arcade_io import atomicfile, jsonout
 HELP = (
     "reproduce the paper's evaluations, all methods in one run (cartpole: Table I, Fig. 3, "
     "App. E and the sensitivity to the readings the paper leaves open, minutes on 2 cores; "
-    "quadrotor: Tables II, III, V, Figs. 4-5, ~25 min on 2 cores; "
+    "quadrotor: Tables II, III, V, Figs. 4-5, ~3 h on 2 cores with the flagship and its "
+    "ablations, --methods flies fewer; "
     "changepoints: detection quality on both systems, ~1 h, --quick ~6 min)"
 )
 

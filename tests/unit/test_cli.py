@@ -153,7 +153,7 @@ def test_bench_help_gives_the_durations(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
     out = " ".join(capsys.readouterr().out.split())
-    assert "variants alone 13 min plus the flagship's tuning" in out and "~25 min" in out
+    assert "variants alone 13 min plus the flagship's tuning" in out and "~3 h on 2 cores" in out
 
 
 def test_soak_reports_progress_per_tenth_of_its_chunks():
