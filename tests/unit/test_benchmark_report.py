@@ -457,42 +457,48 @@ def test_discrepancy_section_names_what_was_found_and_what_was_not():
     assert "time_constant_s = 0.06" in text
 
 
+def _paired_trials() -> list[dict]:
+    """Three paired seeds in one cell (175 g, 2.5 m/s): arcade 5 mm better than L1 on
+    each, ours 10 mm worse; horizontally L1 8 mm, arcade 4 mm, ours 12 mm."""
+    return [
+        {
+            "payload_g": 175,
+            "speed_mps": 2.5,
+            "method": method,
+            "trial": k,
+            "rmse_m": r + 1e-4 * k,
+            "rmse_z_m": z,
+            "settling_s": 0.0,
+        }
+        for k in range(3)
+        for method, r, z in (("l1", 0.010, 0.006), ("arcade", 0.005, 0.003), ("ours", 0.02, 0.016))
+    ]
+
+
+def _write_paired(tmp_path, cells: list[dict], **fields):
+    """A results file with :func:`_paired_trials`, their paired differences to L1,
+    ``cells`` and ``fields``; its path."""
+    from benchmarks.quadrotor_protocol import paired_differences
+
+    trials = _paired_trials()
+    path = tmp_path / "results.json"
+    paired = paired_differences(trials, vs="l1")
+    path.write_text(jsonout.dumps({"cells": cells, "trials": trials, "paired": paired, **fields}))
+    return path
+
+
 def test_stack_section_leads_with_paired_differences_to_l1(tmp_path):
     # Three paired seeds in one cell: arcade 5 mm better than L1 each time, ours worse; the
     # section gives the paired intervals in total, horizontally and vertically.
     from benchmarks import report_stack
-    from benchmarks.quadrotor_protocol import paired_differences
 
-    trials = []
-    for k in range(3):
-        for method, r, z in (("l1", 0.010, 0.006), ("arcade", 0.005, 0.003), ("ours", 0.02, 0.016)):
-            r += 1e-4 * k
-            trials.append(
-                {
-                    "payload_g": 175,
-                    "speed_mps": 2.5,
-                    "method": method,
-                    "trial": k,
-                    "rmse_m": r,
-                    "rmse_z_m": z,
-                }
-            )
     cells = []
     for method in ("l1", "arcade", "ours"):
         c = _cell(175, 2.5, method, 0.01, 0.0)
         c.update(thrust_increment_rms_n=0.5, converged_fraction=0.99)
         cells.append(c)
-    path = tmp_path / "results.json"
-    path.write_text(
-        jsonout.dumps(
-            {
-                "cells": cells,
-                "trials": trials,
-                "paired": paired_differences(trials, vs="l1"),
-                "settings": {"trials": 3, "condition": "stack"},
-                "machine": "test machine",
-            }
-        )
+    path = _write_paired(
+        tmp_path, cells, settings={"trials": 3, "condition": "stack"}, machine="test machine"
     )
     text = "\n".join(report_stack.stack_section(path))
     assert "test machine" in text and "3 paired seeds per cell" in text
@@ -516,36 +522,16 @@ def test_stack_section_says_how_to_produce_missing_results(tmp_path):
 def test_quadrotor_section_gives_the_paired_differences_to_l1_when_the_flagship_flew(tmp_path):
     # The paper's condition renders the same verdicts and paired tables as the stack's:
     # arcade 5 mm better than L1 on each of three seeds, ours 10 mm worse.
-    from benchmarks.quadrotor_protocol import paired_differences
 
-    trials = [
-        {
-            "payload_g": 175,
-            "speed_mps": 2.5,
-            "method": method,
-            "trial": k,
-            "rmse_m": r + 1e-4 * k,
-            "rmse_z_m": z,
-            "settling_s": 0.0,
-        }
-        for k in range(3)
-        for method, r, z in (("l1", 0.010, 0.006), ("arcade", 0.005, 0.003), ("ours", 0.02, 0.016))
-    ]
     cells = [
         _cell(175, 2.5, m, rmse, 0.0)
         for m, rmse in (("l1", 0.0101), ("arcade", 0.0051), ("ours", 0.0201))
     ]
-    path = tmp_path / "results.json"
-    path.write_text(
-        jsonout.dumps(
-            {
-                "cells": cells,
-                "trials": trials,
-                "paired": paired_differences(trials, vs="l1"),
-                "settings": {"trials": 3},
-                "tuning": {"chosen": {"arcade_lambda": 0.9}, "cell": [150.0, 2.0]},
-            }
-        )
+    path = _write_paired(
+        tmp_path,
+        cells,
+        settings={"trials": 3},
+        tuning={"chosen": {"arcade_lambda": 0.9}, "cell": [150.0, 2.0]},
     )
     text = "\n".join(report_quadrotor.quadrotor_section(path))
     assert "`arcade` better in 1, worse in 0, no difference in 0" in text
