@@ -46,11 +46,13 @@ FORMAT = 1
 
 
 @functools.cache
-def _sources_digest() -> str:
+def source_digest(tops: tuple[str, ...] = SOURCES, suffixes=(".py", ".toml", ".json")) -> str:
+    """SHA-256 of the names and contents of the files with ``suffixes`` under the
+    folders ``tops`` of the source tree (a key for what was computed from them)."""
     h = hashlib.sha256()
-    for top in SOURCES:
+    for top in tops:
         for path in sorted((ROOT / top).rglob("*")):
-            if path.suffix in (".py", ".toml", ".json") and "__pycache__" not in path.parts:
+            if path.suffix in suffixes and "__pycache__" not in path.parts:
                 h.update(str(path.relative_to(ROOT)).encode())
                 h.update(path.read_bytes())
     return h.hexdigest()
@@ -75,7 +77,7 @@ def _key(name: str, key: str, leaves: Sequence[Any], treedef: Any) -> str:
         f"format {FORMAT}",
         name,
         key,
-        _sources_digest(),
+        source_digest(),
         f"jax {jax.__version__}",
         f"x64 {bool(jax.config.jax_enable_x64)}",
         _signature(leaves, treedef),

@@ -108,6 +108,7 @@ magnitude and the 0.05 m settling time of the z error at the release.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -124,6 +125,7 @@ from arcade_control.knobs import (
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.scenario import Scenario
 from arcade_io import atomicfile
+from benchmarks.eval_progress import Progress
 from benchmarks.quadrotor_flights import Runner
 from benchmarks.quadrotor_protocol import condition, format_paired, paired_differences
 
@@ -210,6 +212,7 @@ def tune(
     compensate_delay: bool = False,
     estimated: bool = False,
     hand_set: dict[str, float] | None = None,
+    done: Progress | None = None,
 ) -> dict[str, Any]:
     """Pick the adaptive methods' knobs on the tuning cell (the flights of
     :data:`TUNING_SEEDS` per grid value, lowest mean tracking RMSE wins; crashes are
@@ -229,7 +232,9 @@ def tune(
     flights' setpoint delay (:class:`Scenario`), compensated by the methods with
     ``compensate_delay``; ``estimated``: the methods fly on the state estimate
     (:meth:`Runner.fly`); ``hand_set``: knobs set by hand for the condition, over
-    :data:`TUNED_DEFAULTS` (:class:`~benchmarks.quadrotor_protocol.Condition`).
+    :data:`TUNED_DEFAULTS` (:class:`~benchmarks.quadrotor_protocol.Condition`); ``done``:
+    the scores an interrupted run of the same settings flew, read back instead of flown
+    again, and where each new score is kept (:mod:`benchmarks.eval_progress`).
     """
     runner = runner or Runner(models)
     scen = Scenario(*TUNING_CELL, command_delay_s=command_delay_s)
@@ -243,6 +248,10 @@ def tune(
         method = TUNING_METHOD[knob]
         setting = {**models.closedloop, knob: value}
         key = (method, *(setting[k] for k in knobs_by_method[method]))
+        part = f"tuning {json.dumps(key)}"
+        if key not in flown and done is not None and done.get(part) is not None:
+            flown[key] = done.get(part)
+            progress(f"tuning {method}: {knob} = {value:g} (flown before: read back)")
         if key not in flown:
             models.closedloop = setting
             progress(f"tuning {method}: {knob} = {value:g}")
@@ -260,6 +269,8 @@ def tune(
                     ]
                 )
             )
+            if done is not None:
+                done.put(part, flown[key])
         return flown[key]
 
     start = {k: TUNING_START[k] for k in grids}
@@ -299,6 +310,7 @@ def run_closedloop(
     seed: int = 0,
     tuning: bool | None = None,
     condition_name: str = "ideal",
+    keep=None,
 ) -> dict[str, Any]:
     """Table III analogue: every (payload, speed) cell x method, ``trials`` seeded flights.
 
@@ -314,6 +326,10 @@ def run_closedloop(
     (per-trial values), "improvement_over_nominal": ..., "settings": ...}``. ``out``: a
     folder for figures and the Fig. 5 time series. ``tuning`` (default: not ``quick``)
     runs :func:`tune` first; otherwise :data:`TUNED_DEFAULTS` (or what ``models`` holds).
+    ``keep``: a folder where each finished part (a tuning score, a cell x method's flights)
+    is kept as it finishes; run again with the same settings and code, the parts found
+    there are read back instead of flown (:mod:`benchmarks.eval_progress`), with the same
+    results as one uninterrupted run.
     """
     from benchmarks.quadrotor_openloop import prepare_models
 
@@ -329,6 +345,20 @@ def run_closedloop(
         models = prepare_models(quick=quick, seed=seed, progress=progress)
     runner = Runner(models)
     tuning = (not quick) if tuning is None else tuning
+    done = Progress(
+        keep,
+        {
+            "condition": condition_name,
+            "quick": quick,
+            "trials": trials,
+            "seed": seed,
+            "methods": list(methods),
+            "cells": [list(c) for c in cells],
+            "knobs": "tuned" if tuning else dict(getattr(models, "closedloop", {})),
+        },
+    )
+    if len(done):
+        progress(f"continuing the run kept in {done.path}: {len(done)} finished parts read back")
     tuning_result = (
         tune(
             models,
@@ -339,6 +369,7 @@ def run_closedloop(
             compensate_delay=cond.compensate_delay,
             estimated=cond.estimated,
             hand_set=dict(cond.hand_set),
+            done=done,
         )
         if tuning
         else None
@@ -351,7 +382,23 @@ def run_closedloop(
             payload_g=float(pay), speed_mps=float(speed), command_delay_s=cond.command_delay_s
         )
         for name in methods:
-            progress(f"{pay:g} g, {speed:g} m/s: {name} ({trials} trial(s))")
+            part = f"{pay:g} g, {speed:g} m/s: {name}"
+            kept = done.get(part)
+            if kept is not None:
+                progress(f"{part} (flown before: read back)")
+                rows.append(kept["row"])
+                per_trial.extend(kept["trials"])
+                if out is not None and (pay, speed) == (175.0, 2.5):  # Fig. 5: fly again
+                    fig5[name] = runner.fly(
+                        name,
+                        scen,
+                        seed=seed * 1000,
+                        estimated=cond.estimated,
+                        compensate_delay=cond.compensate_delay,
+                    )
+                continue
+            progress(f"{part} ({trials} trial(s))")
+            n_before = len(per_trial)
             vals: dict[str, list[float]] = {k: [] for k in (*KEYS, *DIAGNOSTIC_KEYS, "crashed")}
             step_ms = []
             for trial in range(trials):
@@ -390,6 +437,7 @@ def run_closedloop(
                     "step_ms_median": float(np.median(step_ms)),
                 }
             )
+            done.put(part, {"row": rows[-1], "trials": per_trial[n_before:]})
     result: dict[str, Any] = {
         "cells": rows,
         "trials": per_trial,

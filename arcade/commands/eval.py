@@ -39,7 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         help="folder for figures and results.json, created if needed "
-        "(default: $ARCADE_RUNS/<time>-eval-<system>, $ARCADE_RUNS defaulting to runs)",
+        "(default: $ARCADE_RUNS/<time>-eval-<system>, $ARCADE_RUNS defaulting to runs); "
+        "quadrotor: each finished part is kept there as it finishes (progress.jsonl), and "
+        "the same command with the same --out continues an interrupted run",
     )
     p.add_argument("--seed", type=count(0), default=0, help="seed (default: %(default)s)")
     p.add_argument(
@@ -106,8 +108,14 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or new_run_dir(f"eval-{args.system}")
     out.mkdir(parents=True, exist_ok=True)
     progress = lambda m: print(f"[eval] {m}", file=sys.stderr, flush=True)  # noqa: E731
+    from benchmarks.eval_progress import ProgressMismatch
+
     if args.system == "quadrotor":
-        result, table = _quadrotor(args, out, progress)
+        try:
+            result, table = _quadrotor(args, out, progress)
+        except ProgressMismatch as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     elif args.system == "changepoints":
         result, table = _changepoints(args, progress)
     else:
@@ -157,6 +165,7 @@ def _quadrotor(args, out, progress):
         seed=args.seed,
         condition_name=args.condition,
         tuning=False if args.stored_knobs else None,
+        keep=out,
     )
     result["settings"]["knobs"] = "stored" if args.stored_knobs or args.quick else "tuned"
     if args.condition != "ideal" or args.methods is not None:
