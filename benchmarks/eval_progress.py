@@ -9,7 +9,8 @@ code and data they depend on (:data:`SOURCES`). Run again with the same key, the
 parts are read back instead of flown and the results are the same as those of one
 uninterrupted run; with another key the run stops with one error line and the file is
 left as it is (nothing is overwritten). A line cut short by a kill is ignored: its part is
-flown again.
+flown again. Once the run's results are written the file is removed: the same command run
+again flies afresh.
 
 The file is a checkpoint read only by this module: numbers that are not finite (a flight
 that never settled) are kept as ``{"$float": "inf"}``, not as JSON's ``null``, so that a
@@ -42,6 +43,12 @@ SOURCES = (
 )
 _SUFFIXES = (".py", ".toml", ".eqx")
 FILE = "progress.jsonl"
+
+
+def discard(folder: Path | str) -> None:
+    """Remove the kept parts of a run that has finished (its results are written): the
+    same command run again then flies afresh."""
+    (Path(folder) / FILE).unlink(missing_ok=True)
 
 
 class ProgressMismatch(ValueError):

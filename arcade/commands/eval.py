@@ -40,8 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="folder for figures and results.json, created if needed "
         "(default: $ARCADE_RUNS/<time>-eval-<system>, $ARCADE_RUNS defaulting to runs); "
-        "quadrotor: each finished part is kept there as it finishes (progress.jsonl), and "
-        "the same command with the same --out continues an interrupted run",
+        "quadrotor: each finished part is kept there as it finishes (progress.jsonl, "
+        "removed once results.json is written), and the same command with the same --out "
+        "continues an interrupted run",
     )
     p.add_argument("--seed", type=count(0), default=0, help="seed (default: %(default)s)")
     p.add_argument(
@@ -108,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or new_run_dir(f"eval-{args.system}")
     out.mkdir(parents=True, exist_ok=True)
     progress = lambda m: print(f"[eval] {m}", file=sys.stderr, flush=True)  # noqa: E731
-    from benchmarks.eval_progress import ProgressMismatch
+    from benchmarks.eval_progress import ProgressMismatch, discard
 
     if args.system == "quadrotor":
         try:
@@ -125,6 +126,8 @@ def run(args: argparse.Namespace) -> int:
     result["generated"] = time.strftime("%Y-%m-%d %H:%M")
     result["machine"] = machine()
     atomicfile.write_text(out / "results.json", jsonout.dumps(result, indent=2))
+    if args.system == "quadrotor":
+        discard(out)  # finished: the parts kept to continue an interrupted run go
     if args.json:
         print(jsonout.dumps(result))
     else:

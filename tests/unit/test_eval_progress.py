@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from benchmarks import quadrotor_closedloop as qc
-from benchmarks.eval_progress import FILE, Progress, ProgressMismatch
+from benchmarks.eval_progress import FILE, Progress, ProgressMismatch, discard
 
 KEY = {"condition": "ideal", "trials": 2}
 
@@ -45,6 +45,8 @@ def test_another_setting_is_refused_and_nothing_is_overwritten(tmp_path):
         Progress(tmp_path, {**KEY, "trials": 3})
     assert (tmp_path / FILE).read_text() == before
     assert len(Progress(None, KEY)) == 0  # no folder: nothing kept, nothing read
+    discard(tmp_path)  # a finished run: the next one flies afresh, with any settings
+    assert not (tmp_path / FILE).exists() and len(Progress(tmp_path, {**KEY, "trials": 3})) == 0
 
 
 class _Killed(Exception):
