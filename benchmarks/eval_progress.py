@@ -23,11 +23,13 @@ import hashlib
 import json
 import math
 import os
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from arcade_io.atomicfile import write_text
 from arcade_io.traced import source_digest
 
 #: What the flights depend on besides the settings: the code, the vehicle files and the
@@ -86,6 +88,11 @@ class Progress:
     def __init__(self, folder: Path | str | None, key: dict[str, Any]):
         self.path = Path(folder) / FILE if folder is not None else None
         self._parts: dict[str, Any] = {}
+        #: How many parts were read back, and the seconds they took to compute in the runs
+        #: that kept them.
+        self.read_back = 0
+        self.kept_s = 0.0
+        self._since = time.perf_counter()
         self.key = hashlib.sha256(
             json.dumps(
                 {"settings": _encode(key), "sources": source_digest(SOURCES, _SUFFIXES)},
@@ -105,12 +112,19 @@ class Progress:
                     f"{self.path} holds a partial run of other settings or other code: run "
                     "with another --out, or remove the file to start afresh"
                 )
+            good = lines[:1]
             for line in lines[1:]:
                 try:
                     rec = json.loads(line)
                 except json.JSONDecodeError:  # cut short by a kill: flown again
                     break
+                good.append(line)
                 self._parts[rec["part"]] = _decode(rec["value"])
+                self.kept_s += float(rec.get("elapsed_s", 0.0))
+                self.read_back += 1
+            if len(good) < len(lines) or not self.path.read_text().endswith("\n"):
+                # Drop the line cut short, so that the next parts start on a line of their own.
+                write_text(self.path, "".join(f"{line}\n" for line in good))
         else:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._append({"key": self.key, "settings": _encode(key)})
@@ -123,10 +137,13 @@ class Progress:
         return self._parts.get(part)
 
     def put(self, part: str, value: Any) -> None:
-        """Keep ``value`` (JSON-able, numpy and non-finite floats allowed) as finished."""
+        """Keep ``value`` (JSON-able, numpy and non-finite floats allowed) as finished, with
+        the time since the last part was kept (or since this run started)."""
+        now = time.perf_counter()
+        elapsed, self._since = now - self._since, now
         self._parts[part] = _decode(_encode(value))
         if self.path is not None:
-            self._append({"part": part, "value": _encode(value)})
+            self._append({"part": part, "value": _encode(value), "elapsed_s": elapsed})
 
     def _append(self, record: dict[str, Any]) -> None:
         assert self.path is not None

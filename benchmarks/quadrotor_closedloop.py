@@ -357,8 +357,8 @@ def run_closedloop(
             "knobs": "tuned" if tuning else dict(getattr(models, "closedloop", {})),
         },
     )
-    if len(done):
-        progress(f"continuing the run kept in {done.path}: {len(done)} finished parts read back")
+    if done.read_back:
+        progress(f"continuing the run kept in {done.path}: {done.read_back} finished parts")
     tuning_result = (
         tune(
             models,
@@ -473,7 +473,10 @@ def run_closedloop(
             with atomicfile.atomic_open(out / "quadrotor_flights_175g_2.5mps.npz", "wb") as f:
                 np.savez_compressed(f, **series)
         figs.metric_bars_figure(out / "quadrotor_metrics.png", per_trial)
-    result["wall_time_s"] = time.perf_counter() - t_start
+    # A continued run: with the time its parts read back took when they were flown.
+    result["wall_time_s"] = time.perf_counter() - t_start + done.kept_s
+    if done.read_back:
+        result["continued"] = {"parts_read_back": done.read_back, "their_time_s": done.kept_s}
     return result
 
 

@@ -36,6 +36,9 @@ def test_a_line_cut_short_by_a_kill_is_flown_again(tmp_path):
     path.write_text(path.read_text()[:-5])  # the last line cut short
     again = Progress(tmp_path, KEY)
     assert again.get("a") == 1.0 and again.get("b") is None
+    again.put("b", 3.0)  # on a line of its own: a third run reads both
+    third = Progress(tmp_path, KEY)
+    assert third.get("a") == 1.0 and third.get("b") == 3.0 and third.read_back == 2
 
 
 def test_another_setting_is_refused_and_nothing_is_overwritten(tmp_path):
@@ -119,3 +122,7 @@ def test_an_interrupted_run_continues_to_the_results_of_one_run(monkeypatch, tmp
     for key in ("cells", "trials", "paired", "tuning", "settings"):
         assert result[key] == expected[key], key
     assert result["cells"][0]["settling_s"] == math.inf
+    # The run's time counts the parts read back as they took when flown.
+    assert result["continued"]["parts_read_back"] > 3
+    assert result["wall_time_s"] >= result["continued"]["their_time_s"] > 0.0
+    assert "continued" not in expected
