@@ -83,7 +83,7 @@ def _fake_runner(flown: list, kill_after: int | None = None):
     return FakeRunner
 
 
-def _run(monkeypatch, keep, flown, kill_after=None):
+def _run(monkeypatch, keep, flown, kill_after=None, progress=lambda msg: None):
     monkeypatch.setattr(qc, "Runner", _fake_runner(flown, kill_after))
     return qc.run_closedloop(
         trials=2,
@@ -92,6 +92,7 @@ def _run(monkeypatch, keep, flown, kill_after=None):
         models=SimpleNamespace(closedloop={}),
         tuning=True,
         keep=keep,
+        progress=progress,
     )
 
 
@@ -106,16 +107,7 @@ def test_an_interrupted_run_continues_to_the_results_of_one_run(monkeypatch, tmp
         _run(monkeypatch, tmp_path, first, kill_after=tuning_flights + 6)
     second: list = []
     messages = []
-    monkeypatch.setattr(qc, "Runner", _fake_runner(second))
-    result = qc.run_closedloop(
-        trials=2,
-        methods=("l1", "arcade"),
-        cells=[(75.0, 0.5), (175.0, 1.5)],
-        models=SimpleNamespace(closedloop={}),
-        tuning=True,
-        keep=tmp_path,
-        progress=messages.append,
-    )
+    result = _run(monkeypatch, tmp_path, second, progress=messages.append)
     # Only the part cut short is flown again, and the results are those of one run.
     assert second == [("arcade", 175.0, 1.5, s) for s in (0, 1)]
     assert any("continuing the run kept in" in m for m in messages)
