@@ -102,7 +102,8 @@ class Progress:
         if self.path is None:
             return
         if self.path.is_file() and self.path.stat().st_size > 0:
-            lines = self.path.read_text().splitlines()
+            text = self.path.read_text()
+            lines = text.splitlines()
             try:
                 head = json.loads(lines[0])["key"]
             except (json.JSONDecodeError, KeyError, TypeError):
@@ -122,7 +123,7 @@ class Progress:
                 self._parts[rec["part"]] = _decode(rec["value"])
                 self.kept_s += float(rec.get("elapsed_s", 0.0))
                 self.read_back += 1
-            if len(good) < len(lines) or not self.path.read_text().endswith("\n"):
+            if len(good) < len(lines) or not text.endswith("\n"):
                 # Drop the line cut short, so that the next parts start on a line of their own.
                 write_text(self.path, "".join(f"{line}\n" for line in good))
         else:

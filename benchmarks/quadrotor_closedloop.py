@@ -249,8 +249,9 @@ def tune(
         setting = {**models.closedloop, knob: value}
         key = (method, *(setting[k] for k in knobs_by_method[method]))
         part = f"tuning {json.dumps(key)}"
-        if key not in flown and done is not None and done.get(part) is not None:
-            flown[key] = done.get(part)
+        kept = done.get(part) if done is not None and key not in flown else None
+        if kept is not None:
+            flown[key] = kept
             progress(f"tuning {method}: {knob} = {value:g} (flown before: read back)")
         if key not in flown:
             models.closedloop = setting
