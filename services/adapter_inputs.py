@@ -23,6 +23,9 @@ class AppliedInputs:
     whether the vehicle flies the setpoints ``_applied``, all made by its set-up.
     """
 
+    #: Whether the controller has been seen (:meth:`_controller_gone`).
+    _controller_seen = False
+
     def on_command(self, cmd) -> None:
         if cmd.name != "start":
             return
@@ -73,14 +76,25 @@ class AppliedInputs:
     def _controller_alive(self) -> bool:
         return self.bus is None or "controller" in self.bus.alive
 
+    def _controller_gone(self) -> bool:
+        """The controller's liveliness token was seen and is gone now. A controller not
+        seen yet is not gone: its token can reach this process after the first states of a
+        lockstep flight do (on a loaded host)."""
+        alive = self._controller_alive()
+        self._controller_seen = self._controller_seen or alive
+        return self._controller_seen and not alive
+
     def _input_for(self, prev: State) -> Setpoint | None:
         with self._cond:
             if self.args.lockstep:
+                # The simulator steps once the controller answered a state, so the answer
+                # to ``prev`` is on its way unless the controller is gone (asked first: it
+                # notes a controller seen alive).
                 self._cond.wait_for(
                     lambda: (
-                        prev.stamp in self._setpoints
+                        self._controller_gone()
+                        or prev.stamp in self._setpoints
                         or self.stop.is_set()
-                        or not self._controller_alive()
                     ),
                     self.args.step_timeout,
                 )

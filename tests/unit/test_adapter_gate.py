@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
+import time
 from collections import namedtuple
 from types import SimpleNamespace
 from typing import Any
@@ -217,6 +219,34 @@ def test_lockstep_waits_for_the_exact_setpoint_only():
     svc.on_setpoint(setpoint(1.0, 5.0))
     assert svc._input_for(state(1.05, 1)) is None
     assert svc.stats["input_fallback"] == 0
+
+
+def test_lockstep_waits_for_a_controller_whose_token_has_not_arrived_yet():
+    """The first states of a lockstep flight can reach the adapter before the controller's
+    liveliness token does: the setpoint answering the state is waited for (it is on its
+    way: the simulator stepped on it), not given up as if the controller were gone."""
+    svc = make_adapter("--lockstep", "--step-timeout", "30")
+    assert "controller" not in svc.bus.alive
+    late = threading.Timer(0.2, lambda: svc.on_setpoint(setpoint(1.0, 5.0)))
+    late.start()
+    try:
+        t0 = time.monotonic()
+        sp = svc._input_for(state(1.0, 1))
+    finally:
+        late.cancel()
+    assert sp is not None and sp.stamp == 1.0
+    assert time.monotonic() - t0 < 10.0
+
+
+def test_lockstep_gives_up_at_once_on_a_controller_that_is_gone():
+    svc = make_adapter("--lockstep", "--step-timeout", "30")
+    svc.bus.alive.add("controller")
+    svc.on_setpoint(setpoint(1.0, 5.0))
+    assert svc._input_for(state(1.0, 1)) is not None  # seen alive
+    svc.bus.alive.discard("controller")  # its token withdrawn: the process ended
+    t0 = time.monotonic()
+    assert svc._input_for(state(1.05, 2)) is None
+    assert time.monotonic() - t0 < 1.0
 
 
 def test_with_a_link_delay_it_learns_between_the_states_predicted_over_it():
