@@ -341,6 +341,11 @@ def _step(model, theta, tr: _Transitions, a_m, x, T0, F0, U, k, dt):
     return x1, sig[2][1], z1[:, :_NF]
 
 
+#: The entries of ``theta`` that the input-driven states (:func:`filter_states`) depend on:
+#: thrust scale, motor lag, rate lag (delay and filter) and the horizontal CoM offset.
+FILTER_THETA = (7, 8, 9, 10, 11, 12)
+
+
 def predict_windows(
     model: QuadModel, theta: Array, X: Array, U: Array, starts: Array, steps: int, dt: float
 ) -> Array:
@@ -348,6 +353,22 @@ def predict_windows(
     measured ``X[start]``, with the logged inputs (zero-order hold) and the input-driven
     states reconstructed from the whole input history (module docstring)."""
     fil = filter_states(model, theta, U, dt)
+    return predict_windows_from(model, theta, X, U, starts, fil, steps, dt)
+
+
+def predict_windows_from(
+    model: QuadModel,
+    theta: Array,
+    X: Array,
+    U: Array,
+    starts: Array,
+    fil: Filters,
+    steps: int,
+    dt: float,
+) -> Array:
+    """:func:`predict_windows` from the input-driven states ``fil`` of
+    ``filter_states(model, theta', U, dt)`` for any ``theta'`` equal to ``theta`` in
+    :data:`FILTER_THETA` (the same results, bit for bit)."""
     tr = _transitions(model, theta, dt)
     a_m = jnp.exp(-dt / jnp.maximum(theta[8], _TINY_TAU))
 

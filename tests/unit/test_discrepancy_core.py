@@ -151,6 +151,41 @@ def test_rate_lag_delay_is_an_exact_input_shift():
     np.testing.assert_allclose(np.asarray(c)[:, -1, 10:13], np.asarray(f)[:, -1, 10:13], atol=1e-10)
 
 
+def test_input_states_depend_on_the_filter_entries_only_and_are_reused_exactly():
+    """``FILTER_THETA`` lists every entry the input-driven states depend on; the model's
+    predictions, which reuse those states across the other entries, equal the plain
+    prediction bit for bit."""
+    from arcade_core.discrepancy.prediction import DiscrepancyModel
+
+    model = quad_model_from_vehicle(load_vehicle())
+    n, dt = 300, 0.01
+    U = jnp.asarray(_excited_inputs(n))
+    X = np.tile(np.r_[0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0.1, -0.2, 0.05], (n, 1))
+    theta = qm.theta_from_effects(
+        model,
+        {
+            "rate_lag": {"delay_s": 0.02, "time_constant_s": 0.03},
+            "motor_lag": {"time_constant_s": 0.03},
+            "com_offset": {"offset_m": [0.01, -0.02, 0.0]},
+            "rotor_drag": {"d": [0.3, 0.3, 0.1]},
+        },
+    )
+    base = qm.filter_states(model, theta, U, dt)
+    for j in range(theta.size):
+        moved = qm.filter_states(model, theta.at[j].add(1e-3), U, dt)
+        same = all(bool(jnp.all(a == b)) for a, b in zip(base, moved, strict=True))
+        assert same == (j not in qm.FILTER_THETA), j
+    # Against the prediction jitted as one function, on the same padded arguments.
+    dm = DiscrepancyModel("quadrotor", model, {})
+    starts = np.arange(5, 250, 3)
+    for j in (0, 8, 14, 9, 0):  # kept states reused, new ones computed, in any order
+        th = theta.at[j].add(2e-3)
+        got = dm.predict(th, X, np.asarray(U), starts, 4, dt)
+        args, _ = dm.padded(th, X, np.asarray(U), starts)
+        want = np.asarray(dm._predict(*args, steps=4, dt=dt))[: len(starts)]
+        np.testing.assert_array_equal(got, want)
+
+
 def test_hover_is_an_equilibrium_and_rates_follow_setpoints():
     model = quad_model_from_vehicle(load_vehicle())
     theta = qm.theta_off(model)
