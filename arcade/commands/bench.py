@@ -13,13 +13,13 @@ from services.options import METHOD_HELP
 HELP = (
     "benchmarks: adaptation step, MPC solve, bus loop, discrepancy workflow, numerics soak, "
     "fuzzing, quadrotor variants beside ours; `report` regenerates BENCHMARKS.md "
-    "(on 2 cores: report 7-9 min, variants alone 13 min plus the flagship's tuning)"
+    "(on 2 cores: report 7-21 min, variants alone 13 min plus the flagship's tuning)"
 )
 
 #: Wall time of the long benchmarks on 2 CPU cores (BENCHMARKS.md, README).
 DURATIONS = (
     "time on 2 CPU cores: loop ~2.5 min (a 120 s real-time flight after start-up), soak\n"
-    "~3 min, variants 13 min plus the flagship's tuning, report 7-9 min (it re-runs the\n"
+    "~3 min, variants 13 min plus the flagship's tuning, report 7-21 min (it re-runs the\n"
     "latency benchmarks, the soak,\n"
     "the cartpole evaluation and the discrepancy workflow, and renders the stored quadrotor\n"
     "results).\n"
