@@ -85,7 +85,7 @@ class DiscrepancyModel:
         m = len(starts)
         if self.name != "quadrotor":
             return np.asarray(self._predict(*args, steps=steps, dt=dt))[:m]
-        fil = self._input_states(args[1], Up, dt)
+        fil = self._input_states(args[1], args[3], Up, dt)
         return np.asarray(_QUAD_PREDICT_FROM(*args, fil, steps=steps, dt=dt))[:m]
 
     def padded(self, theta, X, U, starts) -> tuple[tuple, np.ndarray]:
@@ -100,17 +100,18 @@ class DiscrepancyModel:
         args = (self.model, jnp.asarray(theta), jnp.asarray(Xp), jnp.asarray(Up), jnp.asarray(sp))
         return args, Up
 
-    def _input_states(self, theta, U: np.ndarray, dt: float) -> quadrotor.Filters:
-        """The quadrotor's input-driven states for ``theta`` and the (padded) inputs ``U``,
-        computed once per value of the entries they depend on."""
+    def _input_states(self, theta, U, U_host: np.ndarray, dt: float) -> quadrotor.Filters:
+        """The quadrotor's input-driven states for ``theta`` and the (padded) inputs ``U``
+        (``U_host``: the same on the host, for the key), computed once per value of the
+        entries they depend on."""
         sub = np.asarray(theta)[list(quadrotor.FILTER_THETA)]
         key = hashlib.blake2b(
-            b"".join([sub.astype(float).tobytes(), np.float64(dt).tobytes(), U.tobytes()]),
+            b"".join([sub.astype(float).tobytes(), np.float64(dt).tobytes(), U_host.tobytes()]),
             digest_size=16,
         ).digest()
         fil = self._filters.get(key)
         if fil is None:
-            fil = _QUAD_FILTERS(self.model, theta, jnp.asarray(U), dt=dt)
+            fil = _QUAD_FILTERS(self.model, theta, U, dt=dt)
             if len(self._filters) >= _FILTERS_KEPT:
                 del self._filters[next(iter(self._filters))]
             self._filters[key] = fil
