@@ -25,6 +25,22 @@ QUADROTOR_COMMAND = f"arcade eval quadrotor --out {QUADROTOR_DIR.as_posix()}"
 METHODS = ORDER
 
 
+def grid_edges(tuning: dict[str, Any]) -> str:
+    """One sentence on the grids' edges of a tuning (:func:`benchmarks.quadrotor_closedloop.tune`):
+    the values added past an edge a best value lay on, and the knobs still on an edge; empty
+    for a run stored before the grids were extended."""
+    if "extended" not in tuning:
+        return ""
+    added = "; ".join(
+        f"{k} {', '.join(f'{v:g}' for v in vs)}" for k, vs in tuning["extended"].items()
+    )
+    edge = ", ".join(tuning.get("still_on_edge", [])) or "none"
+    return (
+        f" Grids extended past an edge a best value lay on: {added or 'none'}; still on an "
+        f"edge (the knob's range exhausted): {edge}."
+    )
+
+
 def cell_table(
     cells: list[dict[str, Any]],
     key: str,
@@ -207,6 +223,7 @@ def quadrotor_section(path: Path) -> list[str]:
                 else ""
             )
             + "; everything else at the paper's values."
+            + grid_edges(tuning)
         )
         lines.append("")
     for imp in r.get("improvement_over_nominal", []):

@@ -16,7 +16,7 @@ from typing import Any
 
 from benchmarks.common import RESULTS
 from benchmarks.report_paired import ORDER, cell_means, paired_lines, with_horizontal
-from benchmarks.report_quadrotor import cell_table, provenance, stored_run
+from benchmarks.report_quadrotor import cell_table, grid_edges, provenance, stored_run
 
 STACK_DIR = RESULTS / "quadrotor_stack"
 STACK_COMMAND = f"arcade eval quadrotor --condition stack --out {STACK_DIR.as_posix()}"
@@ -124,7 +124,7 @@ def stack_section(path: Path) -> list[str]:
             f"evaluated), {len(tuning.get('seeds', []))} flights per grid value: "
             + ", ".join(f"{k} = {v:g}" for k, v in tuning["chosen"].items())
             + "; `arcade_thrust_smooth` is set by hand (not tuned: the tuning scores RMSE "
-            "only); `ours_paper` keeps Appendix D's values.",
+            "only); `ours_paper` keeps Appendix D's values." + grid_edges(tuning),
             "",
         ]
     return lines

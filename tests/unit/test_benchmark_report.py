@@ -543,3 +543,13 @@ def test_quadrotor_section_gives_the_paired_differences_to_l1_when_the_flagship_
     path.write_text(jsonout.dumps({"cells": cells[:1] + cells[2:], "settings": {"trials": 3}}))
     text = "\n".join(report_quadrotor.quadrotor_section(path))
     assert "Against L1" not in text and "`arcade` is the product's controller" not in text
+
+
+def test_tuning_line_names_the_extended_grids_and_the_knobs_still_on_an_edge():
+    tuning = {"extended": {"l1_cutoff": [160.0, 320.0]}, "still_on_edge": ["ours_sigma2"]}
+    line = report_quadrotor.grid_edges(tuning)
+    assert "l1_cutoff 160, 320" in line and "exhausted): ours_sigma2." in line
+    assert "lay on: none; still on an edge (the knob's range exhausted): none." in (
+        report_quadrotor.grid_edges({"extended": {}, "still_on_edge": []})
+    )
+    assert report_quadrotor.grid_edges({"chosen": {}}) == ""  # stored before the extension

@@ -336,6 +336,35 @@ def test_tuning_passes_until_no_knob_changes():
     assert {f[1] for f in flights} == set(cl.TUNING_SEEDS)
 
 
+def test_tuning_extends_a_grid_past_an_edge_its_best_lies_on():
+    """A best value on a grid's edge is not a choice: the grid grows past it, one value of
+    ``TUNING_EXTENSIONS`` at a time, until the best lies inside; a knob whose range runs
+    out first is reported as still on its edge."""
+    models = SimpleNamespace()
+
+    class FakeRunner:  # best beta 0.01 (below the grid's 0.05), best sigma^2 far below 1e-7
+        def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
+            k = models.closedloop
+            rmse = abs(np.log(k["ours_beta"] / 0.01)) + abs(np.log(k["ours_sigma2"] / 1e-12))
+            return SimpleNamespace(metrics={"rmse_m": float(rmse)})
+
+    out = cl.tune(models, runner=FakeRunner(), methods=("ours",))
+    assert out["chosen"] == {"ours_beta": 0.01, "ours_sigma2": 1e-7}
+    assert out["extended"] == {"ours_beta": [0.02, 0.01, 0.005], "ours_sigma2": [1e-5, 1e-6, 1e-7]}
+    assert out["still_on_edge"] == ["ours_sigma2"]
+    assert out["grids"]["ours_beta"] == [*cl.TUNING_GRIDS["ours_beta"], 0.02, 0.01, 0.005]
+    assert set(out["rmse_m"]["ours_beta"]) == {f"{v:g}" for v in out["grids"]["ours_beta"]}
+    # Inside a grid nothing is added; past the knob's range neither.
+    assert cl.beyond_edge("l1_a_s", cl.TUNING_GRIDS["l1_a_s"], -1.0) is None
+    assert cl.beyond_edge("l1_a_s", (-5.0, -0.05), -0.05) == -0.02
+    assert cl.beyond_edge("l1_cutoff_rates", (0.0, 80.0), 0.0) is None
+    assert cl.beyond_edge("arcade_lambda", (0.9, 0.9995, 1.0), 1.0) is None
+    for knob, (below, above) in cl.TUNING_EXTENSIONS.items():  # ordered away from the grid
+        grid = cl.TUNING_GRIDS[knob]
+        assert list(below) == sorted(below, reverse=True) and max(below, default=-1e9) < min(grid)
+        assert list(above) == sorted(above) and min(above, default=1e9) > max(grid)
+
+
 def test_a_run_records_only_the_knobs_of_the_methods_it_flies():
     """A results file's setting names what its flights used, not another method's knobs;
     the beam methods other than the matched variant fly with ours' knobs."""
