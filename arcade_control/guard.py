@@ -47,10 +47,11 @@ def guard_from_metadata(extra: dict[str, Any] | None) -> Guard | None:
     meta = (extra or {}).get("guard")
     if meta is None:
         return None
-    # Through NumPy (cast on the host): a list into jnp.asarray compiles a conversion.
+    # Through NumPy (cast on the host) and device_put: a list into jnp.asarray compiles a
+    # conversion, and so does jnp.asarray of an array (tens of milliseconds each at start-up).
     return Guard(
         *(
-            jnp.asarray(np.asarray(meta[k], dtype=jax.dtypes.canonicalize_dtype(np.float64)))
+            jax.device_put(np.asarray(meta[k], dtype=jax.dtypes.canonicalize_dtype(np.float64)))
             for k in Guard._fields
         )
     )

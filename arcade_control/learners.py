@@ -132,7 +132,11 @@ def initial_learner(name: str, models, dtype, estimated: bool = False) -> Any:
     vld = cast(models.vld)
     theta0 = vld.theta0
     if flagship or BEAM_VARIANTS.get(name, (False, False))[0]:  # intercept: zero column
-        theta0 = jnp.concatenate([theta0, jnp.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
+        # On the host (exact): jnp.concatenate would compile three operations per process.
+        theta0 = np.asarray(theta0)
+        theta0 = jax.device_put(
+            np.concatenate([theta0, np.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
+        )
     beam = beam_at_prior(theta0, cfg)
     traced_cfg = adaptation.AdaptationConfig(
         K=jnp.asarray(cfg.K),

@@ -199,7 +199,11 @@ def reference_arguments(
 ) -> tuple[Any, Array]:
     """The arguments of :func:`flat_reference` that :func:`reference` evaluates."""
     dtype = jnp.result_type(float)
-    times = jnp.arange(n_steps + N + 1, dtype=dtype) * DT + offset_s
+    # On the host, then placed (the same IEEE float operations): eager, the arange, multiply
+    # and add would each compile in every process that builds a reference.
+    times = jax.device_put(
+        np.arange(n_steps + N + 1, dtype=dtype) * dtype.type(DT) + dtype.type(offset_s)
+    )
     path = jax.tree.map(lambda a: jnp.asarray(a, dtype), scenario.path())
     return path, times
 

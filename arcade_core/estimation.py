@@ -32,6 +32,7 @@ jitted call per control period does all the work.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -128,7 +129,13 @@ class Estimate(NamedTuple):
 
 def init(dtype=None) -> FilterState:
     """An uninitialised filter (the first valid frame initialises it)."""
-    dtype = dtype or jnp.result_type(float)
+    return _init(jnp.dtype(dtype or jnp.result_type(float)))
+
+
+# Jitted: one compiled program instead of a dozen eager operations (each a compilation or a
+# cache read in a fresh process, tens of milliseconds) at every start of the estimator.
+@functools.partial(jax.jit, static_argnums=0)
+def _init(dtype) -> FilterState:
     z = jnp.zeros((), dtype)
     i = jnp.zeros((), jnp.int32)
     return FilterState(
@@ -149,7 +156,11 @@ def init(dtype=None) -> FilterState:
 
 def empty_frames(max_frames: int = MAX_FRAMES, dtype=None) -> Frames:
     """An all-invalid batch (fill the first rows, set ``valid``)."""
-    dtype = dtype or jnp.result_type(float)
+    return _empty_frames(int(max_frames), jnp.dtype(dtype or jnp.result_type(float)))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _empty_frames(max_frames: int, dtype) -> Frames:
     return Frames(
         jnp.zeros(max_frames, dtype),
         jnp.zeros((max_frames, 3), dtype),

@@ -157,7 +157,10 @@ def quadrotor_mpc_config(
     ``params`` is accepted for symmetry with the model; the gains do not depend on it.
     """
     del params
-    arr = lambda v: jnp.asarray(v, dtype=dtype or float)  # noqa: E731
+    # Cast on the host, then placed: jnp.asarray would compile a conversion per shape in
+    # every process that builds the config (the same IEEE rounding either way).
+    host = jax.dtypes.canonicalize_dtype(dtype or float)
+    arr = lambda v: jax.device_put(np.asarray(v, dtype=host))  # noqa: E731
     cfg = dict(
         Q=arr([40, 40, 60, 10, 10, 10, 1, 10, 10, 10, 10, 10, 10]),
         P=arr([400, 400, 600, 20, 20, 20, 1, 10, 10, 10, 10, 10, 10]),

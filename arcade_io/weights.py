@@ -126,7 +126,9 @@ def load_model(
     dtype = jax.dtypes.canonicalize_dtype(jnp.dtype(header["dtype"]))
     # Shapes and dtypes only: initialising the weights that the file replaces costs about
     # half a second of eager operations in every process that loads a model.
-    skeleton = eqx.filter_eval_shape(VLD, jax.random.PRNGKey(0), config, dtype=dtype)
+    # The key is abstract too: a concrete one would run two eager operations.
+    key = jax.ShapeDtypeStruct((2,), jnp.uint32)
+    skeleton = eqx.filter_eval_shape(VLD, key, config, dtype=dtype)
     stream = io.BytesIO(payload)
     try:
         model = eqx.tree_deserialise_leaves(stream, skeleton, filter_spec=_host_cast_leaf)
@@ -141,10 +143,11 @@ def _host_cast_leaf(f: Any, x: Any) -> Any:
     """equinox's default leaf reader, except that an array is cast to JAX's precision
     (float64 to float32 with x64 off) on the host: ``jnp.load`` casts on the device, which
     lowers and compiles one conversion per leaf shape in every process that loads a model.
-    The same rounding (IEEE round to nearest) either way."""
+    The same rounding (IEEE round to nearest) either way. ``device_put``, not
+    ``jnp.asarray``, which compiles a copy per leaf shape too (about 10 ms each)."""
     if isinstance(x, (jax.Array, jax.ShapeDtypeStruct)):
         a = np.load(f)
-        return jnp.asarray(a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False))
+        return jax.device_put(a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False))
     return eqx.default_deserialise_filter_spec(f, x)
 
 

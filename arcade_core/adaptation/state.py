@@ -7,6 +7,7 @@ predictive and :class:`UpdateInfo` the diagnostics of one update.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -135,14 +136,25 @@ def init(theta0: ArrayLike, config: AdaptationConfig) -> BeamState:
     share one covariance per hypothesis (exact, see the module notes); a ``(d,)`` one
     gives per-output covariances.
     """
+    theta0, tau2, sigma2 = (
+        x if hasattr(x, "shape") or isinstance(x, float | int) else jnp.asarray(x)
+        for x in (theta0, config.tau2, config.sigma2)
+    )  # nested sequences: arrays, as jit takes them
+    K = int(config.K)
+    d_cov = 1 if jnp.ndim(sigma2) == 0 else jnp.shape(theta0)[0]
+    return _init(theta0, tau2, sigma2, K, d_cov)
+
+
+# Jitted: one compiled program instead of a dozen eager operations (each a compilation or a
+# cache read in a fresh process, tens of milliseconds) wherever a service starts a beam.
+@functools.partial(jax.jit, static_argnums=(3, 4))
+def _init(theta0: ArrayLike, tau2: ArrayLike, sigma2: ArrayLike, K: int, d_cov: int) -> BeamState:
     theta0 = jnp.asarray(theta0)
     if not jnp.issubdtype(theta0.dtype, jnp.floating):
         theta0 = theta0.astype(jnp.result_type(float))
     dtype = theta0.dtype
     d, l = theta0.shape
-    K = int(config.K)
-    d_cov = 1 if jnp.ndim(config.sigma2) == 0 else d
-    tau = jnp.sqrt(jnp.asarray(config.tau2, dtype))
+    tau = jnp.sqrt(jnp.asarray(tau2, dtype))
     eye = jnp.eye(l, dtype=dtype) * tau
     scores = jnp.full((K,), -jnp.inf, dtype).at[0].set(0.0)
     return BeamState(
@@ -154,7 +166,7 @@ def init(theta0: ArrayLike, config: AdaptationConfig) -> BeamState:
         last_changepoint=jnp.full((K,), -1, jnp.int32),
         is_changepoint=jnp.zeros((K,), bool),
         step=jnp.zeros((), jnp.int32),
-        sigma2=_noise(config.sigma2, d, dtype),
+        sigma2=_noise(sigma2, d, dtype),
         prior_mean=theta0,
     )
 

@@ -41,8 +41,10 @@ channel is estimated always but only applied when ``rotational`` is set.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -78,7 +80,13 @@ class L1State(NamedTuple):
 
 def init(params: L1Params, dtype: jnp.dtype | None = None) -> L1State:
     """Zero estimates; the first :func:`update` call synchronises the predictor."""
-    dtype = jnp.zeros(()).dtype if dtype is None else dtype
+    return _init(params, jnp.dtype(jnp.result_type(float) if dtype is None else dtype))
+
+
+# Jitted: one compiled program instead of a dozen eager operations (each a compilation or a
+# cache read in a fresh process, tens of milliseconds) wherever a service starts one.
+@functools.partial(jax.jit, static_argnums=1)
+def _init(params: L1Params, dtype) -> L1State:
     z3 = jnp.zeros(3, dtype)
     params = L1Params(*(jnp.asarray(p, dtype) for p in params))
     return L1State(
