@@ -13,12 +13,15 @@ detection that is not a hit) and per 100 *eligible* steps
 (``false_alarms_per_100_eligible_steps``: detections outside every hit window over the
 steps outside every hit window, where a detection can only be false). Beside each score,
 ``random_baseline``: the expected scores of a detector that flags every step independently
-with the same probability as the scored one (its flag rate), in closed form.
+with the same probability as the scored one (its flag rate), in closed form. And, for the
+testbed's one-period push, ``known_dynamics_bound``: the highest hit rate any detector can
+have at the scored one's false-alarm rate (:func:`push_detection_bound`).
 """
 
 from __future__ import annotations
 
 import itertools
+from statistics import NormalDist
 from typing import Any
 
 import numpy as np
@@ -91,9 +94,37 @@ def random_baseline(flag_rate: float, T: int, steps=cd.INTERVENTION_STEPS, windo
     }
 
 
-def changepoint_quality(flags: np.ndarray, steps=cd.INTERVENTION_STEPS, window=HIT_WINDOW):
+def push_detection_bound(fa_per_step: float, push_snr: float, window: int = HIT_WINDOW) -> float:
+    """The highest hit rate of any detector of a one-period push of ``push_snr`` standard
+    deviations of the disturbance force, at ``fa_per_step`` false alarms per eligible step.
+
+    The detector is given everything: the true dynamics, the disturbance's distribution and
+    the push's direction. The states are exact, so the force of every step (the input, the
+    disturbance and the push) is read from one transition; the push is then a shift of
+    ``push_snr`` in one standard normal draw, and the most powerful test at level ``a``
+    (Neyman-Pearson) flags ``e > Phi^-1(1 - a)``: it hits at the push's step with
+    ``Phi(push_snr - Phi^-1(1 - a))``, and at one of the ``window`` steps after it by chance
+    (rate ``a`` each). A detector that does not know the direction, or the dynamics, hits
+    less. Left out: the interventions' mass change, whose own signal at the testbed's
+    forces is about a tenth of a standard deviation per step."""
+    a = float(fa_per_step)
+    if not 0.0 < a < 1.0:
+        return 1.0 if a >= 1.0 else 0.0
+    n = NormalDist()
+    at_push = n.cdf(push_snr - n.inv_cdf(1.0 - a))
+    return 1.0 - (1.0 - at_push) * (1.0 - a) ** window
+
+
+def changepoint_quality(
+    flags: np.ndarray,
+    steps=cd.INTERVENTION_STEPS,
+    window=HIT_WINDOW,
+    push_snr: float | None = None,
+):
     """:func:`declaration_quality` of ``flags (n, T)`` as plain floats, with the hit rate
-    per intervention step and the :func:`random_baseline` at the same flag rate."""
+    per intervention step, the :func:`random_baseline` at the same flag rate and, given the
+    push in standard deviations of the disturbance (``push_snr``, a one-period push), the
+    :func:`push_detection_bound` at the same false-alarm rate."""
     flags = np.asarray(flags, bool)
     steps = _within(steps, flags.shape[-1])
     q = declaration_quality(flags, steps, window)
@@ -102,6 +133,12 @@ def changepoint_quality(flags: np.ndarray, steps=cd.INTERVENTION_STEPS, window=H
         str(t): float(h) for t, h in zip(steps, q["hit_rate_per_intervention"])
     }
     out["random_baseline"] = random_baseline(float(flags.mean()), flags.shape[-1], steps, window)
+    if push_snr is not None:
+        fa = out["false_alarms_per_100_eligible_steps"] / 100.0
+        out["known_dynamics_bound"] = {
+            "push_snr": float(push_snr),
+            "hit_rate": push_detection_bound(fa, push_snr, window),
+        }
     return out
 
 
@@ -119,13 +156,22 @@ def quality_line(label: str, q: dict[str, Any]) -> str:
     def pct(v):
         return "n/a" if v is None or not np.isfinite(v) else f"{v:.0%}"
 
+    bound = q.get("known_dynamics_bound")
     return (
         f"{label}: hit rate within {HIT_WINDOW} steps {q['hit_rate']:.0%} (per intervention "
         + ", ".join(f"step {k} {v:.0%}" for k, v in q["hit_rate_per_intervention"].items())
         + f"), precision {pct(q['precision'])}, false alarms "
         f"{q['false_alarms_per_100_eligible_steps']:.2f} per 100 eligible steps; a random "
         f"detector at the same flag rate ({rb['flag_rate']:.3f}/step): hit rate "
-        f"{rb['hit_rate']:.0%}, precision {pct(rb['precision'])}."
+        f"{rb['hit_rate']:.0%}, precision {pct(rb['precision'])}"
+        + (
+            f"; a detector of the push that knows the true dynamics, the disturbance and "
+            f"the push's direction hits at most {bound['hit_rate']:.0%} at that false-alarm "
+            f"rate (the push: {bound['push_snr']:g} standard deviations of the disturbance "
+            "force, one period)."
+            if bound
+            else "."
+        )
     )
 
 

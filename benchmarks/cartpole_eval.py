@@ -212,7 +212,9 @@ def evaluate(
     if det is not None:
         det_out = beam_batch(m.vld, cfg._replace(**det), X, U)
         runs["ours_detection_tuned"] = (det_out[0], None)
-        detection["changepoints"] = changepoint_quality(np.asarray(det_out[2]))
+        detection["changepoints"] = changepoint_quality(
+            np.asarray(det_out[2]), push_snr=s.push_snr()
+        )
     one, hor = score(runs, online_data.X)
 
     result: dict[str, Any] = {
@@ -223,8 +225,8 @@ def evaluate(
         "ratios": ratios(one),
         "ratios_horizon": ratios(hor) if hor else {},
         "ratios_tuned": ratios(one, "ours_tuned", TUNED_RATIOS),
-        "changepoints": changepoint_quality(np.asarray(paper_out[2])),
-        "changepoints_tuned": changepoint_quality(np.asarray(ours_out[2])),
+        "changepoints": changepoint_quality(np.asarray(paper_out[2]), push_snr=s.push_snr()),
+        "changepoints_tuned": changepoint_quality(np.asarray(ours_out[2]), push_snr=s.push_snr()),
         "tuning": tuned,
         "detection_tuning": detection,
         "paper_config": {"K": cfg.K, "beta": cfg.beta, "pi": cfg.pi, "tau2": cfg.tau2},

@@ -42,7 +42,7 @@ def _row(s: EvalSettings, m: OfflineModels, horizons) -> dict[str, Any]:
     row: dict[str, Any] = {
         "online": {k: stat(v) for k, v in one.items()},
         "ratios": ratios(one),
-        "changepoints": changepoint_quality(np.asarray(beam[2])),
+        "changepoints": changepoint_quality(np.asarray(beam[2]), push_snr=s.push_snr()),
     }
     for h in horizons:
         hor = {k: horizon_crmse(np.asarray(v[1])[:, :, :h], data.X) for k, v in runs.items()}

@@ -76,6 +76,13 @@ class EvalSettings:
             raise ValueError(f"noise reading must be one of {sorted(cd.NOISE_READINGS)}")
         return cd.TRUE_PARAMS._replace(dist_std=cd.NOISE_READINGS[self.noise])
 
+    def push_snr(self) -> float | None:
+        """The one-period push in standard deviations of this reading's disturbance force
+        (``None`` for a longer or held push, for which no bound is given)."""
+        if self.pulse_steps != 1:
+            return None
+        return cd.PUSH_N / float(self.true_params().dist_std)
+
     def schedule(self) -> cd.Schedule:
         """The online scenario's interventions of this reading (``pulse_steps``)."""
         return cd.intervention_schedule(self.T_online, pulse_steps=self.pulse_steps)

@@ -179,9 +179,10 @@ def _summary(q: dict[str, np.ndarray], idx=()) -> dict[str, Any]:
     return out
 
 
-def _scored(flags) -> dict[str, Any]:
+def _scored(flags, push_snr: float | None = None) -> dict[str, Any]:
     """:func:`changepoint_quality` of the declarations ``flags (n, T)``."""
-    return changepoint_quality(np.asarray(flags).reshape(-1, np.shape(flags)[-1]))
+    flags = np.asarray(flags).reshape(-1, np.shape(flags)[-1])
+    return changepoint_quality(flags, push_snr=push_snr)
 
 
 def extension(grid: dict[str, tuple], edges: list[tuple[str, int]]) -> dict[str, list]:
@@ -199,7 +200,9 @@ def extension(grid: dict[str, tuple], edges: list[tuple[str, int]]) -> dict[str,
     return grow
 
 
-def tune_and_evaluate(model, base, tune, evaluation, grid, progress) -> dict[str, Any]:
+def tune_and_evaluate(
+    model, base, tune, evaluation, grid, progress, push_snr: float | None = None
+) -> dict[str, Any]:
     """Choose the knobs of ``grid`` on ``tune`` (``(X, U)``) by :func:`_best`, extending
     a grid edge by its next value in :data:`EXTENSIONS` while a best setting lies on it
     (:func:`_edges`), and score them on ``evaluation``."""
@@ -224,7 +227,7 @@ def tune_and_evaluate(model, base, tune, evaluation, grid, progress) -> dict[str
             extended[k] = sorted(extended.get(k, []) + v)
     single = {k: (v,) for k, v in knobs.items()}
     flags = grid_flags(model, base, *evaluation, single).reshape(evaluation[1].shape[:2])
-    result = _scored(flags)
+    result = _scored(flags, push_snr)
     result["knobs"] = {
         "K": int(base.K),
         "score": base.score,
@@ -277,14 +280,15 @@ def cartpole_detection(quick: bool = False, progress=lambda msg: None) -> dict[s
 
     progress("paper settings: tuning m, threshold, refractory")
     fixed = {k: (float(getattr(paper, k)),) for k in BEAM_GRID}
-    paper_res = tune_and_evaluate(vld, joint, tu, ev, {**fixed, **DECLARATION_GRID}, progress)
+    snr = s.push_snr()
+    paper_res = tune_and_evaluate(vld, joint, tu, ev, {**fixed, **DECLARATION_GRID}, progress, snr)
     progress("headline: tuning beta, pi, tau2, sigma2, m, threshold, refractory")
-    head = tune_and_evaluate(vld, joint, tu, ev, {**BEAM_GRID, **DECLARATION_GRID}, progress)
+    head = tune_and_evaluate(vld, joint, tu, ev, {**BEAM_GRID, **DECLARATION_GRID}, progress, snr)
 
     progress("MAP flags (score algorithm1, paper config)")
     flags = np.asarray(beam_batch(vld, paper, *ev)[2])
     map_res = {
-        **_scored(flags),
+        **_scored(flags, snr),
         "knobs": {"K": paper.K, "score": paper.score, **{k: getattr(paper, k) for k in BEAM_GRID}},
     }
     return {

@@ -72,6 +72,7 @@ def test_result_has_the_documented_shape(result):
             "f1",
             "hit_rate_per_intervention",
             "random_baseline",
+            "known_dynamics_bound",
         }
 
 
@@ -355,3 +356,29 @@ def test_latent_ablation_reuses_the_main_model_and_trains_the_others():
         assert r["ratio_ours_no_cp"] == pytest.approx(r["ours"]["mean"] / r["ours_no_cp"]["mean"])
         assert 0.0 <= r["hit_rate"] <= 1.0 and math.isfinite(r["offline_only"]["mean"])
     assert rows[1]["ours"]["mean"] != rows[0]["ours"]["mean"]
+
+
+def test_the_push_detection_bound_is_the_most_powerful_test_s_hit_rate():
+    """Monte Carlo: a one-sided test on the push step's standard normal draw, shifted by the
+    push, at level ``a``, plus chance flags in the window after it."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    snr, a, window, n = 4.0, 0.005, cdet.HIT_WINDOW, 400_000
+    e = rng.standard_normal((n, window + 1))
+    e[:, 0] += snr
+    c = np.quantile(rng.standard_normal(2_000_000), 1.0 - a)
+    hit = (e > c).any(1).mean()
+    assert abs(cdet.push_detection_bound(a, snr, window) - hit) < 3e-3
+    assert cdet.push_detection_bound(0.0, snr) == 0.0 and cdet.push_detection_bound(1.0, snr) == 1.0
+    # More false alarms allowed, more hits; a larger push, more hits.
+    assert cdet.push_detection_bound(0.01, 4.0) > cdet.push_detection_bound(0.002, 4.0)
+    assert cdet.push_detection_bound(0.002, 5.0) > cdet.push_detection_bound(0.002, 4.0)
+    # Scored flags carry the bound at their own false-alarm rate (given the push).
+    flags = np.zeros((2, 120), bool)
+    flags[:, [0, 41, 60]] = True
+    q = cdet.changepoint_quality(flags, push_snr=4.0)
+    fa = q["false_alarms_per_100_eligible_steps"] / 100.0
+    assert q["known_dynamics_bound"]["hit_rate"] == cdet.push_detection_bound(fa, 4.0)
+    assert "known_dynamics_bound" not in cdet.changepoint_quality(flags)
+    assert ce.EvalSettings().push_snr() == 4.0 and ce.EvalSettings(pulse_steps=2).push_snr() is None
