@@ -22,6 +22,7 @@ from types import SimpleNamespace
 from typing import Any, NamedTuple
 
 from arcade_io import jsonout
+from benchmarks import quadrotor_tuning as qt
 from benchmarks.common import machine
 from benchmarks.quadrotor_protocol import LINK_DELAY_S
 
@@ -150,9 +151,8 @@ def _run_header(trials: int) -> dict[str, Any]:
 
 def _tuning_flights() -> dict[str, Any]:
     """The tuning cell and its seeds, as a stored run records the flights it scored there."""
-    from benchmarks import quadrotor_closedloop as qc
 
-    return {"cell": list(qc.TUNING_CELL), "seeds": list(qc.TUNING_SEEDS)}
+    return {"cell": list(qt.TUNING_CELL), "seeds": list(qt.TUNING_SEEDS)}
 
 
 #: Per-cell means of the runs on the state estimate.
@@ -281,7 +281,7 @@ def least_worst_loss(scores: dict[str, dict[float, float]]) -> float:
 def estimator_tuning(trials: int = 3) -> dict[str, Any]:
     """The estimator's jerk density, tuned for the closed loop like every other knob.
 
-    On the tuning cell (:data:`benchmarks.quadrotor_closedloop.TUNING_CELL`, its four
+    On the tuning cell (:data:`benchmarks.quadrotor_tuning.TUNING_CELL`, its four
     seeds), L1 and ours with the stack's knobs fly on the state estimate with each value of
     :data:`JERK_PSD_GRID`; :func:`least_worst_loss` picks the value. Then both fly the nine
     cells (the evaluation's seeds ``0 .. trials-1``, the stored knobs otherwise) with
@@ -289,12 +289,11 @@ def estimator_tuning(trials: int = 3) -> dict[str, Any]:
     settling time and changepoint rate per cell (~6 min on a 2-core CPU)."""
     from arcade_control.scenario import Scenario
     from arcade_core import estimation
-    from benchmarks import quadrotor_closedloop as qc
     from benchmarks.quadrotor_flights import Runner
 
     t0 = time.perf_counter()
     m = models()
-    scen = Scenario(payload_g=qc.TUNING_CELL[0], speed_mps=qc.TUNING_CELL[1])
+    scen = Scenario(payload_g=qt.TUNING_CELL[0], speed_mps=qt.TUNING_CELL[1])
     scores: dict[str, dict[float, float]] = {name: {} for name, *_ in ESTIMATOR_METHODS}
     for psd in JERK_PSD_GRID:
         runner = Runner(m, filter_config=estimation.FilterConfig(jerk_psd=psd))
@@ -302,7 +301,7 @@ def estimator_tuning(trials: int = 3) -> dict[str, Any]:
             m.closedloop = dict(knobs)
             rmse = [
                 runner.fly(method, scen, seed=sd, estimated=True).metrics["rmse_m"]
-                for sd in qc.TUNING_SEEDS
+                for sd in qt.TUNING_SEEDS
             ]
             scores[name][psd] = sum(rmse) / len(rmse)
         _progress(
@@ -374,7 +373,6 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
     CPU)."""
     from arcade_control.knobs import knobs_of
     from arcade_control.scenario import Scenario
-    from benchmarks import quadrotor_closedloop as qc
     from benchmarks.quadrotor_flights import Runner
 
     t0 = time.perf_counter()
@@ -382,10 +380,10 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
     runner = Runner(m)
     sensitivity: dict[str, list[float]] = {name: [] for name, *_ in DELAY_METHODS}
     for delay in DELAY_GRID_S:
-        scen = Scenario(*qc.TUNING_CELL, command_delay_s=delay)
+        scen = Scenario(*qt.TUNING_CELL, command_delay_s=delay)
         for name, method, knobs in DELAY_METHODS:
             m.closedloop = dict(knobs)
-            rmse = [runner.fly(method, scen, seed=sd).metrics["rmse_m"] for sd in qc.TUNING_SEEDS]
+            rmse = [runner.fly(method, scen, seed=sd).metrics["rmse_m"] for sd in qt.TUNING_SEEDS]
             sensitivity[name].append(sum(rmse) / len(rmse))
         _progress(
             f"tuning cell, delay {1e3 * delay:g} ms: RMSE "
@@ -394,7 +392,7 @@ def command_delay(trials: int = 3) -> dict[str, Any]:
     tuned = {}
     for compensate in (False, True):
         m.closedloop = {}
-        tuned[compensate] = qc.tune(
+        tuned[compensate] = qt.tune(
             m, _progress, runner, METHODS, PX4_LIKE_DELAY_S, compensate_delay=compensate
         )
     stored = knobs_of({}, METHODS)
@@ -448,7 +446,6 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
     Mean RMSE, z-RMSE, settling time and changepoint rate (~40 min on a 2-core CPU)."""
     from arcade_control.knobs import knobs_of
     from arcade_control.scenario import Scenario
-    from benchmarks import quadrotor_closedloop as qc
     from benchmarks.quadrotor_flights import Runner
 
     t0 = time.perf_counter()
@@ -466,18 +463,18 @@ def link_delay(trials: int = 3) -> dict[str, Any]:
                     for k in keys:
                         row[k].append(sensitivity[name][k][-1])
                     continue
-                scen = Scenario(*qc.TUNING_CELL, command_delay_s=delay)
+                scen = Scenario(*qt.TUNING_CELL, command_delay_s=delay)
                 flights = [
                     runner.fly(
                         method, scen, seed=sd, estimated=True, compensate_delay=compensate
                     ).metrics
-                    for sd in qc.TUNING_SEEDS
+                    for sd in qt.TUNING_SEEDS
                 ]
                 for k in keys:
                     row[k].append(sum(f[k] for f in flights) / len(flights))
                 _progress(f"{key}, delay {1e3 * delay:g} ms: RMSE {row['rmse_m'][-1]:.4f}")
     m.closedloop = {}
-    tuning = qc.tune(
+    tuning = qt.tune(
         m,
         _progress,
         runner,

@@ -18,8 +18,8 @@ from arcade_control.scenario import Scenario, reference
 from arcade_control.step import Carry
 from arcade_core import adaptation
 from arcade_io.weights import load_model
-from benchmarks import quadrotor_closedloop as cl
 from benchmarks import quadrotor_flights as flights
+from benchmarks import quadrotor_tuning as qt
 from benchmarks.quadrotor_flights import (
     DIAG_CHANGEPOINT,
     DIAG_CONVERGED,
@@ -206,7 +206,9 @@ class _RecordingRunner:
     def fly(self, method, scenario, seed=0, estimated=False, compensate_delay=False):
         self.flown.append((method, scenario, compensate_delay))
         rmse = 0.01 + scenario.command_delay_s + 0.1 * compensate_delay
-        return SimpleNamespace(metrics={"rmse_m": rmse, "rmse_z_m": rmse})
+        return SimpleNamespace(
+            metrics={"rmse_m": rmse, "rmse_z_m": rmse, "thrust_increment_rms_n": 0.1}
+        )
 
 
 def test_the_delay_diagnostic_flies_each_row_with_its_setpoint_delay(monkeypatch):
@@ -234,7 +236,7 @@ def test_the_delay_diagnostic_flies_each_row_with_its_setpoint_delay(monkeypatch
     for compensate in (False, True):
         tuning = _RecordingRunner()
         models = SimpleNamespace(closedloop={})
-        cl.tune(
+        qt.tune(
             models,
             runner=tuning,
             methods=("l1",),
@@ -243,7 +245,7 @@ def test_the_delay_diagnostic_flies_each_row_with_its_setpoint_delay(monkeypatch
         )
         scenarios = {s for _, s, _ in tuning.flown}
         assert {s.command_delay_s for s in scenarios} == {0.02}
-        assert {(s.payload_g, s.speed_mps) for s in scenarios} == {cl.TUNING_CELL}
+        assert {(s.payload_g, s.speed_mps) for s in scenarios} == {qt.TUNING_CELL}
         assert {c for *_, c in tuning.flown} == {compensate}
 
 
@@ -267,6 +269,7 @@ def test_the_link_diagnostic_flies_the_stack_on_the_estimate_with_and_without_co
             else:  # ... and keeps ours at the stack's knobs
                 rmse += 0.001 * sum(knobs[k] != v for k, v in qv.STACK_KNOBS.items())
             metrics = {"rmse_m": rmse, "rmse_z_m": rmse / 2, "changepoint_rate": 0.1}
+            metrics["thrust_increment_rms_n"] = 0.1
             return SimpleNamespace(metrics={**metrics, "settling_s": 0.0})
 
     monkeypatch.setattr(flights, "Runner", Recorder)
@@ -276,8 +279,8 @@ def test_the_link_diagnostic_flies_the_stack_on_the_estimate_with_and_without_co
     # The grid on the tuning cell: each delay without compensation, each non-zero one with
     # it (0 ms is one flight), ours at the stack's knobs.
     n = len(qv.LINK_DELAYS_S)
-    grid = flown[: 2 * (2 * n - 1) * len(cl.TUNING_SEEDS)]
-    assert {(s.payload_g, s.speed_mps) for _, _, s, *_ in grid} == {cl.TUNING_CELL}
+    grid = flown[: 2 * (2 * n - 1) * len(qt.TUNING_SEEDS)]
+    assert {(s.payload_g, s.speed_mps) for _, _, s, *_ in grid} == {qt.TUNING_CELL}
     assert all(f[1] == qv.STACK_KNOBS for f in grid if f[0] == "ours")
     sens = r["sensitivity"]
     assert sens["delays_s"] == list(qv.LINK_DELAYS_S)

@@ -28,7 +28,7 @@ from arcade_control.step import mpc_config
 from arcade_core import encoder
 from arcade_core import frames as quat
 from arcade_io.weights import load_model, read_header
-from benchmarks import quadrotor_closedloop as cl
+from benchmarks import quadrotor_tuning as qt
 from benchmarks.quadrotor_flights import (
     Runner,
 )
@@ -266,10 +266,13 @@ def test_tuning_flies_only_the_methods_asked_for():
         def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             flown.add(method)
             s2 = models.closedloop["ours_matched_sigma2"]
-            return SimpleNamespace(metrics={"rmse_m": abs(np.log(s2 / 1e-2))})
+            return SimpleNamespace(
+                metrics={"rmse_m": abs(np.log(s2 / 1e-2)), "thrust_increment_rms_n": 0.1}
+            )
 
-    out = cl.tune(models, runner=FakeRunner(), methods=VARIANTS)
-    assert flown == set(VARIANTS) == {"ours_matched", "arcade"}
+    out = qt.tune(models, runner=FakeRunner(), methods=VARIANTS)
+    # And L1 at its stored knobs: the flagship's smoothness reference.
+    assert flown == {*VARIANTS, "l1"} == {"ours_matched", "arcade", "l1"}
     assert set(out["chosen"]) == {
         "ours_matched_beta",
         "ours_matched_sigma2",
@@ -324,16 +327,16 @@ def test_tuning_passes_until_no_knob_changes():
                 rmse = abs(np.log(k["ours_beta"] / want)) + abs(np.log(k["ours_sigma2"] / 1e-3))
             else:
                 rmse = 1.0
-            return SimpleNamespace(metrics={"rmse_m": float(rmse)})
+            return SimpleNamespace(metrics={"rmse_m": float(rmse), "thrust_increment_rms_n": 0.1})
 
-    out = cl.tune(models, runner=FakeRunner())
+    out = qt.tune(models, runner=FakeRunner())
     assert out["chosen"]["ours_beta"] == 0.2 and out["chosen"]["ours_sigma2"] == 1e-3
     assert out["passes"] == 3  # pass 2 moves beta, pass 3 confirms
     first = out["rmse_m_by_pass"][0]["ours_beta"]  # at the starting sigma^2 = 0.1
     assert len(out["rmse_m_by_pass"]) == 3 and min(first, key=first.get) == "0.05"
     assert out["rmse_m_by_pass"][-1] == out["rmse_m"]
     assert len(flights) == len(set(flights))  # no setting of a method flown twice
-    assert {f[1] for f in flights} == set(cl.TUNING_SEEDS)
+    assert {f[1] for f in flights} == set(qt.TUNING_SEEDS)
 
 
 def test_tuning_extends_a_grid_past_an_edge_its_best_lies_on():
@@ -346,21 +349,21 @@ def test_tuning_extends_a_grid_past_an_edge_its_best_lies_on():
         def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             k = models.closedloop
             rmse = abs(np.log(k["ours_beta"] / 0.01)) + abs(np.log(k["ours_sigma2"] / 1e-12))
-            return SimpleNamespace(metrics={"rmse_m": float(rmse)})
+            return SimpleNamespace(metrics={"rmse_m": float(rmse), "thrust_increment_rms_n": 0.1})
 
-    out = cl.tune(models, runner=FakeRunner(), methods=("ours",))
+    out = qt.tune(models, runner=FakeRunner(), methods=("ours",))
     assert out["chosen"] == {"ours_beta": 0.01, "ours_sigma2": 1e-7}
     assert out["extended"] == {"ours_beta": [0.02, 0.01, 0.005], "ours_sigma2": [1e-5, 1e-6, 1e-7]}
     assert out["still_on_edge"] == ["ours_sigma2"]
-    assert out["grids"]["ours_beta"] == [*cl.TUNING_GRIDS["ours_beta"], 0.02, 0.01, 0.005]
+    assert out["grids"]["ours_beta"] == [*qt.TUNING_GRIDS["ours_beta"], 0.02, 0.01, 0.005]
     assert set(out["rmse_m"]["ours_beta"]) == {f"{v:g}" for v in out["grids"]["ours_beta"]}
     # Inside a grid nothing is added; past the knob's range neither.
-    assert cl.beyond_edge("l1_a_s", cl.TUNING_GRIDS["l1_a_s"], -1.0) is None
-    assert cl.beyond_edge("l1_a_s", (-5.0, -0.05), -0.05) == -0.02
-    assert cl.beyond_edge("l1_cutoff_rates", (0.0, 80.0), 0.0) is None
-    assert cl.beyond_edge("arcade_lambda", (0.9, 0.9995, 1.0), 1.0) is None
-    for knob, (below, above) in cl.TUNING_EXTENSIONS.items():  # ordered away from the grid
-        grid = cl.TUNING_GRIDS[knob]
+    assert qt.beyond_edge("l1_a_s", qt.TUNING_GRIDS["l1_a_s"], -1.0) is None
+    assert qt.beyond_edge("l1_a_s", (-5.0, -0.05), -0.05) == -0.02
+    assert qt.beyond_edge("l1_cutoff_rates", (0.0, 80.0), 0.0) is None
+    assert qt.beyond_edge("arcade_lambda", (0.9, 0.9995, 1.0), 1.0) is None
+    for knob, (below, above) in qt.TUNING_EXTENSIONS.items():  # ordered away from the grid
+        grid = qt.TUNING_GRIDS[knob]
         assert list(below) == sorted(below, reverse=True) and max(below, default=-1e9) < min(grid)
         assert list(above) == sorted(above) and min(above, default=1e9) > max(grid)
 
@@ -390,3 +393,38 @@ def test_mpc_input_bounds_are_what_the_simulated_vehicle_executes():
     np.testing.assert_allclose(cfg.u_min[1:], -sim.max_rate)
     too_much = np.asarray(cfg.u_max) + np.array([1.0, 0.5, 0.5, 0.5])
     np.testing.assert_allclose(sim.set_setpoint(too_much), cfg.u_max)
+
+
+def test_the_flagship_is_tuned_for_tracking_within_its_smoothness_bound():
+    """The flagship's tuning takes the lowest RMSE among the settings whose thrust
+    increments are at most ``FLAGSHIP_THRUST_RATIO`` times L1's on the same flights; the
+    others (L1 here) are tuned for RMSE alone."""
+    models = SimpleNamespace()
+
+    class FakeRunner:  # lower lambda: better tracking, rougher thrust; L1 at 0.2 N
+        def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
+            k = models.closedloop
+            if method == "l1":
+                return SimpleNamespace(
+                    metrics={
+                        "rmse_m": abs(np.log(k["l1_cutoff"] / 40.0)),
+                        "thrust_increment_rms_n": 0.2,
+                    }
+                )
+            lam = k["arcade_lambda"]
+            return SimpleNamespace(
+                metrics={"rmse_m": lam, "thrust_increment_rms_n": 0.2 * (1.0 + 4.0 * (1.0 - lam))}
+            )
+
+    out = qt.tune(models, runner=FakeRunner(), methods=("l1", "arcade"))
+    # 0.2 (1 + 4 (1 - lambda)) <= 1.5 x 0.2 holds for lambda >= 0.875: the lowest such is 0.9
+    # of the grid (0.8, 0.9, ...), where RMSE alone would take 0.5 (past the grid's 0.8).
+    assert out["chosen"]["arcade_lambda"] == 0.9 and out["chosen"]["l1_cutoff"] == 40.0
+    ft = out["flagship_thrust"]
+    assert (
+        ft["max_ratio_to_l1"] == qt.FLAGSHIP_THRUST_RATIO and ft["l1_thrust_increment_rms_n"] == 0.2
+    )
+    assert ft["chosen_thrust_increment_rms_n"] == pytest.approx(0.28)
+    assert ft["thrust_increment_rms_n"]["arcade_lambda"]["0.8"] == pytest.approx(0.36)
+    assert out["rmse_m"]["arcade_lambda"]["0.8"] == 0.8  # the tables keep the RMSE
+    assert "arcade_lambda" not in out["extended"]  # 0.8 is on the edge but over the bound
