@@ -40,12 +40,16 @@ def _config(nu: float) -> A.AdaptationConfig:
 
 
 def _run(cfg, deltas, z):
-    state = A.init(np.zeros((1, 2)), cfg)
-    flags = []
-    for delta in deltas:
-        state, info = A.update(state, z, np.array([delta]), cfg)
-        flags.append(bool(info.changepoint))
-    return state, np.array(flags)
+    """The beam over ``deltas`` (one scan: compiled once, not op by op per step)."""
+
+    def body(state, delta):
+        state, info = A.update(state, z, delta[None], cfg)
+        return state, info.changepoint
+
+    state, flags = jax.jit(lambda s, d: jax.lax.scan(body, s, d))(
+        A.init(np.zeros((1, 2)), cfg), jnp.asarray(deltas)
+    )
+    return state, np.asarray(flags, bool)
 
 
 def test_an_outlier_is_a_change_for_the_gaussian_and_not_for_heavy_tails():

@@ -163,8 +163,9 @@ def test_scores_equal_brute_force_enumeration(T, pi, beta, sigma2, floor):
     cfg = A.AdaptationConfig(K=n, pi=pi, beta=beta, tau2=tau2, sigma2=sigma2, score="joint")
     cfg = cfg._replace(prior_floor=floor)
     state, total = A.init(theta0, cfg), 0.0
+    update = jax.jit(A.update)
     for z, delta in zip(Z, D):
-        state, info = A.update(state, z, delta, cfg)
+        state, info = update(state, z, delta, cfg)
         total += float(info.log_evidence)
     np.testing.assert_allclose(np.logaddexp.reduce(joint), total, rtol=0, atol=1e-8)
 
@@ -182,6 +183,7 @@ def test_a_changepoint_outranks_its_sibling_at_the_stated_likelihood_ratio(pi):
     q = tau2 * z @ z
     s0, s1 = q + sigma2, q / beta**2 + sigma2
     odds = (1 - pi) / pi
+    update = jax.jit(A.update)
     for ratio in (0.9 * np.sqrt(odds), 1.1 * np.sqrt(odds), 0.9 * odds, 1.1 * odds):
         # log Lambda = log N(r; 0, s1) - log N(r; 0, s0), solved for r^2.
         r2 = (2 * np.log(ratio) + np.log(s1 / s0)) / (1 / s0 - 1 / s1)
@@ -192,7 +194,7 @@ def test_a_changepoint_outranks_its_sibling_at_the_stated_likelihood_ratio(pi):
         np.testing.assert_allclose(lam, np.log(ratio), atol=1e-12)
         for score, factor, threshold in (("algorithm1", 2, np.sqrt(odds)), ("joint", 1, odds)):
             cfg = A.AdaptationConfig(K=2, pi=pi, beta=beta, tau2=tau2, sigma2=sigma2, score=score)
-            state, _ = A.update(A.init(theta0, cfg), z, delta, cfg)
+            state, _ = update(A.init(theta0, cfg), z, delta, cfg)
             cp = np.asarray(state.is_changepoint)
             raw = np.asarray(state.raw_log_scores)
             gap = raw[cp][0] - raw[~cp][0]
@@ -317,8 +319,9 @@ def test_probability_within_and_dating_match_the_weights():
     state = A.init(theta0, cfg)
     assert float(A.changepoint_probability_within(state, 5)) == 0.0
     assert int(A.dated_changepoint_within(state, 5)) == -1
+    update = jax.jit(A.update)
     for z, delta in zip(Z, D):
-        state, info = A.update(state, z, delta, cfg)
+        state, info = update(state, z, delta, cfg)
         w = np.exp(state.log_scores - np.logaddexp.reduce(np.asarray(state.log_scores)))
         last, k = np.asarray(state.last_changepoint), int(state.step)
         np.testing.assert_allclose(A.changepoint_probability_within(state, 1), info.cp_mass)
