@@ -4,6 +4,7 @@ synthetic flights with a known change."""
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
@@ -29,9 +30,10 @@ def test_forgetting_equals_the_information_form_recursion():
     prec = [np.eye(l) / tau2 for _ in range(d)]
     info = [theta0[j] / tau2 for j in range(d)]
     c = floor * (1.0 - lam) / tau2
+    update = jax.jit(A.update)
     for _ in range(30):
         z, delta = rng.normal(size=l), rng.normal(size=d)
-        state, _ = A.update(state, z, delta, cfg)
+        state, _ = update(state, z, delta, cfg)
         for j in range(d):
             prec[j] = lam * prec[j] + c * np.eye(l) + np.outer(z, z) / s2[j]
             info[j] = lam * info[j] + c * theta0[j] + z * delta[j] / s2[j]
