@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Any
 
 import jax
@@ -30,18 +29,6 @@ from arcade_control.methods import BeamLearner, MassOracle, Restart
 from arcade_control.nominal import nominal_params
 from arcade_core import adaptation
 from arcade_core.baselines import gp, l1, mlp
-
-
-@partial(jax.jit, static_argnames=("K",))
-def _init_jit(theta0, tau2, sigma2, K: int) -> adaptation.BeamState:
-    return adaptation.init(theta0, adaptation.AdaptationConfig(K, 0.0, 0.0, tau2, sigma2))
-
-
-def beam_at_prior(theta0: Any, cfg: adaptation.AdaptationConfig) -> adaptation.BeamState:
-    """``adaptation.init(theta0, cfg)`` (Algorithm 1 lines 1-2; it reads ``K``, ``tau2``
-    and ``sigma2`` only) as one compiled call: eager, its twenty-odd small operations are
-    each lowered and compiled in every process that starts a learner."""
-    return _init_jit(theta0, cfg.tau2, cfg.sigma2, K=int(cfg.K))
 
 
 def no_cp_config(cfg: adaptation.AdaptationConfig) -> adaptation.AdaptationConfig:
@@ -137,7 +124,7 @@ def initial_learner(name: str, models, dtype, estimated: bool = False) -> Any:
         theta0 = jax.device_put(
             np.concatenate([theta0, np.zeros((theta0.shape[0], 1), theta0.dtype)], 1)
         )
-    beam = beam_at_prior(theta0, cfg)
+    beam = adaptation.init(theta0, cfg)  # Algorithm 1 lines 1-2, one compiled call
     traced_cfg = adaptation.AdaptationConfig(
         K=jnp.asarray(cfg.K),
         pi=jnp.asarray(cfg.pi, dtype),
@@ -203,7 +190,7 @@ def per_output_noise(learner: BeamLearner) -> BeamLearner:
     dtype = learner.beam.means.dtype
     vec = cfg._replace(sigma2=jnp.broadcast_to(jnp.asarray(cfg.sigma2, dtype), (d,)))
     theta0 = learner.beam.prior_mean
-    beam = beam_at_prior(theta0, vec._replace(K=int(learner.beam.means.shape[0])))
+    beam = adaptation.init(theta0, vec._replace(K=int(learner.beam.means.shape[0])))
     if learner.restart is not None:  # it restarts to the same layout
         r = learner.restart
         learner = learner._replace(

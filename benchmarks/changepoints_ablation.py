@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from arcade_control.knobs import DETECTION_OUTPUTS
-from arcade_control.learners import beam_at_prior, forgetting_config, no_cp_config
+from arcade_control.learners import forgetting_config, no_cp_config
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.stack import stack_knobs
 from arcade_core import adaptation
@@ -96,7 +96,7 @@ def replay(theta0, cfg: adaptation.AdaptationConfig, inputs) -> tuple[np.ndarray
     dtype = jnp.result_type(float)
     d = np.asarray(theta0).shape[0]
     start = cfg._replace(sigma2=jnp.ones(d, dtype))
-    state = beam_at_prior(jnp.asarray(theta0, dtype), start)
+    state = adaptation.init(jnp.asarray(theta0, dtype), start)
     traced = adaptation.AdaptationConfig(
         K=int(cfg.K),
         pi=jnp.asarray(cfg.pi, dtype),
