@@ -11,7 +11,8 @@ reference are :mod:`arcade_control.scenario`; what the evaluation does with the 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import jax
@@ -31,6 +32,10 @@ from simulator import QuadrotorSim
 
 #: A flight whose position error exceeds this is stopped and counted as a crash [m].
 CRASH_ERROR_M = 2.0
+#: Flights of one method and cell flown at a time (:meth:`Runner.fly_trials`): each
+#: control step spends most of its time in compiled code, which runs without Python's
+#: lock, so two flights on threads use both cores of a 2-core machine.
+FLIGHT_THREADS = 2
 
 
 class MocapEstimate:
@@ -131,11 +136,14 @@ class Runner:
     def _predict(self, x, var, u, delay: float):
         """The diagonal variance of the state predicted over ``delay``
         (:func:`arcade_core.dynamics.predict_over_delay`; jitted once)."""
+        return self._predictor()(x, var, u, delay)
+
+    def _predictor(self) -> Callable:
         if self._predict_var is None:
             self._predict_var = jax.jit(
                 lambda x, var, u, d: predict_over_delay(x, var, u, nominal_params(), d)[1]
             )
-        return self._predict_var(x, var, u, delay)
+        return self._predict_var
 
     def step_fn(self, name: str, delay_s: float = 0.0) -> Callable:
         """The jitted step of method ``name`` (:func:`make_controller_step`)."""
@@ -146,6 +154,36 @@ class Runner:
                 make_method(name), cfg, hold_residual=name.endswith(HELD), delay_s=delay_s
             )
         return self._steps[key]
+
+    def fly_trials(
+        self,
+        name: str,
+        scenario: Scenario,
+        seeds: Sequence[int],
+        estimated: bool = False,
+        compensate_delay: bool = False,
+        threads: int = FLIGHT_THREADS,
+    ) -> list[Flight]:
+        """:meth:`fly` for each of ``seeds``, in their order, up to ``threads`` at a time.
+
+        Each flight has its own simulator, estimator and learner and calls the same compiled
+        functions (built here first, so that no two threads build one), so the flights are
+        those :meth:`fly` flies one by one, bit for bit; only their ``step_ms`` (wall time
+        per step) are measured with the other flights running beside them."""
+        delay = scenario.command_delay_s if compensate_delay else 0.0
+        self.step_fn(name, delay)
+        if estimated:
+            self._estimation()
+        if delay and estimated:
+            self._predictor()
+
+        def one(seed: int) -> Flight:
+            return self.fly(name, scenario, seed, estimated, compensate_delay)
+
+        if threads <= 1 or len(seeds) <= 1:
+            return [one(s) for s in seeds]
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            return list(pool.map(one, seeds))
 
     def fly(
         self,

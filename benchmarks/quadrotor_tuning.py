@@ -175,12 +175,10 @@ def tune(
         if key not in flown:
             previous, models.closedloop = models.closedloop, setting
             progress(f"tuning {method}: {what}")
-            metrics = [
-                runner.fly(
-                    method, scen, seed=sd, estimated=estimated, compensate_delay=compensate_delay
-                ).metrics
-                for sd in TUNING_SEEDS
-            ]
+            flights = runner.fly_trials(
+                method, scen, TUNING_SEEDS, estimated=estimated, compensate_delay=compensate_delay
+            )
+            metrics = [f.metrics for f in flights]
             models.closedloop = previous
             flown[key] = (
                 float(np.mean([m["rmse_m"] for m in metrics])),

@@ -16,6 +16,13 @@ from benchmarks.quadrotor_protocol import (
 )
 
 
+class SequentialTrials:
+    """``Runner.fly_trials`` for a fake runner: its ``fly`` for each seed, in order."""
+
+    def fly_trials(self, method, scenario, seeds, estimated=False, compensate_delay=False):
+        return [self.fly(method, scenario, s, estimated, compensate_delay) for s in seeds]
+
+
 def _trials(method, rmse, payload=175.0, speed=2.5):
     return [
         {"payload_g": payload, "speed_mps": speed, "method": method, "trial": k, "rmse_m": v}
@@ -78,7 +85,7 @@ def test_the_evaluation_flies_and_tunes_in_its_condition(monkeypatch):
     scenario and compensated; the result pairs each method with L1."""
     flown = []
 
-    class FakeRunner:
+    class FakeRunner(SequentialTrials):
         dtype = np.float32
 
         def __init__(self, models):

@@ -34,6 +34,14 @@ from benchmarks.quadrotor_flights import (
 )
 from simulator.expert_flights import flight_transitions, make_dataset
 
+
+class SequentialTrials:
+    """``Runner.fly_trials`` for a fake runner: its ``fly`` for each seed, in order."""
+
+    def fly_trials(self, method, scenario, seeds, estimated=False, compensate_delay=False):
+        return [self.fly(method, scenario, s, estimated, compensate_delay) for s in seeds]
+
+
 MINUTES = 0.06  # 3.6 s per flight: mostly the hover lead, where the payload shows clearly
 PAYLOADS = (10.0, 200.0)
 
@@ -136,6 +144,41 @@ def test_short_closed_loop_flight_of_ours(data, method):
     assert np.all(np.isfinite(flight.u))
     assert err.max() < 0.15, err.max()
     assert flight.metrics["rmse_m"] < 0.08
+
+
+def test_flights_flown_side_by_side_are_those_flown_one_by_one():
+    """``Runner.fly_trials`` flies seeds two at a time on threads: every flight is the one
+    ``fly`` gives alone, bit for bit (the flagship on the estimate, with the link's delay
+    compensated: the most state a flight carries)."""
+    from arcade_control.stack import stack_knobs
+
+    vld, _, extra = load_model(QUADROTOR_WEIGHTS)
+    models = SimpleNamespace(
+        vld=vld, guard=guard_from_metadata(extra), closedloop=stack_knobs("arcade")
+    )
+    scenario = Scenario(
+        payload_g=150.0,
+        speed_mps=2.0,
+        takeoff_s=1.0,
+        hover_s=0.5,
+        ramp_s=0.5,
+        laps=0.2,
+        release_fraction=0.5,
+        command_delay_s=0.02,
+    )
+    runner = Runner(models)
+    kw = {"estimated": True, "compensate_delay": True}
+    seeds = (999, 998)
+    together = runner.fly_trials("arcade", scenario, seeds, threads=2, **kw)
+    alone = [runner.fly("arcade", scenario, seed=s, **kw) for s in seeds]
+    assert [f.seed for f in together] == list(seeds)
+    for a, b in zip(alone, together, strict=True):
+        assert not a.crashed
+        np.testing.assert_array_equal(a.x, b.x)
+        np.testing.assert_array_equal(a.u, b.u)
+        np.testing.assert_array_equal(a.diag, b.diag)
+        np.testing.assert_equal(a.metrics, b.metrics)
+    assert len({f.metrics["rmse_m"] for f in alone}) == len(seeds)  # the seeds differ
 
 
 def test_matched_residual_keeps_what_the_thrust_can_cancel():
@@ -262,7 +305,7 @@ def test_tuning_flies_only_the_methods_asked_for():
     models = SimpleNamespace()
     flown = set()
 
-    class FakeRunner:
+    class FakeRunner(SequentialTrials):
         def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             flown.add(method)
             s2 = models.closedloop["ours_matched_sigma2"]
@@ -316,7 +359,7 @@ def test_tuning_passes_until_no_knob_changes():
     models = SimpleNamespace()
     flights = []
 
-    class FakeRunner:
+    class FakeRunner(SequentialTrials):
         def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             k = dict(models.closedloop)
             flights.append(
@@ -345,7 +388,9 @@ def test_tuning_extends_a_grid_past_an_edge_its_best_lies_on():
     out first is reported as still on its edge."""
     models = SimpleNamespace()
 
-    class FakeRunner:  # best beta 0.01 (below the grid's 0.05), best sigma^2 far below 1e-7
+    class FakeRunner(
+        SequentialTrials
+    ):  # best beta 0.01 (below the grid's 0.05), best sigma^2 far below 1e-7
         def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             k = models.closedloop
             rmse = abs(np.log(k["ours_beta"] / 0.01)) + abs(np.log(k["ours_sigma2"] / 1e-12))
@@ -401,7 +446,9 @@ def test_the_flagship_is_tuned_for_tracking_within_its_smoothness_bound():
     others (L1 here) are tuned for RMSE alone."""
     models = SimpleNamespace()
 
-    class FakeRunner:  # lower lambda: better tracking, rougher thrust; L1 at 0.2 N
+    class FakeRunner(
+        SequentialTrials
+    ):  # lower lambda: better tracking, rougher thrust; L1 at 0.2 N
         def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             k = models.closedloop
             if method == "l1":
