@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from fake_runner import SequentialTrials
 
 from benchmarks import quadrotor_closedloop as qc
 from benchmarks.eval_progress import FILE, Progress, ProgressMismatch, discard
@@ -57,7 +58,7 @@ class _Killed(Exception):
 
 
 def _fake_runner(flown: list, kill_after: int | None = None):
-    class FakeRunner:
+    class FakeRunner(SequentialTrials):
         """Flights whose RMSE depends on the method, the seed and the knobs flown (so that
         the tuning chooses), and whose settling is infinite for L1 (a non-finite number
         kept and read back)."""

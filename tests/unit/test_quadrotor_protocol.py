@@ -4,6 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from fake_runner import SequentialTrials
 
 from benchmarks import quadrotor_closedloop as qc
 from benchmarks.quadrotor_protocol import (
@@ -14,13 +15,6 @@ from benchmarks.quadrotor_protocol import (
     paired_ci,
     paired_differences,
 )
-
-
-class SequentialTrials:
-    """``Runner.fly_trials`` for a fake runner: its ``fly`` for each seed, in order."""
-
-    def fly_trials(self, method, scenario, seeds, estimated=False, compensate_delay=False):
-        return [self.fly(method, scenario, s, estimated, compensate_delay) for s in seeds]
 
 
 def _trials(method, rmse, payload=175.0, speed=2.5):

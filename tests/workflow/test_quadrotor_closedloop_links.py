@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from fake_runner import SequentialTrials
 
 from arcade.training_quadrotor import QUADROTOR_WEIGHTS
 from arcade_control.guard import guard_from_metadata
@@ -197,7 +198,7 @@ def test_ours_stack_flies_the_adapter_s_knobs():
     assert stack_knobs() == STACK_KNOBS
 
 
-class _RecordingRunner:
+class _RecordingRunner(SequentialTrials):
     """Stands in for :class:`Runner`: records what it is asked to fly, scores it by delay."""
 
     def __init__(self, *args, **kwargs):
@@ -256,7 +257,7 @@ def test_the_link_diagnostic_flies_the_stack_on_the_estimate_with_and_without_co
 
     flown = []
 
-    class Recorder:
+    class Recorder(SequentialTrials):
         def __init__(self, models, **kwargs):
             self.models = models
 

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from fake_runner import SequentialTrials
 
 from arcade.training_quadrotor import QUADROTOR_COMMAND, QUADROTOR_WEIGHTS
 from arcade_control.guard import Guard, guard_from_metadata
@@ -33,14 +34,6 @@ from benchmarks.quadrotor_flights import (
     Runner,
 )
 from simulator.expert_flights import flight_transitions, make_dataset
-
-
-class SequentialTrials:
-    """``Runner.fly_trials`` for a fake runner: its ``fly`` for each seed, in order."""
-
-    def fly_trials(self, method, scenario, seeds, estimated=False, compensate_delay=False):
-        return [self.fly(method, scenario, s, estimated, compensate_delay) for s in seeds]
-
 
 MINUTES = 0.06  # 3.6 s per flight: mostly the hover lead, where the payload shows clearly
 PAYLOADS = (10.0, 200.0)
