@@ -32,9 +32,9 @@ from simulator import QuadrotorSim
 
 #: A flight whose position error exceeds this is stopped and counted as a crash [m].
 CRASH_ERROR_M = 2.0
-#: Flights of one method and cell flown at a time (:meth:`Runner.fly_trials`): each
-#: control step spends most of its time in compiled code, which runs without Python's
-#: lock, so two flights on threads use both cores of a 2-core machine.
+#: Flights of one method and cell flown at a time (:meth:`Runner.fly_trials`): one flight
+#: uses about 1.1 cores, and the compiled solves of one overlap the other's Python (which
+#: holds Python's lock): 1.38x on a 2-core machine, where four threads were slower.
 FLIGHT_THREADS = 2
 
 

@@ -381,9 +381,8 @@ def test_tuning_extends_a_grid_past_an_edge_its_best_lies_on():
     out first is reported as still on its edge."""
     models = SimpleNamespace()
 
-    class FakeRunner(
-        SequentialTrials
-    ):  # best beta 0.01 (below the grid's 0.05), best sigma^2 far below 1e-7
+    # best beta 0.01 (below the grid's 0.05), best sigma^2 far below 1e-7
+    class FakeRunner(SequentialTrials):
         def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             k = models.closedloop
             rmse = abs(np.log(k["ours_beta"] / 0.01)) + abs(np.log(k["ours_sigma2"] / 1e-12))
@@ -439,9 +438,8 @@ def test_the_flagship_is_tuned_for_tracking_within_its_smoothness_bound():
     others (L1 here) are tuned for RMSE alone."""
     models = SimpleNamespace()
 
-    class FakeRunner(
-        SequentialTrials
-    ):  # lower lambda: better tracking, rougher thrust; L1 at 0.2 N
+    # lower lambda: better tracking, rougher thrust; L1 at 0.2 N
+    class FakeRunner(SequentialTrials):
         def fly(self, method, scenario, seed, estimated=False, compensate_delay=False):
             k = models.closedloop
             if method == "l1":
