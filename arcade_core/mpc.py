@@ -77,6 +77,7 @@ import numpy as np
 import optimistix as optx
 from jax import Array
 from jax.custom_derivatives import SymbolicZero
+from jax.scipy.linalg import cho_solve
 
 from arcade_core.dynamics.params import CARTPOLE_DT, QuadrotorParams
 
@@ -199,6 +200,14 @@ def cartpole_mpc_config(N: int = 25, dt: float = CARTPOLE_DT, dtype=None, **over
     )
     cfg.update(overrides)
     return MPCConfig(**cfg)
+
+
+def residual_count(cfg: MPCConfig) -> int:
+    """How many weighted residuals the OCP of ``cfg`` has (``m``, the rows of ``J``)."""
+    n_bound = sum(
+        int(np.sum(np.isfinite(np.asarray(b)))) for b in (cfg.x_max, cfg.x_min) if b is not None
+    )
+    return cfg.N * cfg.nx + cfg.nx + 2 * cfg.N * cfg.nu + cfg.N * n_bound
 
 
 def modulate_q(Q: Array, sigma_tot2: Array, alpha1: float, alpha2: float) -> Array:
@@ -398,6 +407,8 @@ class Controller(NamedTuple):
     config: MPCConfig
     solve: Callable[..., MPCSolution]
     rollout: Callable[[Array, Array, Any], Array]
+    first_input_gain: Callable[..., Array]
+    residual_change: Callable[..., Array]
 
     def initial_guess(self, u0: Array) -> Array:
         """Constant input over the horizon (Appendix D: ``U_0`` = hover input)."""
@@ -469,6 +480,12 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
     else:
         raise ValueError(f"unknown MPC solver {cfg.solver!r} (one of {', '.join(SOLVERS)})")
 
+    def problem(x0, x_ref, u_ref, u_prev, model, sigma_tot2) -> _Problem:
+        Q = jnp.asarray(cfg.Q, x0.dtype)
+        q_stage = Q if sigma_tot2 is None else modulate_q(Q, sigma_tot2, cfg.alpha1, cfg.alpha2)
+        q_stage = jnp.broadcast_to(q_stage, (cfg.N, cfg.nx)).astype(x0.dtype)
+        return _Problem(x0, x_ref, u_ref, u_prev, model, q_stage)
+
     @eqx.filter_jit
     def solve(
         x0: Array,
@@ -479,10 +496,7 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
         model: Any,
         sigma_tot2: Array | None = None,
     ) -> MPCSolution:
-        Q = jnp.asarray(cfg.Q, x0.dtype)
-        q_stage = Q if sigma_tot2 is None else modulate_q(Q, sigma_tot2, cfg.alpha1, cfg.alpha2)
-        q_stage = jnp.broadcast_to(q_stage, (cfg.N, cfg.nx)).astype(x0.dtype)
-        prob = _Problem(x0, x_ref, u_ref, u_prev, model, q_stage)
+        prob = problem(x0, x_ref, u_ref, u_prev, model, sigma_tot2)
         lo, hi = bounds(u_warm.dtype)
         z0 = _unsquash(u_warm, lo, hi)
         sol = optx.least_squares(fn, solver, z0, args=prob, max_steps=cfg.max_steps, throw=False)
@@ -519,4 +533,74 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
         converged = better & (sol.result == optx.RESULTS.successful)
         return MPCSolution(U, X, cost, sol.stats["num_steps"], converged)
 
-    return Controller(config=cfg, solve=solve, rollout=eqx.filter_jit(rollout))
+    @eqx.filter_jit
+    def first_input_gain(
+        x0: Array,
+        x_ref: Array,
+        u_ref: Array,
+        U: Array,
+        u_prev: Array,
+        model: Any,
+        sigma_tot2: Array | None = None,
+    ) -> Array:
+        """``(nu, m)``: how the optimal first input moves with the residuals at the plan
+        ``U`` (the solution of this problem): a change of the problem (initial state, model,
+        input reference) that moves the residuals at ``U`` by ``dr`` moves ``u_0*`` by
+        ``G dr``, in the Gauss-Newton approximation of the implicit function theorem,
+        ``dz* = -(J_z^T J_z)^-1 J_z^T dr`` (the residuals' second derivatives dropped, as
+        the solver drops them), through the input squashing (the bounds are the caller's to
+        apply to the corrected input). :func:`residual_change` gives ``dr``; together they
+        are the advanced-step controller's correction (:mod:`arcade_control.step`)."""
+        prob = problem(x0, x_ref, u_ref, u_prev, model, sigma_tot2)
+        lo, hi = bounds(U.dtype)
+        z = _unsquash(U, lo, hi)
+        J = jax.jacfwd(fn)(z, prob).reshape(-1, z.size)
+        chol = jnp.linalg.cholesky(J.T @ J)
+        # The first input's rows of (J^T J)^-1 (symmetric: its first columns), then J^T.
+        nu = U.shape[-1]
+        rows = cho_solve((chol, True), jnp.eye(z.size, nu, dtype=J.dtype)).T @ J.T
+        slope = 0.5 * (hi - lo) * (1.0 - jnp.tanh(z[0]) ** 2)  # du_0 / dz_0
+        return -slope[:, None] * rows
+
+    @eqx.filter_jit
+    def residual_change(
+        x0: Array,
+        x_ref: Array,
+        u_ref: Array,
+        U: Array,
+        u_prev: Array,
+        model: Any,
+        sigma_tot2: Array | None,
+        x0_new: Array,
+        model_new: Any,
+        u_ref_new: Array,
+    ) -> Array:
+        """``(m,)``: the first-order change of the residuals at the plan ``U`` when the
+        initial state, the model and the input reference become ``x0_new``, ``model_new``
+        (the same tree; its floating-point arrays change) and ``u_ref_new`` (one
+        forward-mode derivative, the state weights held)."""
+        lo, hi = bounds(U.dtype)
+        z = _unsquash(U, lo, hi)
+        dyn, static = eqx.partition(model, eqx.is_array)
+        dyn_new = eqx.filter(model_new, eqx.is_array)
+
+        def tangent(new, old):
+            if jnp.issubdtype(old.dtype, jnp.inexact):
+                return (new - old).astype(old.dtype)
+            return np.zeros(old.shape, jax.dtypes.float0)
+
+        d_dyn = jax.tree.map(tangent, dyn_new, dyn)
+
+        def res(x, d, ur):
+            return fn(z, problem(x, x_ref, ur, u_prev, eqx.combine(d, static), sigma_tot2))
+
+        tangents = (x0_new - x0, d_dyn, u_ref_new - u_ref)
+        return jax.jvp(res, (x0, dyn, u_ref), tangents)[1]
+
+    return Controller(
+        config=cfg,
+        solve=solve,
+        rollout=eqx.filter_jit(rollout),
+        first_input_gain=first_input_gain,
+        residual_change=residual_change,
+    )

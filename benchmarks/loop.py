@@ -9,15 +9,19 @@ private loopback Zenoh hub) on the wall clock at 50 Hz and reports:
   ``time.monotonic()``);
 - ``sense_to_actuate_p99_ms``: from the sample instant of a control instant (its stamp) to
   the setpoint that answers it arriving back at the simulator (the simulator's publishing
-  lag, estimator, controller and three hops); target: at most the MPC's p99 solve time +
-  3 ms;
+  lag, estimator, controller and three hops); targets: at most 10 ms, and at most the
+  MPC's p99 solve time + 3 ms;
 - ``rate_hz``: achieved control rate over the mission; ``missed_deadlines``: mission
   instants whose setpoint had not arrived by the next instant (target: 0 over 120 s);
   ``host``: what the machine itself did meanwhile (:class:`arcade_io.hostcpu.SlowdownProbe`
   and the steal counter): the intervals it ran slowly in, and how many of the missed
   deadlines fell in a period it stole from or slowed
   (``missed_deadlines_outside_host_slowdowns`` are the stack's own);
-- ``mpc_p99_ms``: the controller's solve time in the same run;
+- ``mpc_p99_ms``: the controller's MPC solve time in the same run: with the advanced step
+  (``advanced_step``, the controller's default) the solve for the next instant, after the
+  setpoint is out, off the sense-to-actuate path; ``answer_p99_ms``: the controller's
+  state-to-setpoint step (the advanced step's first-order correction of the prepared
+  plan; without it, the solve); ``planned_steps``: the states answered from a plan;
 - ``stages_ms``: sense-to-actuate stage by stage (p50, p99): the simulator's sample instant
   to its imu put, the hop to the estimator, the estimator's work, the hop to the
   controller, the controller from the state's arrival to the setpoint's put (solve
@@ -128,7 +132,9 @@ def run(
     sim, est, ctl = stats["sim"], stats["estimator"], stats["controller"]
     wall = sim["wall_s"] - sim.get("preroll_s", 0.0)
     steps = sim["steps"]
-    mpc_p99 = ctl["solve"]["p99_ms"]
+    advanced = "prepare" in ctl  # the advanced step: the MPC solve after the setpoint
+    mpc = ctl["prepare"] if advanced else ctl["solve"]
+    mpc_p99 = mpc["p99_ms"]
     s2a_p99 = sim["sense_to_actuate"]["p99_ms"]
     # A probe without real-time priority waits behind the stack: it excuses nothing then.
     slow = host.episodes if host.summary["fifo"] else []
@@ -139,8 +145,12 @@ def run(
         "hop_p99_ms": est["hop_imu"]["p99_ms"],
         "sense_to_actuate_p50_ms": sim["sense_to_actuate"]["p50_ms"],
         "sense_to_actuate_p99_ms": s2a_p99,
-        "mpc_p50_ms": ctl["solve"]["p50_ms"],
+        "mpc_p50_ms": mpc["p50_ms"],
         "mpc_p99_ms": mpc_p99,
+        "advanced_step": advanced,
+        "answer_p50_ms": ctl["solve"]["p50_ms"],
+        "answer_p99_ms": ctl["solve"]["p99_ms"],
+        "planned_steps": ctl.get("planned_steps", 0),
         "adapt_p99_ms": stats["adapter"]["update"]["p99_ms"],
         # Where sense-to-actuate goes, stage by stage in path order (p50/p99 each).
         "stages_ms": {
@@ -189,6 +199,7 @@ def run(
         "exit_codes": result["codes"],
         "targets_met": {
             "hop_p99_le_1ms": est["hop_imu"]["p99_ms"] <= 1.0,
+            "sense_to_actuate_p99_le_10ms": s2a_p99 <= 10.0,
             "sense_to_actuate_p99_le_mpc_p99_plus_3ms": s2a_p99 <= mpc_p99 + 3.0,
             "zero_missed_deadlines": sim["missed_deadlines"] == 0,
         },

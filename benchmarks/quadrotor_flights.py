@@ -25,7 +25,13 @@ from arcade_control.methods import BeamLearner, MassOracle, make_method
 from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.nominal import f_nom, nominal_params
 from arcade_control.scenario import Scenario, reference, trial
-from arcade_control.step import Carry, make_controller_step, method_mpc_config, mpc_config
+from arcade_control.step import (
+    Carry,
+    make_controller_step,
+    method_mpc_config,
+    mpc_config,
+    planned_carry,
+)
 from arcade_core import adaptation, estimation, metrics
 from arcade_core.dynamics.quadrotor import predict_over_delay
 from simulator import QuadrotorSim
@@ -107,10 +113,12 @@ class Flight:
 class Runner:
     """Builds (once) and caches the jitted per-step update of each method."""
 
-    def __init__(self, models, dtype=None, filter_config=None):
+    def __init__(self, models, dtype=None, filter_config=None, advanced: bool = False):
         """``filter_config``: the estimator's settings for flights on the state estimate
         (:class:`arcade_core.estimation.FilterConfig`; ``None``: its defaults, the
-        estimator service's)."""
+        estimator service's). ``advanced``: what :meth:`fly` flies unless told otherwise
+        (the advanced-step controller, as the stack's controller service runs it)."""
+        self.advanced = advanced
         self.models = models
         self.dtype = jnp.result_type(float) if dtype is None else dtype
         self.filter_config = filter_config
@@ -145,13 +153,17 @@ class Runner:
             )
         return self._predict_var
 
-    def step_fn(self, name: str, delay_s: float = 0.0) -> Callable:
+    def step_fn(self, name: str, delay_s: float = 0.0, advanced: bool = False) -> Callable:
         """The jitted step of method ``name`` (:func:`make_controller_step`)."""
-        key = (name, delay_s)
+        key = (name, delay_s, advanced)
         if key not in self._steps:
             cfg = method_mpc_config(self.cfg, name, getattr(self.models, "closedloop", None))
             self._steps[key] = make_controller_step(
-                make_method(name), cfg, hold_residual=name.endswith(HELD), delay_s=delay_s
+                make_method(name),
+                cfg,
+                hold_residual=name.endswith(HELD),
+                delay_s=delay_s,
+                advanced=advanced,
             )
         return self._steps[key]
 
@@ -163,6 +175,7 @@ class Runner:
         estimated: bool = False,
         compensate_delay: bool = False,
         threads: int = FLIGHT_THREADS,
+        advanced: bool | None = None,
     ) -> list[Flight]:
         """:meth:`fly` for each of ``seeds``, in their order, up to ``threads`` at a time.
 
@@ -171,14 +184,15 @@ class Runner:
         those :meth:`fly` flies one by one, bit for bit; only their ``step_ms`` (wall time
         per step) are measured with the other flights running beside them."""
         delay = scenario.command_delay_s if compensate_delay else 0.0
-        self.step_fn(name, delay)
+        advanced = self.advanced if advanced is None else advanced
+        self.step_fn(name, delay, advanced)
         if estimated:
             self._estimation()
         if delay and estimated:
             self._predictor()
 
         def one(seed: int) -> Flight:
-            return self.fly(name, scenario, seed, estimated, compensate_delay)
+            return self.fly(name, scenario, seed, estimated, compensate_delay, advanced)
 
         if threads <= 1 or len(seeds) <= 1:
             return [one(s) for s in seeds]
@@ -192,6 +206,7 @@ class Runner:
         seed: int = 0,
         estimated: bool = False,
         compensate_delay: bool = False,
+        advanced: bool | None = None,
     ) -> Flight:
         """Fly one trial; returns the log with its metrics.
 
@@ -205,7 +220,10 @@ class Runner:
         carried through the prediction (:func:`arcade_core.dynamics.predict_over_delay`)
         before it enters the observation noise. The metrics are of the true trajectory
         against the reference at the control instants either way.
+        ``advanced``: the advanced-step controller (:func:`make_controller_step`; ``None``:
+        the runner's ``advanced``).
         """
+        advanced = self.advanced if advanced is None else advanced
         sim_seed, offset, jitter = trial(seed)
         n = int(np.ceil(scenario.t_end / DT - 1e-9)) + 1
         k_release = round(scenario.t_release / DT) + jitter
@@ -225,7 +243,7 @@ class Runner:
             command_delay_s=scenario.command_delay_s,
         )
         x = sim.reset(np.asarray(scenario.start) + offset)
-        step = self.step_fn(name, delay)
+        step = self.step_fn(name, delay, advanced)
         dt = self.dtype
         learner = initial_learner(name, self.models, dt, estimated)
         estimate = state_noise = None
@@ -259,6 +277,8 @@ class Runner:
         carry = Carry(
             learner, jnp.broadcast_to(u0, (N, 4)), u0, jnp.asarray(x_seen, dt), jnp.zeros((), bool)
         )
+        if advanced:
+            carry = planned_carry(carry, self.cfg)
         x_prev, var_prev = x_seen, var
         u_applied = np.asarray(u0)
         X, U, D, T_ms = (np.zeros((n, 13)), np.zeros((n, 4)), np.zeros((n, 17)), np.zeros(n))

@@ -28,6 +28,19 @@ tracking (hover, nominal MPC) its predictor synchronises again with the next sta
 ``--method l1``: the nominal MPC with L1's augmentation (thrust and body rates, the stack's
 L1 knobs), carried and synchronised the same way; the model message only paces the step.
 
+With a learned model and ``--advanced-step`` the step is advanced
+(``arcade_control.step.make_advanced_step``; not the default, see
+``docs/quadrotor-closed-loop.md``): once the setpoint and the reference are out,
+the controller solves the MPC for the next state's instant, one control period (``1 /
+--rate``) on, from the state its model predicts, with the model message of the moment;
+the next state is answered by that plan corrected to first order for where the state is
+and for the model message then newest (one forward-mode derivative and a matrix-vector
+product), so sense-to-actuate holds no MPC solve. A state that answers no prepared plan
+(the first, after hover or the nominal MPC, a state at another instant than planned) is
+answered by a full solve. ``stats``: ``planned_steps`` (states answered from a plan),
+``prepare`` (the solve's latency after the setpoint), ``solve`` (state to setpoint, the
+control step alone). Without it every state is solved for after it arrives.
+
 With ``--link-delay D`` (the link delays every setpoint by ``D``, less than one period)
 the step plans from the state predicted ``D`` ahead with the setpoint in flight (the last
 MPC input; after a hover setpoint still the MPC's last one) against the reference ``D``
@@ -95,18 +108,6 @@ STEP_ERROR_LOG_S = 5.0
 MAX_STAMP_LAG_S = 1.0
 
 
-def _without_learner(step):
-    """``step`` returning its new carry without the learner, and no diagnostics: what the
-    service keeps of a control step, as plain arrays (storable, :mod:`arcade_io.traced`)."""
-
-    def plain(*args):
-        new, u, _ = step(*args)
-        # What a method keeps across steps in the service: the flagship's or L1's L1 state.
-        return new._replace(learner=getattr(new.learner, "l1", None)), u
-
-    return plain
-
-
 class Controller(runtime.Service):
     """Controller: uncertainty-modulated MPC on the latest state and model."""
 
@@ -116,27 +117,13 @@ class Controller(runtime.Service):
     def setup(self, bus) -> None:
         # Imported here, like every JAX module of the services: after runtime.setup_jax
         # has set the precision, and not for `--help`.
-        import jax
         import jax.numpy as jnp
 
-        from arcade_control.methods import make_method
         from arcade_control.nominal import CONTROL_DT, nominal_params
         from arcade_control.scenario import flat_reference, reference_arguments
-        from arcade_control.stack import (
-            controller_learner,
-            controller_method,
-            one_hypothesis_beam,
-            stack_knobs,
-            with_finite_flag,
-        )
-        from arcade_control.step import (
-            Carry,
-            make_controller_step,
-            method_mpc_config,
-            mpc_config,
-        )
-        from arcade_core import adaptation
+        from arcade_control.step import Carry, mpc_config
         from services.adapter import DEFAULT_WEIGHTS
+        from services.controller_steps import build_steps
 
         a = self.args
         self.jnp = jnp
@@ -147,85 +134,42 @@ class Controller(runtime.Service):
         p = nominal_params()
         self.u_hover = np.array([float(p.mass) * float(p.gravity), 0.0, 0.0, 0.0])
         scen = options.scenario(a)
-        N = cfg.N
         self.ref_dt = CONTROL_DT
         t_end = a.duration if a.duration is not None else scen.t_end
         self.n_ref = math.ceil(t_end / CONTROL_DT - 1e-9) + 1
         # With a link delay the plan starts where the setpoint will act: the reference
         # that much later, from the state predicted over it (``make_controller_step``).
         delay = a.link_delay
-        # Traced once and kept on disk, like the steps below (arcade_io.traced).
-        ref_args = reference_arguments(scen, self.n_ref, N, delay)
+        # Traced once and kept on disk, like the steps (arcade_io.traced).
+        ref_args = reference_arguments(scen, self.n_ref, cfg.N, delay)
         reference = load_or_trace("reference", flat_reference, ref_args)
         self.x_ref_all, self.u_ref_all = reference(*ref_args)
         weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
         self.weights = weights
-        self.learner0 = None
-        # The in-process per-step update, with learning left to the adapter.
-        no_learn = {"learn": lambda learner, x_prev, u_prev, x: learner}
-        step_nominal = make_controller_step(
-            make_method("nominal")._replace(**no_learn), cfg, delay_s=delay
-        )
-        self._learner_nominal = jnp.zeros((), dtype)
-        if weights.is_file():
-            self.learner0 = controller_learner(weights, dtype, a.method)
-            step = make_controller_step(
-                controller_method(a.method),
-                method_mpc_config(cfg, a.method, stack_knobs(a.method)),
-                delay_s=delay,
-            )
-
-            def learned(carry, x, u_sent, k, theta, cov, x_ref_all, u_ref_all):
-                learner = carry[0]
-                beam = one_hypothesis_beam(learner.beam, theta, cov)
-                carry = carry._replace(learner=learner._replace(beam=beam))
-                return step(carry, x, u_sent, k, x_ref_all, u_ref_all)
-
-            # The prior's mean and covariance, in one compiled call (not op by op).
-            theta0, cov0 = jax.jit(
-                lambda beam: (adaptation.marginal_decoder(beam)[0], beam.covariances[0])
-            )(self.learner0.beam)
-            self._theta0 = np.asarray(theta0)
-            d, l = self._theta0.shape  # the flagship's features carry an intercept
-            self._cov0 = np.broadcast_to(np.asarray(cov0), (d, l, l)).copy()
+        self.advanced = bool(a.advanced_step) and weights.is_file()
         u0 = jnp.asarray(self.u_hover, dtype)
+        steps = build_steps(
+            cfg,
+            a.method,
+            weights,
+            (self.x_ref_all, self.u_ref_all),
+            delay,
+            self.advanced,
+            a.rate,
+            u0,
+        )
+        self.carry, self.learner0 = steps.carry, steps.learner0
+        self._theta0, self._cov0 = steps.theta0, steps.cov0
+        self._step_nominal, self._step_learned = steps.nominal, steps.learned
+        self._feedback, self._prepare = steps.feedback, steps.prepare
+        self._plain_carry = Carry
+        self._learner_nominal = jnp.zeros((), dtype)
         # The flagship's L1 augmentation state, carried from step to step (None: ours).
         self._l1 = getattr(self.learner0, "l1", None)
         self._u_sent = self.u_hover.copy()  # the last setpoint published
-        self.carry = Carry(
-            self.learner0 if self.learner0 is not None else self._learner_nominal,
-            jnp.broadcast_to(u0, (N, 4)),
-            u0,
-            jnp.zeros(13, dtype),
-            jnp.zeros((), bool),
-        )
-        # The steps traced for these arguments, loaded from disk when traced before
-        # (arcade_io.traced): besides code they close over the link delay only. They
-        # return the carry without its learner, which the next solve sets anyway.
-        x0 = np.zeros(13, np.dtype(dtype))
-        refs = (self.x_ref_all, self.u_ref_all)
-        key = f"link_delay={delay!r} method={a.method}"
-        self._step_nominal = load_or_trace(
-            "controller_nominal",
-            _without_learner(with_finite_flag(step_nominal)),
-            (self.carry._replace(learner=self._learner_nominal), x0, u0, 0, *refs),
-            key,
-        )
-        if self.learner0 is not None:
-            self._step_learned = load_or_trace(
-                "controller_learned",
-                _without_learner(with_finite_flag(learned)),
-                (
-                    self.carry,
-                    x0,
-                    u0,
-                    0,
-                    self._theta0.astype(x0.dtype),
-                    self._cov0.astype(x0.dtype),
-                    *refs,
-                ),
-                key,
-            )
+        #: The instant the prepared plan answers and the model message it was made with.
+        self._plan_k: int | None = None
+        self._plan_post: tuple | None = None
         self.t0: float | None = None
         self._model: Model | None = None
         self._cond = threading.Condition()
@@ -239,6 +183,7 @@ class Controller(runtime.Service):
         self._thrust_hover = float(self.u_hover[0])  # learned while tracking
         self._thrust_samples = 0  # tracking steps averaged into it so far
         self._solve_s = timing.LatencySamples(skip=1)  # the first solve: warm-up
+        self._prepare_s = timing.LatencySamples(skip=1)  # advanced step: after the setpoint
         self.stats.update(
             setpoints=0,
             deadline_misses=0,
@@ -249,6 +194,8 @@ class Controller(runtime.Service):
             fallback_errors=0,
             hover_failsafes=0,
             stamp_reanchored=0,
+            planned_steps=0,
+            plan_errors=0,
         )
         bus.subscribe("model", self.on_model, source="adapter")
         self._state_sub = bus.subscribe("state", self.on_state, source=self.args.state_source)
@@ -260,10 +207,19 @@ class Controller(runtime.Service):
 
     def warmup(self) -> None:
         x = np.r_[0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]
+        carry = self.carry
         for k in range(3):  # the first calls after compiling are still slow
             self._solve(x, k, None)
             if self.learner0 is not None:
-                self._solve(x, k, (self._theta0, self._cov0))
+                post = (self._theta0, self._cov0)
+                self._solve(x, k, post)
+                if self.advanced:  # the prepared path too, then no plan again
+                    self.carry = self._new_carry
+                    self._plan(k + 1, post)
+                    self._solve(x, k + 1, post)
+                    self._plan_k = None
+        self.carry = carry
+        self.stats["planned_steps"] = 0
 
     def ready(self) -> None:
         if self.learner0 is None:
@@ -278,7 +234,7 @@ class Controller(runtime.Service):
         x = np.asarray(x, dt)
         carry = self.carry
         if posterior is None:
-            carry = carry._replace(learner=self._learner_nominal)
+            carry = self._plain_carry(*carry[:5])._replace(learner=self._learner_nominal)
             new, u = self._step_nominal(carry, x, carry.u_mpc, k, self.x_ref_all, self.u_ref_all)
             self._new_l1 = self._resync(self._l1)
         else:
@@ -286,14 +242,40 @@ class Controller(runtime.Service):
             if self._l1 is not None:
                 learner = learner._replace(l1=self._l1)
             carry = carry._replace(learner=learner)
-            theta, cov = (np.asarray(v, dt) for v in posterior)
+            post = tuple(np.asarray(v, dt) for v in posterior)
             u_sent = np.asarray(self._u_sent, dt)
-            new, u = self._step_learned(
-                carry, x, u_sent, k, theta, cov, self.x_ref_all, self.u_ref_all
-            )
+            refs = (self.x_ref_all, self.u_ref_all)
+            if self.advanced:
+                planned = self._plan_k == k
+                self.stats["planned_steps"] += int(planned)
+                plan = carry.plan._replace(ready=np.asarray(planned))
+                post_plan = self._plan_post if planned else post
+                new, u = self._feedback(
+                    carry._replace(plan=plan), x, u_sent, k, post_plan, post, *refs
+                )
+                self._plan_k = None  # used, or for another instant
+            else:
+                new, u = self._step_learned(carry, x, u_sent, k, *post, *refs)
             self._new_l1 = new.learner
         self._new_carry = new._replace(learner=carry.learner)
+        if self.advanced and posterior is None:  # the plain step's carry, no plan
+            self._new_carry = self.carry._replace(**self._new_carry._asdict())
+            self._plan_k = None
         return np.asarray(u, dtype=float)  # (5,): the input and the finite-solution flag
+
+    def _plan(self, k: int, posterior: tuple) -> None:
+        """Advanced step: the plan for instant ``k``, one control period after the state
+        just answered, made with ``posterior`` (after the setpoint is out)."""
+        dt = np.dtype(self.dtype)
+        post = tuple(np.asarray(v, dt) for v in posterior)
+        period = np.asarray(1.0 / self.args.rate, dt)
+        learner = self.learner0
+        if self._l1 is not None:
+            learner = learner._replace(l1=self._l1)
+        carry = self.carry._replace(learner=learner)
+        new = self._prepare(carry, k, period, post, self.x_ref_all, self.u_ref_all)
+        self.carry = new._replace(learner=self.carry.learner)
+        self._plan_k, self._plan_post = k, post
 
     @staticmethod
     def _resync(l1_state):
@@ -343,6 +325,7 @@ class Controller(runtime.Service):
 
     def step(self, s: State, t_in: float) -> None:
         """One control step on ``s``; a step that raises gives a hover setpoint instead."""
+        self._next_plan = None
         try:
             self.handle(s)
             self._react_s.append(time.perf_counter() - t_in)
@@ -367,11 +350,20 @@ class Controller(runtime.Service):
         except Exception as err:
             self.stats["fallback_errors"] += 1
             self._log_step_error(err)
+        if self._next_plan is not None:  # advanced step: off the sense-to-actuate path
+            try:
+                t1 = time.perf_counter()
+                self._plan(*self._next_plan)
+                self._prepare_s.append(time.perf_counter() - t1)
+            except Exception as err:  # the next state is then answered by a full solve
+                self._plan_k = None
+                self.stats["plan_errors"] += 1
+                self._log_step_error(err)
 
-    def _instant(self, s: State) -> int:
-        """Index of ``s``'s instant in the reference (mission time; the start reference
-        until the mission clock starts in realtime)."""
-        t = 0.0 if self.t0 is None else s.stamp - self.t0
+    def _instant(self, s: State, ahead_s: float = 0.0) -> int:
+        """Index of ``s``'s instant (or ``ahead_s`` after it) in the reference (mission
+        time; the start reference until the mission clock starts in realtime)."""
+        t = 0.0 if self.t0 is None else s.stamp + ahead_s - self.t0
         return min(max(round(t / self.ref_dt), 0), self.n_ref - 1)
 
     def _log_step_error(self, err: Exception) -> None:
@@ -502,12 +494,15 @@ class Controller(runtime.Service):
         u, finite = u[:4], u[4] == 1.0
         if not finite or not np.all(np.isfinite(u)):
             self.stats["solver_failures"] += 1
+            self._plan_k = None
             self._set_mode("hover", "non-finite MPC solution", s.stamp)
             self.publish(s, self.hover(s), "hover", solve_s)
             return
         self.publish(s, u, mode, solve_s)  # first: the bookkeeping below can wait
         self.carry = self._new_carry
         self._l1 = self._new_l1
+        if self.advanced and m is not None:  # the next instant's plan, with this model
+            self._next_plan = (self._instant(s, 1.0 / a.rate), (m.theta, cov))
         # Hover thrust for the hover mode: what tracking on measured states needed,
         # level-equivalent (a slow mean: a few seconds).
         if not s.predicted_through_dropout:
@@ -561,10 +556,13 @@ class Controller(runtime.Service):
         self.stats["setpoints"] += 1
 
     _last_stamp = 0.0
+    _next_plan: tuple | None = None  # advanced step: (instant, model) to plan for next
     _failsafe_reason = ""  # a failsafe raised for the state being answered
 
     def teardown(self) -> None:
         self.stats["solve"] = self._solve_s.summary()
+        if self.advanced:
+            self.stats["prepare"] = self._prepare_s.summary()
         self.stats["solve_samples_ms"] = self._solve_s.samples_ms()
         # The controller's share of sense-to-actuate: the state's bus hop, and from its
         # arrival to the setpoint's put (queue hand-over, solve, encode).

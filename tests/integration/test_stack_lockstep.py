@@ -80,12 +80,14 @@ def check_clean_run(out: Path, summary: dict, detector: bool = True) -> None:
     assert json.loads((out / "metrics.json").read_text())["rmse_m"] == summary["rmse_m"]
 
 
-def in_process_rmse(monkeypatch, delay_s: float = 0.0, method: str = "ours") -> float:
+def in_process_rmse(
+    monkeypatch, delay_s: float = 0.0, method: str = "ours", advanced: bool = False
+) -> float:
     """The in-process closed loop on the information the ``model`` message carries: its
     ``Q`` modulation from the moment-matched beam marginal (``moment_matched``) instead
     of the full beam, as a deployed controller receives it. ``delay_s``: a link delay,
     compensated (``Runner.fly``'s ``compensate_delay``); ``method``: the one flown, at
-    the stack's knobs."""
+    the stack's knobs; ``advanced``: the advanced step (``Runner``'s)."""
     from arcade_control import methods
     from arcade_control.guard import guard_from_metadata
     from arcade_control.scenario import Scenario
@@ -106,7 +108,8 @@ def in_process_rmse(monkeypatch, delay_s: float = 0.0, method: str = "ours") -> 
     )
     assert models.guard is not None
     scen = Scenario(command_delay_s=delay_s)
-    flight = Runner(models).fly(method, scen, seed=SEED, compensate_delay=delay_s > 0)
+    runner = Runner(models, advanced=advanced)
+    flight = runner.fly(method, scen, seed=SEED, compensate_delay=delay_s > 0)
     assert not flight.crashed
     return flight.metrics["rmse_m"]
 
@@ -124,7 +127,9 @@ def test_lockstep_flight_matches_in_process_loop(tmp_path, monkeypatch):
 def test_lockstep_flight_of_the_flagship_matches_in_process_loop(tmp_path, monkeypatch):
     """``--method arcade``: the adapter learns the flagship's model (features with an
     intercept), the controller runs its L1 augmentation on the model messages: the flight
-    is the in-process flagship's (within 10 %), whose thrust correction the L1 adds.
+    is the in-process flagship's (within 10 %), whose thrust correction the L1 adds. The
+    controller runs the advanced step (``--advanced-step``): it answers the states from
+    the plans it prepared, as the in-process advanced step does.
 
     Not asserted here: the detector's release hit. At the flagship's stack knobs its model
     refits on every step and the thrust chatters at 2.5 m/s (2.8 to 10.4 N within 0.15 s
@@ -132,11 +137,19 @@ def test_lockstep_flight_of_the_flagship_matches_in_process_loop(tmp_path, monke
     the release instant, before the release shows (the flagship's open problem: its
     thrust increments)."""
     summary = run_demo(
-        tmp_path, seed=SEED, x64=True, truth_state=True, progress=False, method="arcade"
+        tmp_path,
+        seed=SEED,
+        x64=True,
+        truth_state=True,
+        progress=False,
+        method="arcade",
+        extra={"controller": ["--advanced-step"]},
     )
     check_clean_run(tmp_path, summary, detector=False)
     assert summary["adaptation"] == "arcade"
-    reference = in_process_rmse(monkeypatch, method="arcade")
+    ctl = json.loads((tmp_path / "stats" / "controller.json").read_text())
+    assert ctl["plan_errors"] == 0 and ctl["planned_steps"] >= 0.9 * ctl["setpoints"], ctl
+    reference = in_process_rmse(monkeypatch, method="arcade", advanced=True)
     assert abs(summary["rmse_m"] - reference) <= 0.1 * reference, (summary["rmse_m"], reference)
 
 

@@ -141,6 +141,14 @@ def test_loop_section_states_the_realtime_conditions_of_its_numbers():
     assert "sim fifo + CPU wake-up latency 0 µs" in text
     assert "controller normal (idle CPUs may sleep)" in text
     assert "| 0.20 | 0.40 | 9.50 | 50.00 | 0 | 120 |" in text
+    assert "MPC solve p50/p99 5.40/7.00 ms, inside the controller's stage" in text
+    # The advanced step: the solve after the setpoint, the stage's answer from the plan.
+    r |= {"advanced_step": True, "answer_p50_ms": 1.5, "answer_p99_ms": 3.25}
+    text = "\n".join(
+        report_measurements.loop_section(r | {"planned_steps": 5990, "control_steps": 6001})
+    )
+    assert "MPC solve p50/p99 5.40/7.00 ms for the next instant after each setpoint" in text
+    assert "(step p50/p99 1.50/3.25 ms; 5990 of 6001 states)" in text
 
 
 def test_cartpole_section_renders_the_reference_rows_and_the_latent_ablation(tmp_path):

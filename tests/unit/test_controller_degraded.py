@@ -168,17 +168,17 @@ def test_a_link_delay_plans_from_the_predicted_state_against_the_later_reference
     """``--link-delay``: the controller's step is the in-process compensated step
     (``make_controller_step``'s ``delay_s``, tested in test_quadrotor_closedloop_links) and its
     reference the plan that much later."""
-    from arcade_control import step as control_step
     from arcade_control.scenario import reference
+    from services import controller_steps
 
     built = []
-    real = control_step.make_controller_step
+    real = controller_steps.make_controller_step
 
     def make_step(method, cfg, hold_residual=False, delay_s=0.0):
         built.append(delay_s)
         return real(method, cfg, hold_residual, delay_s)
 
-    monkeypatch.setattr(control_step, "make_controller_step", make_step)
+    monkeypatch.setattr(controller_steps, "make_controller_step", make_step)
     plain = make_controller(parser)
     delayed = make_controller(parser, "--link-delay", "0.02")
     assert built == [0.0, 0.02]
