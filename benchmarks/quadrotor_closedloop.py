@@ -126,7 +126,7 @@ from arcade_control.nominal import CONTROL_DT as DT
 from arcade_control.scenario import Scenario
 from arcade_io import atomicfile
 from benchmarks.eval_progress import Progress
-from benchmarks.quadrotor_flights import FLIGHT_THREADS, Runner
+from benchmarks.quadrotor_flights import FLIGHT_THREADS, Runner, flight_threads
 from benchmarks.quadrotor_protocol import condition, format_paired, paired_differences
 from benchmarks.quadrotor_tuning import tune
 
@@ -311,7 +311,7 @@ def run_closedloop(
             "horizon": 20,
             "dtype": str(jnp.dtype(runner.dtype)),
             # Flights flown at a time: ``step_ms_median`` is measured with them side by side.
-            "flight_threads": FLIGHT_THREADS,
+            "flight_threads": flight_threads(FLIGHT_THREADS),
             "tuned": knobs_of(models.closedloop, methods),
             "methods": list(methods),
             "cells": [list(c) for c in cells],

@@ -10,6 +10,7 @@ reference are :mod:`arcade_control.scenario`; what the evaluation does with the 
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -38,10 +39,26 @@ from simulator import QuadrotorSim
 
 #: A flight whose position error exceeds this is stopped and counted as a crash [m].
 CRASH_ERROR_M = 2.0
-#: Flights of one method and cell flown at a time (:meth:`Runner.fly_trials`): one flight
-#: uses about 1.1 cores, and the compiled solves of one overlap the other's Python (which
-#: holds Python's lock): 1.38x on a 2-core machine, where four threads were slower.
+#: Flights of one method and cell flown at a time (:meth:`Runner.fly_trials`), at most
+#: :func:`flight_threads` allows: one flight uses about 1.1 cores, and the compiled solves of
+#: one overlap the other's Python (which holds Python's lock).
 FLIGHT_THREADS = 2
+
+
+def flight_threads(requested: int) -> int:
+    """How many flights may fly at a time: ``requested``, but at most one per CPU less one.
+
+    A flight's compiled steps execute on XLA's CPU thread pool (a thread per CPU), and
+    their LAPACK kernels (a batched Cholesky factorisation) split their batch over the same
+    pool and wait for it. With as many flights as pool threads, each can hold a thread
+    and wait for another forever: two flights on two CPUs hung ``arcade eval quadrotor``
+    in the GP's tuning (both threads in ``jax::ParallelBatchMap``). With a thread to spare,
+    one of them always finishes. On two CPUs the flights therefore fly one at a time."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    return max(1, min(requested, cpus - 1))
 
 
 class MocapEstimate:
@@ -177,7 +194,8 @@ class Runner:
         threads: int = FLIGHT_THREADS,
         advanced: bool | None = None,
     ) -> list[Flight]:
-        """:meth:`fly` for each of ``seeds``, in their order, up to ``threads`` at a time.
+        """:meth:`fly` for each of ``seeds``, in their order, up to ``threads`` at a time
+        (:func:`flight_threads`: at most one per CPU less one).
 
         Each flight has its own simulator, estimator and learner and calls the same compiled
         functions (built here first, so that no two threads build one), so the flights are
@@ -194,6 +212,7 @@ class Runner:
         def one(seed: int) -> Flight:
             return self.fly(name, scenario, seed, estimated, compensate_delay, advanced)
 
+        threads = flight_threads(threads)
         if threads <= 1 or len(seeds) <= 1:
             return [one(s) for s in seeds]
         with ThreadPoolExecutor(max_workers=threads) as pool:

@@ -1,5 +1,6 @@
 """Quadrotor pipeline: expert-flight data, shipped VLD weights, a short closed-loop flight."""
 
+import os
 from types import SimpleNamespace
 
 import jax
@@ -32,6 +33,7 @@ from arcade_io.weights import load_model, read_header
 from benchmarks import quadrotor_tuning as qt
 from benchmarks.quadrotor_flights import (
     Runner,
+    flight_threads,
 )
 from simulator.expert_flights import flight_transitions, make_dataset
 
@@ -140,9 +142,10 @@ def test_short_closed_loop_flight_of_ours(data, method):
 
 
 def test_flights_flown_side_by_side_are_those_flown_one_by_one():
-    """``Runner.fly_trials`` flies seeds two at a time on threads: every flight is the one
-    ``fly`` gives alone, bit for bit (the flagship on the estimate, with the link's delay
-    compensated: the most state a flight carries)."""
+    """``Runner.fly_trials`` flies seeds two at a time on threads where the CPUs allow
+    (``flight_threads``; on two CPUs one at a time): every flight is the one ``fly`` gives
+    alone, bit for bit (the flagship on the estimate, with the link's delay compensated:
+    the most state a flight carries)."""
     from arcade_control.stack import stack_knobs
 
     vld, _, extra = load_model(QUADROTOR_WEIGHTS)
@@ -165,6 +168,7 @@ def test_flights_flown_side_by_side_are_those_flown_one_by_one():
     together = runner.fly_trials("arcade", scenario, seeds, threads=2, **kw)
     alone = [runner.fly("arcade", scenario, seed=s, **kw) for s in seeds]
     assert [f.seed for f in together] == list(seeds)
+    assert flight_threads(2) == max(1, min(2, len(os.sched_getaffinity(0)) - 1))
     for a, b in zip(alone, together, strict=True):
         assert not a.crashed
         np.testing.assert_array_equal(a.x, b.x)
