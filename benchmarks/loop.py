@@ -18,10 +18,10 @@ private loopback Zenoh hub) on the wall clock at 50 Hz and reports:
   deadlines fell in a period it stole from or slowed
   (``missed_deadlines_outside_host_slowdowns`` are the stack's own);
 - ``mpc_p99_ms``: the controller's MPC solve time in the same run: with the advanced step
-  (``advanced_step``, the controller's default) the solve for the next instant, after the
-  setpoint is out, off the sense-to-actuate path; ``answer_p99_ms``: the controller's
-  state-to-setpoint step (the advanced step's first-order correction of the prepared
-  plan; without it, the solve); ``planned_steps``: the states answered from a plan;
+  (``advanced_step``: ``arcade bench loop --advanced-step``) the solve for the next
+  instant, after the setpoint is out, off the sense-to-actuate path; ``answer_p99_ms``:
+  the controller's state-to-setpoint step (the advanced step's first-order correction of
+  the prepared plan; without it, the solve); ``planned_steps``: the states answered from a plan;
 - ``stages_ms``: sense-to-actuate stage by stage (p50, p99): the simulator's sample instant
   to its imu put, the hop to the estimator, the estimator's work, the hop to the
   controller, the controller from the state's arrival to the setpoint's put (solve
@@ -92,10 +92,11 @@ def run(
     progress: Callable[[str], None] | None = None,
     method: str = DEFAULT_STACK_METHOD,
     credentials: bool = True,
+    advanced: bool = False,
 ) -> dict[str, Any]:
     """Fly the stack in real time with ``method`` (one of ``STACK_METHODS``) and measure (see
-    the module docstring); ``progress`` gets the stack's start-up lines and the simulated
-    time every 10 s."""
+    the module docstring); ``advanced``: the controller's ``--advanced-step``; ``progress``
+    gets the stack's start-up lines and the simulated time every 10 s."""
     from arcade.demo_stack import free_hub
     from arcade_io.hostcpu import SlowdownProbe, overlaps
     from benchmarks.common import machine
@@ -112,12 +113,14 @@ def run(
             duration=duration,
             method=method,
             credentials=credentials,
+            extra={"controller": ["--advanced-step"]} if advanced else {},
         )
         with SlowdownProbe(folder / "host") as host:
             if progress is None:
                 result = run_flight(cfg)
             else:
-                progress(f"[loop] {duration:g} s real-time flight at {rate:g} Hz ({method})")
+                step = ", advanced step" if advanced else ""
+                progress(f"[loop] {duration:g} s real-time flight at {rate:g} Hz ({method}{step})")
                 result = run_flight(
                     cfg,
                     progress=lambda m: progress(f"[loop] {m}"),

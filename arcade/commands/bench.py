@@ -91,6 +91,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help=METHOD_HELP,
     )
+    lp.add_argument(
+        "--advanced-step",
+        action="store_true",
+        help="the controller solves one period ahead and answers each state from that plan "
+        "(the controller service's --advanced-step; docs/quadrotor-closed-loop.md); default: "
+        "it solves after each state",
+    )
     m = p.add_argument_group("mpc")
     m.add_argument(
         "--residual",
@@ -151,8 +158,8 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    if args.method is not None and args.which != "loop":
-        print("error: --method belongs to `arcade bench loop`", file=sys.stderr)
+    if (args.method is not None or args.advanced_step) and args.which != "loop":
+        print("error: --method and --advanced-step belong to `arcade bench loop`", file=sys.stderr)
         return 2
     if args.which == "report":
         if args.json:
@@ -184,6 +191,8 @@ def run(args: argparse.Namespace) -> int:
             return 2
     module = importlib.import_module(BENCHES[args.which])
     extra: dict = {"method": args.method} if args.method is not None else {}
+    if args.advanced_step:
+        extra["advanced"] = True
     if args.which in WITH_PROGRESS:  # long runs: a line now and then, stdout stays the result
         extra["progress"] = lambda m: print(m, file=sys.stderr, flush=True)
     try:

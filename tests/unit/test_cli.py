@@ -100,7 +100,8 @@ def test_bench_adapt_json_contract():
         (["--solver", "dogleg"], "belong to `arcade bench mpc`"),
         (["--residual", "held", "--max-steps", "0"], "belong to `arcade bench mpc`"),
         (["--json"], "--json: `arcade bench report` writes a markdown file"),
-        (["--method", "arcade"], "--method belongs to `arcade bench loop`"),
+        (["--method", "arcade"], "--method and --advanced-step belong to `arcade bench loop`"),
+        (["--advanced-step"], "--method and --advanced-step belong to `arcade bench loop`"),
     ],
 )
 def test_bench_report_refuses_options_of_other_benchmarks(
@@ -189,3 +190,25 @@ def test_loop_counts_the_flight_time_from_the_first_state():
     for stamp in (0.0, 0.0, 2170.5, 2180.5, 2191.0):  # monotonic stamps once states flow
         hook(stamp)
     assert seen == [0.0, 10.0, 20.5]
+
+
+@pytest.mark.parametrize("advanced", [False, True])
+def test_bench_loop_advanced_step_reaches_the_controller(monkeypatch, capsys, advanced):
+    import deploy.launcher
+
+    flown = []
+
+    class Flown(Exception):
+        pass
+
+    def run_flight(cfg, **kwargs):
+        flown.append(cfg)
+        raise Flown  # the options are what matters here, not a flight
+
+    monkeypatch.setattr(deploy.launcher, "run_flight", run_flight)
+    with pytest.raises(Flown):
+        main(["bench", "loop", "--quick", *(["--advanced-step"] if advanced else [])])
+    (cfg,) = flown
+    assert ("--advanced-step" in cfg.args("controller")) == advanced
+    assert "--advanced-step" not in cfg.args("adapter")
+    assert ("advanced step" in capsys.readouterr().err) == advanced
