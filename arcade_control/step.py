@@ -150,15 +150,24 @@ class _Planner:
     """What the plain and the advanced-step controllers share: the state they learn and
     plan from, one MPC solve against the reference at an instant, the diagnostics."""
 
-    def __init__(self, method: Method, cfg: mpc.MPCConfig, hold_residual: bool, delay_s: float):
+    def __init__(
+        self,
+        method: Method,
+        cfg: mpc.MPCConfig,
+        hold_residual: bool,
+        delay_s: float,
+        prepare_steps: int | None = None,
+    ):
         self.method, self.cfg, self.delay_s = method, cfg, delay_s
         self.params = nominal_params()
         self.staged = method.learned and (hold_residual or method.hold_residual)
-        if self.staged:
-            step_fn = mpc.staged_residual_step(f_nom)
-            self.controller = mpc.make_controller(step_fn, cfg, staged=True)
-        else:
-            self.controller = mpc.make_controller(method.step_fn, cfg)
+        step_fn = mpc.staged_residual_step(f_nom) if self.staged else method.step_fn
+        self.controller = mpc.make_controller(step_fn, cfg, staged=self.staged)
+        #: The advanced step's plans: at most ``prepare_steps`` solver iterations.
+        self.preparer = self.controller
+        if prepare_steps is not None:
+            capped = dataclasses.replace(cfg, max_steps=min(prepare_steps, cfg.max_steps))
+            self.preparer = mpc.make_controller(step_fn, capped, staged=self.staged)
 
     def observe(self, carry, x, u_applied, k, x_ref_all, learner=None):
         """The state the method learns and plans from (predicted over the delay, its
@@ -194,17 +203,18 @@ class _Planner:
 
     def plan(self, learner, x, k, u_warm, u_prev, x_ref_all, u_ref_all, gain: bool = False):
         """The MPC solution from ``x`` against the reference at instant ``k`` and the
-        variance that modulated ``Q``; with ``gain``, also the first input's gain on the
-        residuals at the solution (``first_input_gain``; zero where the solve did not
-        converge), the input reference and the model it solved with."""
+        variance that modulated ``Q``; with ``gain`` (the advanced step's plan: at most
+        ``prepare_steps`` iterations), also the first input's gain on the residuals at the
+        plan (``first_input_gain``; zero where it is not finite), the input reference and
+        the model it solved with."""
         x_ref, u_ref, model, sigma = self.inputs(learner, x, k, u_warm, x_ref_all, u_ref_all)
         args = (x, x_ref, u_ref)
-        sol = self.controller.solve(*args, u_warm, u_prev, model, sigma)
+        controller = self.preparer if gain else self.controller
+        sol = controller.solve(*args, u_warm, u_prev, model, sigma)
         if not gain:
             return sol, sigma
-        G = self.controller.first_input_gain(*args, sol.u, u_prev, model, sigma)
-        ok = sol.converged & jnp.all(jnp.isfinite(G))
-        return sol, sigma, jnp.where(ok, G, 0.0), u_ref, model
+        G = controller.first_input_gain(*args, sol.u, u_prev, model, sigma)
+        return sol, sigma, jnp.where(jnp.all(jnp.isfinite(G)), G, 0.0), u_ref, model
 
     def diag(self, learner, sigma, iterations, converged, dtype):
         sig = jnp.zeros(13, dtype) if sigma is None else sigma
@@ -268,8 +278,20 @@ def planned_carry(carry: Carry, cfg: mpc.MPCConfig) -> PlannedCarry:
     return PlannedCarry(*carry, plan)
 
 
+#: Solver iterations of the advanced step's plan (the real-time iteration's idea: the
+#: answer finishes the plan's Gauss-Newton step). In process, stack condition, the
+#: flagship at 175 g / 2.5 m/s, 75 g / 0.5 m/s and 125 g / 1.5 m/s, seeds 0 and 1: 2
+#: iterations track as the solve to convergence does (RMSE within 0.0001 m in all six
+#: flights); 1 iteration is 13-21 % behind (docs/quadrotor-closed-loop.md).
+PREPARE_STEPS = 2
+
+
 def make_advanced_step(
-    method: Method, cfg: mpc.MPCConfig, hold_residual: bool = False, delay_s: float = 0.0
+    method: Method,
+    cfg: mpc.MPCConfig,
+    hold_residual: bool = False,
+    delay_s: float = 0.0,
+    prepare_steps: int | None = PREPARE_STEPS,
 ):
     """The advanced-step controller: ``(feedback, prepare)``, both jitted.
 
@@ -277,21 +299,27 @@ def make_advanced_step(
     arrives. The advanced-step scheme (Zavala and Biegler 2009) solves one period ahead
     instead: once a setpoint is out, ``prepare(carry, k_next, period_s, x_ref_all,
     u_ref_all)`` predicts the state at the next control instant, ``period_s`` later, with
-    the input just sent (the method's model, :func:`predict_period`), solves the MPC from
-    there against the reference at ``k_next``, and keeps the first input's gain on the
-    problem's residuals at the solution (:func:`arcade_core.mpc.make_controller`'s
-    ``first_input_gain``). When the state arrives, ``feedback(carry, x, u_applied, k,
-    x_ref_all, u_ref_all, learner_now=None) -> (carry, u, diag)`` learns from the
-    transition as the plain step does (from ``learner_now``, when given: the controller
-    service's learner holding the newest model message, where the carry's holds the one
-    the plan was made with) and corrects the prepared input to first order for what changed since:
-    the state (measured against predicted) and the learned model with the input
-    reference it implies (``residual_change``: one forward-mode derivative of the
-    residuals, then a matrix-vector product, instead of a solve). Without a plan prepared
-    for this instant (the first step) it solves in full, as :func:`make_controller_step`
-    does. ``diag``'s solver columns are those of the solve behind the input.
+    the input just sent (the method's model, :func:`predict_period`), plans the MPC from
+    there against the reference at ``k_next`` with at most ``prepare_steps`` solver
+    iterations (``None``: the configuration's cap) from the shifted plan, and keeps the
+    first input's gain on the problem's residuals at the plan
+    (:func:`arcade_core.mpc.make_controller`'s ``first_input_gain``). When the state
+    arrives, ``feedback(carry, x, u_applied, k, x_ref_all, u_ref_all, learner_now=None) ->
+    (carry, u, diag)`` learns from the transition as the plain step does (from
+    ``learner_now``, when given: the controller service's learner holding the newest model
+    message, where the carry's holds the one the plan was made with) and answers with the
+    plan's first input plus the gain times the problem's residuals at the plan, updated to
+    first order for what changed since: the state (measured against predicted) and the
+    learned model with the input reference it implies (``residual_change``: one
+    forward-mode derivative, then a matrix-vector product, instead of a solve). That is
+    the first input's Gauss-Newton step from the plan on the problem of now, as in the
+    real-time iteration (Diehl et al. 2005): at a converged plan only the change counts.
+    Without a plan prepared for this instant (the first step) it solves in full, as
+    :func:`make_controller_step` does. ``diag``'s solver columns are those of the solve
+    behind the input (a plan: its iterations, and whether it met the solver's tolerance
+    within its cap).
     """
-    planner = _Planner(method, cfg, hold_residual, delay_s)
+    planner = _Planner(method, cfg, hold_residual, delay_s, prepare_steps)
     controller = planner.controller
 
     def feedback(carry: PlannedCarry, x, u_applied, k, x_ref_all, u_ref_all, learner_now=None):
@@ -307,11 +335,12 @@ def make_advanced_step(
             # The weights the plan was solved with (a method without modulation: none).
             modulated = method.sigma(carry.learner, x, plan.warm[0]) is not None
             held = plan.sigma if modulated else None
-            dr = controller.residual_change(
+            r, dr = controller.residual_change(
                 plan.x0, x_ref, plan.u_ref, carry.u_warm, carry.u_mpc, model, held,
                 x, model_new, u_ref_new,
             )  # fmt: skip
-            u_b = carry.u_warm[0] + plan.gain @ dr
+            # One Gauss-Newton step from the plan on the problem of now (to first order).
+            u_b = carry.u_warm[0] + plan.gain @ (r + dr)
             return u_b, carry.u_warm, plan.sigma, plan.iterations, plan.converged
 
         def solved(_):

@@ -408,7 +408,7 @@ class Controller(NamedTuple):
     solve: Callable[..., MPCSolution]
     rollout: Callable[[Array, Array, Any], Array]
     first_input_gain: Callable[..., Array]
-    residual_change: Callable[..., Array]
+    residual_change: Callable[..., tuple[Array, Array]]
 
     def initial_guess(self, u0: Array) -> Array:
         """Constant input over the horizon (Appendix D: ``U_0`` = hover input)."""
@@ -549,8 +549,10 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
         ``G dr``, in the Gauss-Newton approximation of the implicit function theorem,
         ``dz* = -(J_z^T J_z)^-1 J_z^T dr`` (the residuals' second derivatives dropped, as
         the solver drops them), through the input squashing (the bounds are the caller's to
-        apply to the corrected input). :func:`residual_change` gives ``dr``; together they
-        are the advanced-step controller's correction (:mod:`arcade_control.step`)."""
+        apply to the corrected input). At a plan ``U`` that does not solve the problem,
+        ``G r`` (``r``: its residuals) is the first input's Gauss-Newton step from ``U``.
+        :func:`residual_change` gives ``r`` and ``dr``; together they are the advanced-step
+        controller's correction (:mod:`arcade_control.step`)."""
         prob = problem(x0, x_ref, u_ref, u_prev, model, sigma_tot2)
         lo, hi = bounds(U.dtype)
         z = _unsquash(U, lo, hi)
@@ -575,10 +577,13 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
         model_new: Any,
         u_ref_new: Array,
     ) -> Array:
-        """``(m,)``: the first-order change of the residuals at the plan ``U`` when the
-        initial state, the model and the input reference become ``x0_new``, ``model_new``
-        (the same tree; its floating-point arrays change) and ``u_ref_new`` (one
-        forward-mode derivative, the state weights held)."""
+        """``(r, dr)``, both ``(m,)``: the residuals at the plan ``U`` and their first-order
+        change when the initial state, the model and the input reference become ``x0_new``,
+        ``model_new`` (the same tree; its floating-point arrays change) and ``u_ref_new``
+        (one forward-mode derivative, the state weights held). ``r + dr`` are the new
+        problem's residuals at ``U`` to first order: with :func:`first_input_gain`,
+        ``G (r + dr)`` is the first input's Gauss-Newton step from ``U`` on the new
+        problem (``G r`` vanishes where ``U`` solves the old one)."""
         lo, hi = bounds(U.dtype)
         z = _unsquash(U, lo, hi)
         dyn, static = eqx.partition(model, eqx.is_array)
@@ -595,7 +600,7 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
             return fn(z, problem(x, x_ref, ur, u_prev, eqx.combine(d, static), sigma_tot2))
 
         tangents = (x0_new - x0, d_dyn, u_ref_new - u_ref)
-        return jax.jvp(res, (x0, dyn, u_ref), tangents)[1]
+        return jax.jvp(res, (x0, dyn, u_ref), tangents)
 
     return Controller(
         config=cfg,

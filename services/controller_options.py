@@ -20,11 +20,11 @@ def add_controller_arguments(p: argparse.ArgumentParser) -> None:
         "--advanced-step",
         action=argparse.BooleanOptionalAction,
         default=False,
-        help="with a learned model: solve the MPC for the next control instant as soon as "
-        "a setpoint is out, and answer the next state with that plan corrected to first "
-        "order for where the state and the model are (sense-to-actuate without a solve, "
-        "about 20 %% more CPU per period; docs/quadrotor-closed-loop.md); without it each "
-        "state is solved for after it arrives",
+        help="with a learned model: plan the MPC for the next control instant as soon as "
+        "a setpoint is out (two solver iterations), and answer the next state with that "
+        "plan's Gauss-Newton step for where the state and the model are (sense-to-actuate "
+        "without a solve, about the CPU of a plain step; docs/quadrotor-closed-loop.md); "
+        "without it each state is solved for after it arrives",
     )
     p.add_argument(
         "--model-timeout",

@@ -4,6 +4,8 @@ when the state and the model arrive (``arcade_core.mpc``'s ``first_input_gain`` 
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,6 +14,7 @@ import pytest
 from arcade_control.methods import make_method
 from arcade_control.nominal import CONTROL_DT, nominal_params
 from arcade_control.step import (
+    PREPARE_STEPS,
     Carry,
     make_advanced_step,
     make_controller_step,
@@ -59,10 +62,14 @@ def test_the_first_input_gain_predicts_how_the_optimum_moves_with_the_state(prob
     rng = np.random.default_rng(0)
     for _ in range(3):
         dx = jnp.asarray(rng.normal(size=13) * 1e-4).at[6:10].set(0.0)
-        dr = ctrl.residual_change(x0, x_ref, u_ref, sol.u, u_prev, wind, None, x0 + dx, wind, u_ref)
+        r, dr = ctrl.residual_change(
+            x0, x_ref, u_ref, sol.u, u_prev, wind, None, x0 + dx, wind, u_ref
+        )
         exact = resolve(ctrl, x0 + dx, x_ref, u_ref, u_prev, wind, sol.u) - sol.u[0]
         # Gauss-Newton's approximation drops the residuals' curvature: about 1 % here.
         assert np.linalg.norm(G @ dr - exact) <= 0.03 * np.linalg.norm(exact)
+        # At the optimum the residuals themselves move nothing (the gradient vanishes).
+        assert np.linalg.norm(G @ r) <= 1e-6 * np.linalg.norm(exact)
 
 
 def test_the_correction_follows_a_change_of_the_model_and_of_the_input_reference(problem):
@@ -71,13 +78,29 @@ def test_the_correction_follows_a_change_of_the_model_and_of_the_input_reference
     d_wind = jnp.asarray([2e-3, 1e-3, -3e-3], F64)
     d_ref = jnp.zeros_like(u_ref).at[:, 0].add(2e-3)
     changed = (x0, wind + d_wind, u_ref + d_ref)
-    dr = ctrl.residual_change(x0, x_ref, u_ref, sol.u, u_prev, wind, None, *changed)
+    _, dr = ctrl.residual_change(x0, x_ref, u_ref, sol.u, u_prev, wind, None, *changed)
     exact = resolve(ctrl, x0, x_ref, u_ref + d_ref, u_prev, wind + d_wind, sol.u) - sol.u[0]
     assert np.abs(exact).max() > 1e-4  # the change moves the optimum
     assert np.linalg.norm(G @ dr - exact) <= 0.03 * np.linalg.norm(exact)
     # Nothing changed: no correction.
-    same = ctrl.residual_change(x0, x_ref, u_ref, sol.u, u_prev, wind, None, x0, wind, u_ref)
+    r, same = ctrl.residual_change(x0, x_ref, u_ref, sol.u, u_prev, wind, None, x0, wind, u_ref)
     assert float(jnp.abs(same).max()) == 0.0
+    assert np.isclose(float(r @ r), float(sol.cost), rtol=1e-10)  # the plan's residuals
+
+
+def test_the_correction_at_a_plan_short_of_the_optimum_is_its_gauss_newton_step(problem):
+    ctrl, (x0, x_ref, u_ref), u_prev, wind, sol = problem
+    # A plan one iteration from a poor start (hover), then the first input's step from it.
+    cfg1 = dataclasses.replace(ctrl.config, max_steps=1)
+    short = mpc.make_controller(wind_step, cfg1)
+    hover = jnp.broadcast_to(u_prev, (cfg1.N, 4))
+    plan = short.solve(x0, x_ref, u_ref, hover, u_prev, wind).u
+    G = ctrl.first_input_gain(x0, x_ref, u_ref, plan, u_prev, wind)
+    r, _ = ctrl.residual_change(x0, x_ref, u_ref, plan, u_prev, wind, None, x0, wind, u_ref)
+    before = float(jnp.linalg.norm(plan[0] - sol.u[0]))
+    after = float(jnp.linalg.norm(plan[0] + G @ r - sol.u[0]))
+    assert before > 1e-2  # one iteration from hover is not the optimum...
+    assert after < 0.5 * before  # ...and the step goes most of the way
 
 
 def _references(n: int):
@@ -103,14 +126,18 @@ def test_an_unprepared_advanced_step_is_the_plain_step_and_a_prepared_one_its_fi
     new_adv, u_adv, diag_adv = feedback(planned_carry(carry, cfg), x, u0, 0, x_all, u_all)
     np.testing.assert_array_equal(u_adv, u_plain)
     np.testing.assert_array_equal(diag_adv, diag_plain)
-    # Prepared for the next instant from the predicted state: answering exactly that state
-    # hands out the plan's first input; a state off the prediction, its correction.
+    # Prepared for the next instant from the predicted state, within PREPARE_STEPS
+    # iterations: answering exactly that state hands out the plan's first input plus its
+    # Gauss-Newton step (as the full solve, to the solver's tolerance); a state off the
+    # prediction, its correction too.
     planned = prepare(new_adv, 1, CONTROL_DT, x_all, u_all)
     assert bool(planned.plan.ready)
+    assert 1 <= int(planned.plan.iterations) <= PREPARE_STEPS
     x_pred = predict_period(method, new_adv.learner, new_adv.x_prev, new_adv.u_mpc, CONTROL_DT)
     np.testing.assert_allclose(planned.plan.x0, x_pred, atol=1e-12)
     _, u_on, _ = feedback(planned, x_pred, u_plain, 1, x_all, u_all)
-    np.testing.assert_allclose(u_on, planned.u_warm[0], atol=1e-12)
+    on_solved = plain(new_plain, x_pred, u_plain, 1, x_all, u_all)[1]
+    np.testing.assert_allclose(u_on, on_solved, atol=1e-3)
     off = x_pred + jnp.asarray([0.01, 0.0, -0.01, 0.05, -0.05, 0.02, 0, 0, 0, 0, 0, 0, 0], F64)
     _, u_off, _ = feedback(planned, off, u_plain, 1, x_all, u_all)
     solved = plain(new_plain, off, u_plain, 1, x_all, u_all)[1]
