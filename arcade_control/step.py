@@ -165,8 +165,8 @@ class _Planner:
         self.controller = mpc.make_controller(step_fn, cfg, staged=self.staged)
         #: The advanced step's plans: at most ``prepare_steps`` solver iterations.
         self.preparer = self.controller
-        if prepare_steps is not None:
-            capped = dataclasses.replace(cfg, max_steps=min(prepare_steps, cfg.max_steps))
+        if prepare_steps is not None and prepare_steps < cfg.max_steps:
+            capped = dataclasses.replace(cfg, max_steps=prepare_steps)
             self.preparer = mpc.make_controller(step_fn, capped, staged=self.staged)
 
     def observe(self, carry, x, u_applied, k, x_ref_all, learner=None):

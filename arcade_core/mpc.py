@@ -576,7 +576,7 @@ def make_controller(step_fn: StepFn, config: MPCConfig, staged: bool = False) ->
         x0_new: Array,
         model_new: Any,
         u_ref_new: Array,
-    ) -> Array:
+    ) -> tuple[Array, Array]:
         """``(r, dr)``, both ``(m,)``: the residuals at the plan ``U`` and their first-order
         change when the initial state, the model and the input reference become ``x0_new``,
         ``model_new`` (the same tree; its floating-point arrays change) and ``u_ref_new``

@@ -20,7 +20,7 @@ private loopback Zenoh hub) on the wall clock at 50 Hz and reports:
 - ``mpc_p99_ms``: the controller's MPC solve time in the same run: with the advanced step
   (``advanced_step``: ``arcade bench loop --advanced-step``) the solve for the next
   instant, after the setpoint is out, off the sense-to-actuate path; ``answer_p99_ms``:
-  the controller's state-to-setpoint step (the advanced step's first-order correction of
+  the controller's state-to-setpoint step (the advanced step's Gauss-Newton step from
   the prepared plan; without it, the solve); ``planned_steps``: the states answered from a plan;
 - ``stages_ms``: sense-to-actuate stage by stage (p50, p99): the simulator's sample instant
   to its imu put, the hop to the estimator, the estimator's work, the hop to the

@@ -132,7 +132,11 @@ def test_an_unprepared_advanced_step_is_the_plain_step_and_a_prepared_one_its_fi
     # prediction, its correction too.
     planned = prepare(new_adv, 1, CONTROL_DT, x_all, u_all)
     assert bool(planned.plan.ready)
-    assert 1 <= int(planned.plan.iterations) <= PREPARE_STEPS
+    # The cap is what stops the plan: solved without it, the same plan takes more.
+    _, prepare_full = make_advanced_step(method, cfg, prepare_steps=None)
+    full = prepare_full(new_adv, 1, CONTROL_DT, x_all, u_all)
+    assert int(full.plan.iterations) > PREPARE_STEPS
+    assert int(planned.plan.iterations) == PREPARE_STEPS
     x_pred = predict_period(method, new_adv.learner, new_adv.x_prev, new_adv.u_mpc, CONTROL_DT)
     np.testing.assert_allclose(planned.plan.x0, x_pred, atol=1e-12)
     _, u_on, _ = feedback(planned, x_pred, u_plain, 1, x_all, u_all)
