@@ -20,9 +20,8 @@ demo: $(STAMP)
 
 # Unit, property and workflow tests share the cores (one worker per test file, so per-file
 # fixtures are built once); the integration tests run alone, one at a time: the realtime
-# ones assert on timing, and lockstep flights under the load of a parallel run showed
-# timing-dependent outcomes (a failsafe cleared late after a 16-step stall), which they
-# must not have.
+# ones assert on timing, and the lockstep ones gain nothing on the workers (they pass
+# there since lockstep buses are lossless, but under load they use more CPU: README).
 test: lint
 	$(PY) -m pytest -q -m "not integration" -n 2 --dist loadfile --durations=15
 	$(PY) -m pytest -q -m integration --durations=15 tests/integration
