@@ -20,8 +20,8 @@ demo: $(STAMP)
 
 # Unit, property and workflow tests share the cores (one worker per test file, so per-file
 # fixtures are built once); the integration tests run alone, one at a time: the realtime
-# ones assert on timing, and the lockstep ones gain nothing on the workers (they pass
-# there since lockstep buses are lossless, but under load they use more CPU: README).
+# ones assert on timing, and the others gain nothing on the workers (they pass there
+# since lockstep buses are lossless, but under load their flights use more CPU: README).
 test: lint
 	$(PY) -m pytest -q -m "not integration" -n 2 --dist loadfile --durations=15
 	$(PY) -m pytest -q -m integration --durations=15 tests/integration

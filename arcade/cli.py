@@ -63,6 +63,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # the machine refused (disk full, a folder gone): one line
+        print(f"error: {os_error_text(exc)}", file=sys.stderr)
+        return 1
+
+
+def os_error_text(exc: OSError) -> str:
+    """``exc`` as a sentence: the system's reason and the file(s) it names."""
+    reason = exc.strerror or str(exc)
+    files = [f for f in (exc.filename, exc.filename2) if f is not None]
+    return f"{reason}: {' -> '.join(map(str, files))}" if files else reason
 
 
 if __name__ == "__main__":

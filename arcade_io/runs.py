@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -43,6 +44,18 @@ def _nearest_existing(path: Path) -> Path:
     return Path(".")
 
 
+def _probe_write(folder: Path, what: str, path: Path) -> None:
+    """Create and remove a file in ``folder``: permission bits do not tell it all (root
+    passes every ``os.access`` check; a read-only mount or ``/proc`` refuses anyway)."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise OutputPathError(
+            f"{what} {path}: cannot write in {folder} ({exc.strerror or exc})"
+        ) from None
+
+
 def _check_folder_below(path: Path, what: str) -> None:
     """``path`` does not exist: its nearest existing ancestor must be a writable folder."""
     base = _nearest_existing(path.parent if path.parent != path else path)
@@ -50,6 +63,7 @@ def _check_folder_below(path: Path, what: str) -> None:
         raise OutputPathError(f"{what} {path}: {base} is a file, not a folder")
     if not os.access(base, os.W_OK | os.X_OK):
         raise OutputPathError(f"{what} {path}: cannot create it, {base} is not writable")
+    _probe_write(base, what, path)
 
 
 def check_output_dir(path: str | Path, what: str = "output folder") -> Path:
@@ -63,6 +77,7 @@ def check_output_dir(path: str | Path, what: str = "output folder") -> Path:
             raise OutputPathError(f"{what} {path} is an existing file, not a folder")
         if not os.access(path, os.W_OK | os.X_OK):
             raise OutputPathError(f"{what} {path} is not writable")
+        _probe_write(path, what, path)
         return path
     _check_folder_below(path, what)
     return path
@@ -77,6 +92,7 @@ def check_output_file(path: str | Path, what: str = "output file") -> Path:
     if path.exists():
         if not os.access(path, os.W_OK):
             raise OutputPathError(f"{what} {path} is not writable")
+        _probe_write(path.parent, what, path)  # files are replaced atomically, in there
         return path
     _check_folder_below(path, what)
     return path
