@@ -192,7 +192,10 @@ def _changepoints(args, progress):
     from benchmarks import changepoints_cartpole as ccp
 
     trials = args.trials if args.trials is not None else (1 if args.quick else 10)
-    progress("quadrotor: flights as the stack flies them, the detector replayed on each")
+    progress(
+        "quadrotor: flights as the stack flies them: the flagship's own events, the detector "
+        "replayed on ours'"
+    )
     quad, flown = qcp.run_changepoints(quick=args.quick, trials=trials, progress=progress)
     progress("forgetting ablation: the learners replayed on the same flights")
     ablation = cab.run_ablation(detector=quad["detector"], progress=progress, **flown)

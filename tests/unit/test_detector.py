@@ -343,3 +343,55 @@ def test_release_scoring():
     assert s["false_alarms_per_min_steady"] == pytest.approx(1.5)
     assert s["precision"] == pytest.approx(2 / 9)
     assert s["f1"] == pytest.approx(4 / 12)
+    labelled = [
+        {**f, "label": label} for f, label in zip(flights, ("a", "a", "b", "steady"), strict=True)
+    ]
+    cells = cp.by_cell(labelled, declared)
+    assert cells == {
+        "a": {"hits": 2, "flights": 2, "false_alarms": 2},
+        "b": {"hits": 0, "flights": 1, "false_alarms": 2},
+        "steady": {"hits": 0, "flights": 1, "false_alarms": 3},
+    }
+
+
+def test_the_flagships_events_are_what_it_declared_in_its_own_flights(monkeypatch):
+    """``flagship_events`` flies ``arcade`` at the stack's stored knobs on the estimate with
+    the link delay compensated, every flight of :func:`plans`, and scores the changepoint
+    column of its own diagnostics (no replay)."""
+    from types import SimpleNamespace
+
+    from benchmarks import quadrotor_flights
+    from benchmarks.quadrotor_protocol import stored_knobs
+
+    dt, n = cp.DT, 300
+    calls = []
+
+    class FakeRunner:
+        def __init__(self, models):
+            self.models = models
+
+        def fly(self, method, scenario, seed, estimated, compensate_delay):
+            calls.append((method, seed, estimated, compensate_delay, self.models.closedloop))
+            diag = np.zeros((n, 17))
+            released = scenario.release_fraction >= 0
+            diag[103 if released else 7, quadrotor_flights.DIAG_CHANGEPOINT] = 1.0
+            return SimpleNamespace(
+                t_release=100 * dt if released else float("nan"),
+                t=np.arange(n) * dt,
+                diag=diag,
+                learning=None,
+                crashed=False,
+            )
+
+    monkeypatch.setattr(quadrotor_flights, "Runner", FakeRunner)
+    models = SimpleNamespace(vld=None, guard=None, closedloop={"ignored": 1})
+    r = cp.flagship_events(models, [0, 1], lambda msg: None)
+    assert len(calls) == 2 * len(cp.plans())
+    assert {c[:1] + c[2:4] for c in calls} == {("arcade", True, True)}
+    assert all(c[4] == stored_knobs("stack") for c in calls)
+    assert r["method"] == "arcade" and r["flights"] == 18
+    assert r["release_hit_rate"] == 1.0 and r["false_alarms_per_flight"] == 0.0
+    assert r["false_alarms_per_min_steady"] > 0.0  # one declaration in each steady flight
+    assert r["precision"] == pytest.approx(18 / 22)
+    assert r["by_cell"]["steady, rigid"] == {"hits": 0, "flights": 2, "false_alarms": 2}
+    assert r["by_cell"]["75 g, 2.5 m/s"] == {"hits": 2, "flights": 2, "false_alarms": 0}
