@@ -194,7 +194,7 @@ def _changepoints(args, progress):
     trials = args.trials if args.trials is not None else (1 if args.quick else 10)
     progress(
         "quadrotor: flights as the stack flies them: the flagship's own events, the detector "
-        "replayed on ours'"
+        "replayed on ours' flights"
     )
     quad, flown = qcp.run_changepoints(quick=args.quick, trials=trials, progress=progress)
     progress("forgetting ablation: the learners replayed on the same flights")
