@@ -15,7 +15,7 @@ HELP = (
     "App. E and the sensitivity to the readings the paper leaves open, minutes on 2 cores; "
     "quadrotor: Tables II, III, V, Figs. 4-5, ~3 h on 2 cores with the flagship and its "
     "ablations, --methods flies fewer; "
-    "changepoints: detection quality on both systems, ~1 h, --quick ~6 min)"
+    "changepoints: detection quality on both systems, ~1.5 h, --quick ~10 min)"
 )
 
 
