@@ -219,6 +219,14 @@ def declare(prob: np.ndarray, threshold: float, refractory: int) -> np.ndarray:
     return out
 
 
+def _hit_delay(t: np.ndarray, t_release: float) -> float | None:
+    """The delay of the first declaration (times ``t``) within :data:`HIT_S` after the
+    release, ``None`` when there is none (a miss)."""
+    after = t - t_release
+    inside = np.flatnonzero((after > 0) & (after <= HIT_S + 1e-9))
+    return float(after[inside[0]]) if inside.size else None
+
+
 def score(flights: list[dict[str, Any]], declared: list[np.ndarray]) -> dict[str, float]:
     """Hit rate, delay, false alarms and precision of the declarations of each flight."""
     hits, delays, false_release, false_steady, minutes_steady, n_decl = 0, [], 0, 0, 0.0, 0
@@ -228,12 +236,11 @@ def score(flights: list[dict[str, Any]], declared: list[np.ndarray]) -> dict[str
         n_decl += t.size
         if np.isfinite(f["t_release"]):
             releases += 1
-            after = t - f["t_release"]
-            inside = np.flatnonzero((after > 0) & (after <= HIT_S + 1e-9))
-            if inside.size:
+            delay = _hit_delay(t, f["t_release"])
+            if delay is not None:
                 hits += 1
-                delays.append(float(after[inside[0]]))
-            false_release += t.size - min(inside.size, 1)
+                delays.append(delay)
+            false_release += t.size - (delay is not None)
         else:
             false_steady += t.size
             minutes_steady += f["minutes"]
@@ -257,10 +264,7 @@ def by_cell(flights: list[dict[str, Any]], declared: list[np.ndarray]) -> dict[s
     for f, d in zip(flights, declared, strict=True):
         row = out.setdefault(f["label"], {"hits": 0, "flights": 0, "false_alarms": 0})
         t = np.flatnonzero(d) * DT
-        hit = 0
-        if np.isfinite(f["t_release"]):
-            after = t - f["t_release"]
-            hit = int(np.any((after > 0) & (after <= HIT_S + 1e-9)))
+        hit = int(np.isfinite(f["t_release"]) and _hit_delay(t, f["t_release"]) is not None)
         row["hits"] += hit
         row["flights"] += 1
         row["false_alarms"] += int(t.size - hit)
